@@ -1,1 +1,17 @@
-//! Placeholder; filled in by its issue.
+//! Pure algorithms of HoloFace: crop geometry, landmark metrics, HOG, the KRFWS aligner, DAN pre- and
+//! post-processing, the CANDIDE-3 fit and the Kalman predictor.
+//!
+//! **Architecture invariant:** this crate never touches the filesystem, the network or a clock. Models
+//! are loaded from byte slices; time enters as explicit `dt` arguments. Hot-path functions write into
+//! caller-provided buffers.
+#![deny(missing_docs)]
+
+pub mod crop;
+pub mod geometry;
+pub mod image;
+pub mod metrics;
+pub mod shape;
+
+pub use crop::{CROP_PIXELS, CROP_SIZE, Crop112, crop_bilinear};
+pub use geometry::{Point2, Similarity2};
+pub use image::{GrayImage, GrayView, ImageError};

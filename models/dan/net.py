@@ -1,0 +1,83 @@
+"""Single-stage Deep Alignment Network with a face/no-face head (algorithms.md sections 1.1 and 1.9)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+CROP = 112
+
+
+def _block(cin: int, cout: int) -> list[nn.Module]:
+    layers: list[nn.Module] = []
+    for i in range(2):
+        layers += [
+            nn.Conv2d(cin if i == 0 else cout, cout, 3, padding=1, bias=False),
+            nn.BatchNorm2d(cout),
+            nn.ReLU(inplace=True),
+        ]
+    layers.append(nn.MaxPool2d(2))
+    return layers
+
+
+class Dan(nn.Module):
+    """VGG-style body 4 x (2 x conv3x3-BN-ReLU, maxpool) -> dropout -> fc1 256 (BN, ReLU) -> 136 offsets.
+
+    `width` multiplies the conv channel counts (1.0 = the paper's 64/128/256/512). The landmark output is
+    the offset added to the mean shape (crop pixels). The face head is a 256 -> 2 linear layer on fc1 whose
+    softmax component 1 is the face probability.
+
+    Input normalisation (per-pixel mean/std over the training crops) lives in the module as buffers so the
+    exported graph takes raw pixels.
+    """
+
+    def __init__(self, mean_shape: torch.Tensor, width: float = 1.0, fc: int = 256):
+        super().__init__()
+        chans = [max(8, int(round(c * width))) for c in (64, 128, 256, 512)]
+        layers: list[nn.Module] = []
+        cin = 1
+        for c in chans:
+            layers += _block(cin, c)
+            cin = c
+        self.body = nn.Sequential(*layers)
+        self.dropout = nn.Dropout(0.5)
+        self.fc1 = nn.Linear(cin * 7 * 7, fc, bias=False)
+        self.bn1 = nn.BatchNorm1d(fc)
+        self.out = nn.Linear(fc, 136)
+        self.face = nn.Linear(fc, 2)
+        self.width = width
+        self.register_buffer("mean_shape", mean_shape.reshape(1, 68, 2).float().clone())
+        self.register_buffer("pix_mean", torch.zeros(1, 1, CROP, CROP))
+        self.register_buffer("pix_std", torch.ones(1, 1, CROP, CROP))
+        gain = nn.init.calculate_gain("relu")
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)):
+                nn.init.xavier_uniform_(m.weight, gain=gain)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+        nn.init.zeros_(self.out.weight)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        x = (x.float() - self.pix_mean) / self.pix_std
+        x = self.body(x)
+        x = torch.flatten(x, 1)
+        x = self.dropout(x)
+        return torch.relu(self.bn1(self.fc1(x)))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x: [N,1,112,112] pixels (0..255, any dtype). Returns (landmarks [N,68,2] crop px, face logits [N,2])."""
+        h = self.features(x)
+        lm = self.out(h).float().reshape(-1, 68, 2) + self.mean_shape
+        return lm, self.face(h).float()
+
+
+class DanExport(nn.Module):
+    """The exported graph: uint8 pixels in, landmarks and face probability out."""
+
+    def __init__(self, net: Dan):
+        super().__init__()
+        self.net = net
+
+    def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lm, logits = self.net(pixels.float())
+        return lm, torch.softmax(logits, dim=1)[:, 1]

@@ -1,0 +1,239 @@
+"""Train the single-stage DAN with a face/no-face head.
+
+    .venv/bin/python models/dan/train.py --data ../shared/data/faces68/train --out runs/dan-w0.5 --width 0.5
+
+Resumable: re-running the same command continues from `<out>/last.pt`. Writes `<out>/best.pt` (lowest
+validation NME), `<out>/log.jsonl` (one line per evaluation) and a tqdm progress bar on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import data as D  # noqa: E402
+import geometry as g  # noqa: E402
+from net import Dan  # noqa: E402
+
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+MEAN_SHAPE_FILE = os.path.join(REPO, "models", "assets", "mean_shape_68.txt")
+SPLIT_FILE = os.path.join(REPO, "models", "splits", "val.txt")
+
+
+def write_mean_shape(path: str, canon: np.ndarray, n_faces: int) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(
+            "# DAN canonical 68-point mean shape in 112x112 crop pixels (x y per line).\n"
+            f"# Generalised Procrustes mean of {n_faces} faces68/train faces (validation split excluded) and their\n"
+            "# mirror images, eyes level, larger extent 56 px, point mean at (56, 56). Produced by models/dan/train.py.\n"
+        )
+        for x, y in canon:
+            f.write(f"{x:.6f} {y:.6f}\n")
+
+
+def split(root: str) -> tuple[list[str], list[str]]:
+    val = set(g.read_split(SPLIT_FILE))
+    names = g.list_samples(root)
+    missing = val - set(names)
+    if missing:
+        raise SystemExit(f"validation names not found under {root}: {sorted(missing)[:3]}...")
+    return [n for n in names if n not in val], sorted(val)
+
+
+def batch(faces, canon, rng, n, neg_frac):
+    crops = np.empty((n, 1, g.CROP, g.CROP), np.uint8)
+    lms = np.zeros((n, 68, 2), np.float32)
+    lab = np.zeros(n, np.int64)
+    for i in range(n):
+        f = faces[rng.integers(len(faces))]
+        c, lm, y = D.make_sample(f, canon, rng, positive=rng.random() >= neg_frac)
+        crops[i, 0], lms[i], lab[i] = c, lm, y
+    return torch.from_numpy(crops), torch.from_numpy(lms), torch.from_numpy(lab)
+
+
+def nme(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean point error over 68 points / eye-centre distance (DAN's training loss)."""
+    d = (gt[:, 36:42].mean(1) - gt[:, 42:48].mean(1)).norm(dim=1).clamp_min(1.0)
+    return (pred - gt).norm(dim=2).mean(1) / d
+
+
+def validation_set(faces, canon, seed):
+    rng = np.random.default_rng(seed)
+    pos, pos_lm, neg = [], [], []
+    for f in faces:
+        init = D.validation_init(canon, f.pts, rng)
+        sim = g.best_fit(init, canon)
+        pos.append(g.warp_crop(f.img, sim))
+        pos_lm.append(g.apply(sim, f.pts))
+        for _ in range(3):
+            sim_n = g.best_fit(D.negative_init(canon, f.img, f.pts, rng), canon)
+            neg.append(g.warp_crop(f.img, sim_n))
+    t = lambda a: torch.from_numpy(np.stack(a)[:, None])  # noqa: E731
+    return t(pos), torch.from_numpy(np.stack(pos_lm)).float(), t(neg)
+
+
+def roc_auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """Probability that a random positive scores above a random negative (ties count half)."""
+    s = np.concatenate([pos, neg])
+    order = s.argsort(kind="mergesort")
+    ranks = np.empty(len(s))
+    ranks[order] = np.arange(1, len(s) + 1)
+    # average ranks over ties
+    _, inv, cnt = np.unique(s, return_inverse=True, return_counts=True)
+    sums = np.bincount(inv, weights=ranks)
+    ranks = (sums / cnt)[inv]
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+@torch.no_grad()
+def evaluate(net, val, channels_last):
+    net.eval()
+    pos, pos_lm, neg = val
+    outs = []
+    for x in (pos, neg):
+        lm_all, p_all = [], []
+        for i in range(0, len(x), 64):
+            xb = x[i : i + 64]
+            if channels_last:
+                xb = xb.contiguous(memory_format=torch.channels_last)
+            lm, logits = net(xb)
+            lm_all.append(lm)
+            p_all.append(torch.softmax(logits, 1)[:, 1])
+        outs.append((torch.cat(lm_all), torch.cat(p_all)))
+    (lm, p_pos), (_, p_neg) = outs
+    e_centres = nme(lm, pos_lm)
+    corners = (pos_lm[:, 36] - pos_lm[:, 45]).norm(dim=1)
+    e_corners = (lm - pos_lm).norm(dim=2).mean(1) / corners
+    net.train()
+    pp, pn = p_pos.numpy(), p_neg.numpy()
+    return {
+        "val_nme_centres": float(e_centres.mean()),
+        "val_nme68_corners": float(e_corners.mean()),
+        "val_fail_008": float((e_corners > 0.08).float().mean()),
+        "face_auc": roc_auc(pp, pn),
+        "face_frr@0.5": float((pp < 0.5).mean()),
+        "face_far@0.5": float((pn >= 0.5).mean()),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=os.environ.get("HOLOFACE_DATA", os.path.join(REPO, "..", "shared", "data")) + "/faces68/train")
+    ap.add_argument("--out", default=os.path.join(REPO, "runs", "dan-w0.5"))
+    ap.add_argument("--width", type=float, default=0.5)
+    ap.add_argument("--steps", type=int, default=12000, help="total optimiser steps (cosine schedule)")
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--neg-frac", type=float, default=0.25)
+    ap.add_argument("--face-weight", type=float, default=0.1, help="weight of the face cross-entropy")
+    ap.add_argument("--eval-every", type=int, default=250)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--precision", choices=["bf16", "fp32"], default="bf16", help="bf16 autocast (CPU AMX) or fp32")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the full-width recipe on a GPU)")
+    ap.add_argument("--write-mean-shape", action="store_true", help=f"(re)write {MEAN_SHAPE_FILE}")
+    args = ap.parse_args()
+
+    torch.set_num_threads(args.threads)
+    os.makedirs(args.out, exist_ok=True)
+    train_names, val_names = split(args.data)
+    print(f"train {len(train_names)} faces, validation {len(val_names)} faces ({SPLIT_FILE})", file=sys.stderr)
+    train = D.load_faces(args.data, train_names)
+    val_faces = D.load_faces(args.data, val_names)
+
+    canon = g.canonical_from_mean(g.procrustes_mean([f.pts for f in train]))
+    if args.write_mean_shape or not os.path.exists(MEAN_SHAPE_FILE):
+        write_mean_shape(MEAN_SHAPE_FILE, canon, len(train))
+    committed = np.loadtxt(MEAN_SHAPE_FILE, comments="#")
+    if np.abs(committed - canon).max() > 1e-4:
+        raise SystemExit(f"{MEAN_SHAPE_FILE} differs from the mean shape of this data; pass --write-mean-shape")
+
+    dev = torch.device(args.device)
+    channels_last = args.device == "cpu"
+    net = Dan(torch.from_numpy(canon), args.width)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    last = os.path.join(args.out, "last.pt")
+    step, best = 0, math.inf
+    rng = np.random.default_rng(args.seed)
+    if os.path.exists(last):
+        ck = torch.load(last, weights_only=False)
+        net.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        step, best = ck["step"], ck["best"]
+        rng.bit_generator.state = ck["rng"]
+        torch.set_rng_state(ck["torch_rng"])
+        print(f"resumed from {last} at step {step}", file=sys.stderr)
+    else:
+        torch.manual_seed(args.seed)
+        # Per-pixel normalisation over the training distribution (positives and negatives alike).
+        stat_rng = np.random.default_rng(args.seed + 1000)
+        xs = torch.cat([batch(train, canon, stat_rng, 256, args.neg_frac)[0] for _ in range(16)]).float()
+        net.pix_mean.copy_(xs.mean(0, keepdim=True))
+        net.pix_std.copy_(xs.std(0, keepdim=True).clamp_min(1.0))
+    net.to(dev)
+    if channels_last:
+        net = net.to(memory_format=torch.channels_last)
+    val = validation_set(val_faces, canon, seed=12345)
+
+    def lr_at(s: int) -> float:
+        return 1e-5 + 0.5 * (args.lr - 1e-5) * (1 + math.cos(math.pi * min(s, args.steps) / args.steps))
+
+    bar = tqdm(total=args.steps, initial=step, desc="DAN", file=sys.stderr, mininterval=10)
+    t0, seen = time.time(), 0
+    run_loss = []
+    while step < args.steps:
+        x, lm, y = batch(train, canon, rng, args.batch, args.neg_frac)
+        x, lm, y = x.to(dev), lm.to(dev), y.to(dev)
+        if channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        for pg in opt.param_groups:
+            pg["lr"] = lr_at(step)
+        with torch.autocast(args.device, dtype=torch.bfloat16, enabled=args.precision == "bf16"):
+            pred, logits = net(x)
+        pos = y == 1
+        l_lm = nme(pred[pos], lm[pos]).mean()
+        l_face = F.cross_entropy(logits, y)
+        loss = l_lm + args.face_weight * l_face
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        seen += args.batch
+        run_loss.append((float(l_lm), float(l_face)))
+        bar.update(1)
+        if step % args.eval_every == 0 or step == args.steps:
+            m = evaluate(net, val, channels_last)
+            lm_avg = float(np.mean([a for a, _ in run_loss]))
+            face_avg = float(np.mean([b for _, b in run_loss]))
+            run_loss.clear()
+            rec = {"step": step, "lr": lr_at(step), "train_nme": lm_avg, "train_face_ce": face_avg,
+                   "samples_per_s": seen / (time.time() - t0), "time": time.time(), **m}
+            with open(os.path.join(args.out, "log.jsonl"), "a", encoding="utf-8") as f:
+                f.write(json.dumps(rec) + "\n")
+            bar.set_postfix(val=f"{m['val_nme68_corners']:.4f}", auc=f"{m['face_auc']:.4f}")
+            state = {"model": net.state_dict(), "opt": opt.state_dict(), "step": step, "best": best,
+                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                     "width": args.width, "args": vars(args), "metrics": m}
+            if m["val_nme68_corners"] < best:
+                best = m["val_nme68_corners"]
+                state["best"] = best
+                torch.save(state, os.path.join(args.out, "best.pt.tmp"))
+                os.replace(os.path.join(args.out, "best.pt.tmp"), os.path.join(args.out, "best.pt"))
+            torch.save(state, last + ".tmp")
+            os.replace(last + ".tmp", last)
+            t0, seen = time.time(), 0
+    bar.close()
+
+
+if __name__ == "__main__":
+    main()

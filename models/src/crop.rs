@@ -1,0 +1,231 @@
+//! Similarity-warped crops: the 112×112 DAN crop and the KRFWS stage windows.
+//!
+//! The arithmetic is `f32` in exactly the order of `models/dan/geometry.py::warp_crop`, so the Rust crop
+//! and the crops DAN was trained on agree to the last grey level (the golden test bounds the difference).
+
+use thiserror::Error;
+
+use crate::geometry::Similarity2;
+use crate::image::GrayView;
+
+/// Side of the DAN crop in pixels.
+pub const CROP_SIZE: usize = 112;
+/// Pixels in one DAN crop.
+pub const CROP_PIXELS: usize = CROP_SIZE * CROP_SIZE;
+
+/// Errors of the crop functions.
+#[derive(Debug, Error, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum CropError {
+    /// The similarity has zero or non-finite scale.
+    #[error("crop transform is singular or not finite: {0:?}")]
+    SingularTransform(Similarity2),
+    /// `dst` does not hold `width · height` bytes.
+    #[error("crop buffer holds {actual} bytes, {width}x{height} needs {}", width * height)]
+    BadBuffer {
+        /// Requested width.
+        width: usize,
+        /// Requested height.
+        height: usize,
+        /// Buffer length.
+        actual: usize,
+    },
+}
+
+/// One 112×112 grayscale crop, row-major.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Crop112(pub Box<[u8; CROP_PIXELS]>);
+
+impl Default for Crop112 {
+    fn default() -> Self {
+        Self(Box::new([0; CROP_PIXELS]))
+    }
+}
+
+impl std::fmt::Debug for Crop112 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let sum: u64 = self.0.iter().map(|&p| u64::from(p)).sum();
+        write!(f, "Crop112 {{ mean: {:.1} }}", sum as f64 / CROP_PIXELS as f64)
+    }
+}
+
+impl Crop112 {
+    /// The pixels.
+    pub fn as_slice(&self) -> &[u8] {
+        &self.0[..]
+    }
+}
+
+/// Writes the 112×112 crop whose pixel `(u, v)` shows image point `crop_from_image⁻¹(u, v)`.
+pub fn crop_bilinear(
+    src: &GrayView<'_>,
+    crop_from_image: &Similarity2,
+    dst: &mut Crop112,
+) -> Result<(), CropError> {
+    warp_bilinear(src, crop_from_image, CROP_SIZE, CROP_SIZE, &mut dst.0[..])
+}
+
+/// Bilinear, zero-filled warp of `src` into a `width`×`height` buffer through `dst_from_src`.
+///
+/// Neighbours outside the source count as 0; values are rounded half up.
+pub fn warp_bilinear(
+    src: &GrayView<'_>,
+    dst_from_src: &Similarity2,
+    width: usize,
+    height: usize,
+    dst: &mut [u8],
+) -> Result<(), CropError> {
+    if dst.len() != width * height {
+        return Err(CropError::BadBuffer {
+            width,
+            height,
+            actual: dst.len(),
+        });
+    }
+    let inv = dst_from_src
+        .inverse()
+        .ok_or(CropError::SingularTransform(*dst_from_src))?;
+    let (a, b, tx, ty) = (inv.a as f32, inv.b as f32, inv.tx as f32, inv.ty as f32);
+    if !(a.is_finite() && b.is_finite() && tx.is_finite() && ty.is_finite()) {
+        return Err(CropError::SingularTransform(*dst_from_src));
+    }
+    let (w, h) = (src.width() as i64, src.height() as i64);
+    let data = src.data();
+    let stride = src.stride();
+    let tap = |x: i64, y: i64| -> f32 {
+        if x >= 0 && x < w && y >= 0 && y < h {
+            data.get(y as usize * stride + x as usize)
+                .map_or(0.0, |&p| f32::from(p))
+        } else {
+            0.0
+        }
+    };
+    for (v, row) in dst.chunks_exact_mut(width).enumerate() {
+        let vf = v as f32;
+        for (u, out) in row.iter_mut().enumerate() {
+            let uf = u as f32;
+            let sx = a * uf - b * vf + tx;
+            let sy = b * uf + a * vf + ty;
+            let (x0f, y0f) = (sx.floor(), sy.floor());
+            let (fx, fy) = (sx - x0f, sy - y0f);
+            let (x0, y0) = (x0f as i64, y0f as i64);
+            let (p00, p01, p10, p11) = if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+                let i = y0 as usize * stride + x0 as usize;
+                match (data.get(i..i + 2), data.get(i + stride..i + stride + 2)) {
+                    (Some(t), Some(bm)) => (
+                        f32::from(t[0]),
+                        f32::from(t[1]),
+                        f32::from(bm[0]),
+                        f32::from(bm[1]),
+                    ),
+                    _ => (0.0, 0.0, 0.0, 0.0),
+                }
+            } else {
+                (tap(x0, y0), tap(x0 + 1, y0), tap(x0, y0 + 1), tap(x0 + 1, y0 + 1))
+            };
+            let top = p00 * (1.0 - fx) + p01 * fx;
+            let bot = p10 * (1.0 - fx) + p11 * fx;
+            let val = top * (1.0 - fy) + bot * fy;
+            *out = (val + 0.5).floor().clamp(0.0, 255.0) as u8;
+        }
+    }
+    Ok(())
+}
+
+/// Nearest-neighbour warp (HoloFace's client sampling), kept for comparison benches.
+pub fn warp_nearest(
+    src: &GrayView<'_>,
+    dst_from_src: &Similarity2,
+    width: usize,
+    height: usize,
+    dst: &mut [u8],
+) -> Result<(), CropError> {
+    if dst.len() != width * height {
+        return Err(CropError::BadBuffer {
+            width,
+            height,
+            actual: dst.len(),
+        });
+    }
+    let inv = dst_from_src
+        .inverse()
+        .ok_or(CropError::SingularTransform(*dst_from_src))?;
+    let (a, b, tx, ty) = (inv.a as f32, inv.b as f32, inv.tx as f32, inv.ty as f32);
+    for (v, row) in dst.chunks_exact_mut(width).enumerate() {
+        let vf = v as f32;
+        for (u, out) in row.iter_mut().enumerate() {
+            let uf = u as f32;
+            let x = (a * uf - b * vf + tx + 0.5).floor();
+            let y = (b * uf + a * vf + ty + 0.5).floor();
+            *out = if x >= 0.0 && y >= 0.0 {
+                src.get(x as usize, y as usize).unwrap_or(0)
+            } else {
+                0
+            };
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(w: usize, h: usize) -> Vec<u8> {
+        (0..w * h).map(|i| ((i % w) * 2 + (i / w)) as u8).collect()
+    }
+
+    #[test]
+    fn identity_warp_copies_pixels() {
+        let img = ramp(20, 10);
+        let v = GrayView::new(&img, 20, 10, 20).unwrap();
+        let mut out = vec![0; 200];
+        warp_bilinear(&v, &Similarity2::IDENTITY, 20, 10, &mut out).unwrap();
+        assert_eq!(out, img);
+    }
+
+    #[test]
+    fn translation_by_half_pixel_averages_neighbours() {
+        let img = vec![0, 100, 0, 100, 0, 100, 0, 100];
+        let v = GrayView::new(&img, 4, 2, 4).unwrap();
+        // dst(u, v) = src(u + 0.5, v): crop_from_image shifts by -0.5.
+        let s = Similarity2 {
+            a: 1.0,
+            b: 0.0,
+            tx: -0.5,
+            ty: 0.0,
+        };
+        let mut out = vec![0; 4];
+        warp_bilinear(&v, &s, 2, 2, &mut out).unwrap();
+        assert_eq!(out, vec![50, 50, 50, 50]);
+    }
+
+    #[test]
+    fn outside_is_zero_and_bad_inputs_are_errors() {
+        let img = vec![200u8; 16];
+        let v = GrayView::new(&img, 4, 4, 4).unwrap();
+        let far = Similarity2 {
+            a: 1.0,
+            b: 0.0,
+            tx: 100.0,
+            ty: 100.0,
+        };
+        let mut out = vec![7; 4];
+        warp_bilinear(&v, &far, 2, 2, &mut out).unwrap();
+        assert_eq!(out, vec![0; 4]);
+        let singular = Similarity2 {
+            a: 0.0,
+            b: 0.0,
+            tx: 0.0,
+            ty: 0.0,
+        };
+        assert!(matches!(
+            warp_bilinear(&v, &singular, 2, 2, &mut out),
+            Err(CropError::SingularTransform(_))
+        ));
+        assert!(matches!(
+            warp_bilinear(&v, &far, 3, 2, &mut out),
+            Err(CropError::BadBuffer { .. })
+        ));
+    }
+}
