@@ -1,0 +1,558 @@
+//! The dynamic batcher: an IO-free state machine that groups frames from many
+//! clients into inference batches.
+//!
+//! It never reads a clock, sleeps or touches a socket: every call that depends
+//! on time takes `now`, and [`DynamicBatcher::poll_timeout`] tells the driver
+//! when it must call back. Call order for a driver (see `server.rs`):
+//!
+//! 1. [`DynamicBatcher::push`] every frame as it arrives.
+//! 2. When the timer from [`DynamicBatcher::poll_timeout`] fires, call
+//!    [`DynamicBatcher::handle_timeout`].
+//! 3. After every input, drain [`DynamicBatcher::poll_dropped`] (answer those
+//!    frames with `Dropped{reason}`), then, if the engine is idle, call
+//!    [`DynamicBatcher::poll_batch`] and hand the batch to the engine.
+//! 4. Re-arm the timer with [`DynamicBatcher::poll_timeout`].
+//!
+//! # Policy
+//!
+//! * **Bounded per client**: each client has a FIFO of at most
+//!   `per_client_queue` frames; a newer frame evicts the oldest
+//!   ([`DropReason::Superseded`]), and a frame older than one already queued
+//!   for the same client is superseded on arrival. A global bound
+//!   (`max_queued`) sheds new frames with [`DropReason::Overloaded`].
+//! * **Deadlines**: a frame whose deadline has passed is dropped with
+//!   [`DropReason::Expired`] and never reaches the engine.
+//! * **When to fire**: a batch is formed when `max_batch` frames are queued,
+//!   or the oldest frame has waited `max_wait` (checked in `poll_batch`, so a
+//!   busy engine naturally accumulates a fuller batch).
+//! * **Fairness**: batches are filled round-robin over clients with queued
+//!   frames, one frame per client per round; the rotation continues across
+//!   batches, so a client with a deep queue cannot starve others and an idle
+//!   engine slot is never left empty while any frame is waiting.
+
+use std::collections::{HashMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use holoface_protocol::DropReason;
+
+/// Identifies a client (one QUIC connection) inside the server.
+pub type ClientId = u64;
+
+/// Batcher limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BatcherConfig {
+    /// Largest batch handed to the engine (>= 1).
+    pub max_batch: usize,
+    /// Longest time the oldest queued frame waits for a fuller batch.
+    pub max_wait: Duration,
+    /// Frames kept per client (>= 1); older ones are superseded.
+    pub per_client_queue: usize,
+    /// Frames kept in total; beyond it new frames are shed as overloaded.
+    pub max_queued: usize,
+}
+
+impl Default for BatcherConfig {
+    fn default() -> Self {
+        Self {
+            max_batch: 8,
+            max_wait: Duration::from_millis(2),
+            per_client_queue: 1,
+            max_queued: 4096,
+        }
+    }
+}
+
+/// One queued frame.
+#[derive(Debug)]
+pub struct Pending<T> {
+    /// The client that sent it.
+    pub client: ClientId,
+    /// The client's frame number (strictly increasing per client).
+    pub frame_id: u64,
+    /// When it arrived at the server.
+    pub arrived: Instant,
+    /// When it stops being worth aligning.
+    pub expires: Instant,
+    /// Whatever the driver needs to answer it (pixels, reply handle).
+    pub payload: T,
+}
+
+/// A frame the batcher gave up on, and why.
+#[derive(Debug)]
+pub struct Dropped<T> {
+    /// The frame.
+    pub item: Pending<T>,
+    /// Why it was dropped.
+    pub reason: DropReason,
+}
+
+/// Frames to run through the engine together.
+#[derive(Debug)]
+pub struct Batch<T> {
+    /// The frames, at most `max_batch`, in round-robin client order.
+    pub items: Vec<Pending<T>>,
+    /// When the batch was formed (the `now` passed to `poll_batch`).
+    pub formed_at: Instant,
+}
+
+/// The sans-IO dynamic batcher. See the module docs for the call order and
+/// the policy.
+#[derive(Debug)]
+pub struct DynamicBatcher<T> {
+    cfg: BatcherConfig,
+    queues: HashMap<ClientId, VecDeque<Pending<T>>>,
+    /// Clients with a non-empty queue, in service order.
+    ring: VecDeque<ClientId>,
+    len: usize,
+    dropped: VecDeque<Dropped<T>>,
+    draining: bool,
+}
+
+impl<T> DynamicBatcher<T> {
+    /// A batcher with the given limits (zero limits are raised to 1).
+    pub fn new(mut cfg: BatcherConfig) -> Self {
+        cfg.max_batch = cfg.max_batch.max(1);
+        cfg.per_client_queue = cfg.per_client_queue.max(1);
+        cfg.max_queued = cfg.max_queued.max(1);
+        Self {
+            cfg,
+            queues: HashMap::new(),
+            ring: VecDeque::new(),
+            len: 0,
+            dropped: VecDeque::new(),
+            draining: false,
+        }
+    }
+
+    /// The limits in force.
+    pub const fn config(&self) -> &BatcherConfig {
+        &self.cfg
+    }
+
+    /// Frames currently queued.
+    pub const fn len(&self) -> usize {
+        self.len
+    }
+
+    /// `true` when no frame is queued.
+    pub const fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Queues a frame that arrived at `now`. Frames it displaces (or the
+    /// frame itself, if stale or over a bound) come out of
+    /// [`Self::poll_dropped`].
+    pub fn push(&mut self, item: Pending<T>, now: Instant) {
+        if self.draining {
+            return self.drop_item(item, DropReason::ShuttingDown);
+        }
+        if item.expires <= now {
+            return self.drop_item(item, DropReason::Expired);
+        }
+        let queue = self.queues.entry(item.client).or_default();
+        if queue
+            .back()
+            .is_some_and(|newest| newest.frame_id >= item.frame_id)
+        {
+            // An older frame arriving after a newer one (streams complete out
+            // of order): the newer one already supersedes it.
+            return self.drop_item(item, DropReason::Superseded);
+        }
+        let was_empty = queue.is_empty();
+        let mut evicted = None;
+        if queue.len() >= self.cfg.per_client_queue {
+            evicted = queue.pop_front();
+        } else if self.len >= self.cfg.max_queued {
+            return self.drop_item(item, DropReason::Overloaded);
+        }
+        let client = item.client;
+        queue.push_back(item);
+        if let Some(old) = evicted {
+            self.dropped.push_back(Dropped {
+                item: old,
+                reason: DropReason::Superseded,
+            });
+        } else {
+            self.len += 1;
+        }
+        if was_empty {
+            self.ring.push_back(client);
+        }
+    }
+
+    /// Drops every queued frame whose deadline is at or before `now`.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        let mut emptied = false;
+        for queue in self.queues.values_mut() {
+            let before = queue.len();
+            let mut kept = VecDeque::with_capacity(before);
+            while let Some(item) = queue.pop_front() {
+                if item.expires <= now {
+                    self.dropped.push_back(Dropped {
+                        item,
+                        reason: DropReason::Expired,
+                    });
+                } else {
+                    kept.push_back(item);
+                }
+            }
+            self.len -= before - kept.len();
+            emptied |= before > 0 && kept.is_empty();
+            *queue = kept;
+        }
+        if emptied {
+            self.prune();
+        }
+    }
+
+    /// Next frame the driver must answer with `Dropped{reason}`.
+    pub fn poll_dropped(&mut self) -> Option<Dropped<T>> {
+        self.dropped.pop_front()
+    }
+
+    /// A batch, if one is due at `now`: `max_batch` frames are queued or the
+    /// oldest has waited `max_wait`. Expired frames are dropped first.
+    pub fn poll_batch(&mut self, now: Instant) -> Option<Batch<T>> {
+        self.handle_timeout(now);
+        if self.len == 0 {
+            return None;
+        }
+        let due = self.len >= self.cfg.max_batch
+            || self
+                .oldest_arrival()
+                .is_some_and(|t| t + self.cfg.max_wait <= now);
+        if !due {
+            return None;
+        }
+        let mut items = Vec::with_capacity(self.cfg.max_batch.min(self.len));
+        while items.len() < self.cfg.max_batch {
+            let Some(client) = self.ring.pop_front() else {
+                break;
+            };
+            let Some(queue) = self.queues.get_mut(&client) else {
+                continue;
+            };
+            if let Some(item) = queue.pop_front() {
+                items.push(item);
+                self.len -= 1;
+            }
+            if queue.is_empty() {
+                self.queues.remove(&client);
+            } else {
+                self.ring.push_back(client);
+            }
+        }
+        Some(Batch {
+            items,
+            formed_at: now,
+        })
+    }
+
+    /// When the driver must call back ([`Self::poll_batch`] for the
+    /// `max_wait` flush, [`Self::handle_timeout`] for the earliest deadline),
+    /// or `None` when nothing is queued.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        let flush = self.oldest_arrival().map(|t| t + self.cfg.max_wait);
+        let expiry = self
+            .queues
+            .values()
+            .flat_map(|q| q.iter().map(|i| i.expires))
+            .min();
+        match (flush, expiry) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Forgets a client that went away; its queued frames are discarded
+    /// without a reply (there is nobody to answer). Returns how many.
+    pub fn remove_client(&mut self, client: ClientId) -> usize {
+        let n = self.queues.remove(&client).map_or(0, |q| q.len());
+        self.len -= n;
+        self.ring.retain(|c| *c != client);
+        n
+    }
+
+    /// Starts draining for shutdown: every queued frame and every later push
+    /// is dropped with [`DropReason::ShuttingDown`]. A batch already handed
+    /// to the engine is unaffected.
+    pub fn start_drain(&mut self) {
+        self.draining = true;
+        for (_, queue) in self.queues.drain() {
+            for item in queue {
+                self.dropped.push_back(Dropped {
+                    item,
+                    reason: DropReason::ShuttingDown,
+                });
+            }
+        }
+        self.ring.clear();
+        self.len = 0;
+    }
+
+    /// `true` after [`Self::start_drain`].
+    pub const fn is_draining(&self) -> bool {
+        self.draining
+    }
+
+    fn drop_item(&mut self, item: Pending<T>, reason: DropReason) {
+        self.dropped.push_back(Dropped { item, reason });
+    }
+
+    fn oldest_arrival(&self) -> Option<Instant> {
+        self.queues
+            .values()
+            .filter_map(|q| q.front().map(|i| i.arrived))
+            .min()
+    }
+
+    fn prune(&mut self) {
+        self.queues.retain(|_, q| !q.is_empty());
+        let queues = &self.queues;
+        self.ring.retain(|c| queues.contains_key(c));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    struct Clock(Instant);
+
+    impl Clock {
+        fn at(&self, ms: u64) -> Instant {
+            self.0 + MS * u32::try_from(ms).unwrap()
+        }
+    }
+
+    fn item(clock: &Clock, client: ClientId, frame_id: u64, at_ms: u64, deadline_ms: u64) -> Pending<()> {
+        Pending {
+            client,
+            frame_id,
+            arrived: clock.at(at_ms),
+            expires: clock.at(at_ms + deadline_ms),
+            payload: (),
+        }
+    }
+
+    fn cfg(max_batch: usize, max_wait_ms: u64, per_client: usize) -> BatcherConfig {
+        BatcherConfig {
+            max_batch,
+            max_wait: MS * u32::try_from(max_wait_ms).unwrap(),
+            per_client_queue: per_client,
+            max_queued: 1000,
+        }
+    }
+
+    fn drops(b: &mut DynamicBatcher<()>) -> Vec<(ClientId, u64, DropReason)> {
+        std::iter::from_fn(|| b.poll_dropped())
+            .map(|d| (d.item.client, d.item.frame_id, d.reason))
+            .collect()
+    }
+
+    fn ids(batch: &Batch<()>) -> Vec<(ClientId, u64)> {
+        batch.items.iter().map(|i| (i.client, i.frame_id)).collect()
+    }
+
+    #[test]
+    fn fires_immediately_when_full() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(3, 4, 1));
+        for client in 0..3 {
+            b.push(item(&c, client, 1, 0, 100), c.at(0));
+        }
+        let batch = b.poll_batch(c.at(0)).expect("full batch fires at once");
+        assert_eq!(batch.items.len(), 3);
+        assert_eq!(batch.formed_at, c.at(0));
+        assert!(b.is_empty());
+        assert_eq!(b.poll_timeout(), None);
+    }
+
+    #[test]
+    fn partial_batch_waits_max_wait_then_flushes() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 1));
+        b.push(item(&c, 1, 1, 0, 100), c.at(0));
+        b.push(item(&c, 2, 1, 1, 100), c.at(1));
+        assert!(b.poll_batch(c.at(3)).is_none());
+        assert_eq!(
+            b.poll_timeout(),
+            Some(c.at(4)),
+            "flush deadline of the oldest frame"
+        );
+        let batch = b.poll_batch(c.at(4)).expect("flushes at t0+4ms");
+        assert_eq!(ids(&batch), vec![(1, 1), (2, 1)]);
+    }
+
+    #[test]
+    fn newer_frame_supersedes_queued_one() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 1));
+        b.push(item(&c, 7, 1, 0, 100), c.at(0));
+        b.push(item(&c, 7, 2, 1, 100), c.at(1));
+        assert_eq!(drops(&mut b), vec![(7, 1, DropReason::Superseded)]);
+        assert_eq!(b.len(), 1);
+        let batch = b.poll_batch(c.at(10)).unwrap();
+        assert_eq!(ids(&batch), vec![(7, 2)]);
+    }
+
+    #[test]
+    fn older_frame_arriving_late_is_superseded_on_arrival() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 2));
+        b.push(item(&c, 7, 5, 0, 100), c.at(0));
+        b.push(item(&c, 7, 4, 0, 100), c.at(0));
+        assert_eq!(drops(&mut b), vec![(7, 4, DropReason::Superseded)]);
+        assert_eq!(b.len(), 1);
+    }
+
+    #[test]
+    fn queue_depth_two_keeps_two_newest() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 2));
+        for f in 1..=4 {
+            b.push(item(&c, 1, f, 0, 100), c.at(0));
+        }
+        assert_eq!(
+            drops(&mut b),
+            vec![(1, 1, DropReason::Superseded), (1, 2, DropReason::Superseded)]
+        );
+        let batch = b.poll_batch(c.at(4)).unwrap();
+        assert_eq!(ids(&batch), vec![(1, 3), (1, 4)]);
+    }
+
+    #[test]
+    fn expired_frames_never_reach_a_batch() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 10, 1));
+        b.push(item(&c, 1, 1, 0, 5), c.at(0));
+        b.push(item(&c, 2, 1, 0, 50), c.at(0));
+        assert_eq!(
+            b.poll_timeout(),
+            Some(c.at(5)),
+            "earliest deadline comes before the flush"
+        );
+        b.handle_timeout(c.at(5));
+        assert_eq!(drops(&mut b), vec![(1, 1, DropReason::Expired)]);
+        let batch = b.poll_batch(c.at(10)).unwrap();
+        assert_eq!(ids(&batch), vec![(2, 1)]);
+        // Already stale on arrival.
+        b.push(item(&c, 3, 1, 0, 5), c.at(6));
+        assert_eq!(drops(&mut b), vec![(3, 1, DropReason::Expired)]);
+        assert!(b.is_empty());
+    }
+
+    #[test]
+    fn poll_batch_expires_before_forming() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(2, 4, 1));
+        b.push(item(&c, 1, 1, 0, 3), c.at(0));
+        b.push(item(&c, 2, 1, 0, 30), c.at(0));
+        // Engine was busy; at t=20 the first frame is stale.
+        let batch = b.poll_batch(c.at(20)).unwrap();
+        assert_eq!(ids(&batch), vec![(2, 1)]);
+        assert_eq!(drops(&mut b), vec![(1, 1, DropReason::Expired)]);
+    }
+
+    #[test]
+    fn round_robin_is_fair_to_light_clients() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(4, 4, 10));
+        for f in 1..=10 {
+            b.push(item(&c, 1, f, 0, 100), c.at(0));
+        }
+        b.push(item(&c, 2, 1, 0, 100), c.at(0));
+        b.push(item(&c, 3, 1, 0, 100), c.at(0));
+        let batch = b.poll_batch(c.at(0)).unwrap();
+        let got = ids(&batch);
+        assert_eq!(got.len(), 4);
+        assert!(got.contains(&(2, 1)) && got.contains(&(3, 1)), "{got:?}");
+        assert_eq!(got.iter().filter(|(cl, _)| *cl == 1).count(), 2);
+        // The heavy client keeps the engine busy once the others are served.
+        let batch = b.poll_batch(c.at(0)).unwrap();
+        assert_eq!(ids(&batch), vec![(1, 3), (1, 4), (1, 5), (1, 6)]);
+    }
+
+    #[test]
+    fn rotation_continues_across_batches() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(1, 0, 3));
+        for client in 1..=3 {
+            for f in 1..=3 {
+                b.push(item(&c, client, f, 0, 100), c.at(0));
+            }
+        }
+        let order: Vec<ClientId> = std::iter::from_fn(|| b.poll_batch(c.at(0)))
+            .map(|batch| batch.items[0].client)
+            .collect();
+        assert_eq!(order, vec![1, 2, 3, 1, 2, 3, 1, 2, 3]);
+    }
+
+    #[test]
+    fn global_bound_sheds_new_frames() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(BatcherConfig {
+            max_queued: 2,
+            ..cfg(8, 4, 1)
+        });
+        for client in 1..=3 {
+            b.push(item(&c, client, 1, 0, 100), c.at(0));
+        }
+        assert_eq!(drops(&mut b), vec![(3, 1, DropReason::Overloaded)]);
+        assert_eq!(b.len(), 2);
+        // Superseding within a client does not count against the bound.
+        b.push(item(&c, 1, 2, 0, 100), c.at(0));
+        assert_eq!(drops(&mut b), vec![(1, 1, DropReason::Superseded)]);
+        assert_eq!(b.len(), 2);
+    }
+
+    #[test]
+    fn drain_answers_everything_with_shutting_down() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 1));
+        b.push(item(&c, 1, 1, 0, 100), c.at(0));
+        b.push(item(&c, 2, 1, 0, 100), c.at(0));
+        b.start_drain();
+        b.push(item(&c, 3, 1, 0, 100), c.at(0));
+        let mut got = drops(&mut b);
+        got.sort_unstable_by_key(|d| d.0);
+        assert_eq!(
+            got,
+            vec![
+                (1, 1, DropReason::ShuttingDown),
+                (2, 1, DropReason::ShuttingDown),
+                (3, 1, DropReason::ShuttingDown)
+            ]
+        );
+        assert!(b.is_empty() && b.is_draining());
+        assert!(b.poll_batch(c.at(100)).is_none());
+    }
+
+    #[test]
+    fn removed_client_is_forgotten() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 4, 2));
+        b.push(item(&c, 1, 1, 0, 100), c.at(0));
+        b.push(item(&c, 1, 2, 0, 100), c.at(0));
+        b.push(item(&c, 2, 1, 0, 100), c.at(0));
+        assert_eq!(b.remove_client(1), 2);
+        assert_eq!(b.len(), 1);
+        let batch = b.poll_batch(c.at(4)).unwrap();
+        assert_eq!(ids(&batch), vec![(2, 1)]);
+        assert!(drops(&mut b).is_empty());
+    }
+
+    #[test]
+    fn zero_limits_are_raised() {
+        let b: DynamicBatcher<()> = DynamicBatcher::new(BatcherConfig {
+            max_batch: 0,
+            max_wait: Duration::ZERO,
+            per_client_queue: 0,
+            max_queued: 0,
+        });
+        assert_eq!(b.config().max_batch, 1);
+        assert_eq!(b.config().per_client_queue, 1);
+    }
+}

@@ -1,0 +1,682 @@
+//! Server configuration: one clap + serde struct, a TOML file the CLI cannot
+//! silently clobber, and the resolved [`Settings`] the server runs with.
+//!
+//! Precedence, highest first: command-line flag, `HOLOFACE_*` environment
+//! variable, TOML file (`--config`), built-in default. Every field the TOML
+//! can set is an `Option`, so a flag that was not given is `None` and cannot
+//! overwrite the file ([`ServerConfig::merge`]); the `cli_does_not_clobber_toml_*`
+//! tests guard this. The ONNX Runtime path additionally falls back to the
+//! conventional `ORT_DYLIB_PATH` variable, below the TOML file.
+//!
+//! [`ServerConfig::parse_and_merge`] is pure (it is handed the file reader);
+//! [`ServerConfig::load`] is the binary's entry point.
+
+use std::ffi::OsString;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use clap::{Args, Parser, ValueEnum};
+use holoface_protocol::ReplyChannel;
+use serde::{Deserialize, Serialize};
+
+use crate::batcher::BatcherConfig;
+use crate::engine::OnnxOptions;
+use crate::internal::is_internal_addr;
+
+/// Default QUIC listen address.
+pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
+/// Default model path (relative to the working directory).
+pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
+/// Where `make ort` puts the ONNX Runtime library.
+pub const DEFAULT_ORT_DYLIB: &str = ".cache/onnxruntime/libonnxruntime.so.1.31.1";
+
+/// Configuration errors.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// Command-line parsing failed (or `--help` / `--version` was asked for).
+    #[error(transparent)]
+    Cli(#[from] clap::Error),
+    /// The config file could not be read.
+    #[error("reading config file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The config file is not valid TOML for this schema.
+    #[error("parsing config file {path}: {source}")]
+    Toml {
+        /// The file.
+        path: PathBuf,
+        /// The parse error.
+        source: Box<toml::de::Error>,
+    },
+    /// A value is out of range or inconsistent.
+    #[error("invalid configuration: {0}")]
+    Invalid(String),
+}
+
+/// How replies travel back (the TOML/CLI spelling of [`ReplyChannel`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ReplyMode {
+    /// One QUIC datagram per reply (default; see BENCHMARKS.md).
+    Datagram,
+    /// Framed replies on one server-to-client unidirectional stream.
+    Stream,
+}
+
+impl From<ReplyMode> for ReplyChannel {
+    fn from(m: ReplyMode) -> Self {
+        match m {
+            ReplyMode::Datagram => Self::Datagram,
+            ReplyMode::Stream => Self::Stream,
+        }
+    }
+}
+
+/// `[quic]`: endpoint, TLS and handshake.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct QuicConfig {
+    /// UDP address to listen on [default: 0.0.0.0:4433].
+    #[arg(long, env = "HOLOFACE_LISTEN")]
+    pub listen: Option<SocketAddr>,
+    /// PEM certificate chain; without it a self-signed certificate is generated.
+    #[arg(long, env = "HOLOFACE_CERT")]
+    pub cert: Option<PathBuf>,
+    /// PEM private key for `cert`.
+    #[arg(long, env = "HOLOFACE_KEY")]
+    pub key: Option<PathBuf>,
+    /// Subject names of the self-signed certificate [default: localhost].
+    #[arg(long = "self-signed-name", value_delimiter = ',')]
+    pub self_signed_names: Option<Vec<String>>,
+    /// Also write the certificate's SHA-256 fingerprint to this file.
+    #[arg(long, env = "HOLOFACE_FINGERPRINT_FILE")]
+    pub fingerprint_file: Option<PathBuf>,
+    /// Close connections idle this long, ms [default: 10000].
+    #[arg(long)]
+    pub idle_timeout_ms: Option<u64>,
+    /// A client must send its ClientHello within this, ms [default: 5000].
+    #[arg(long)]
+    pub hello_timeout_ms: Option<u64>,
+    /// Reply transport offered to clients [default: datagram].
+    #[arg(long, value_enum)]
+    pub reply_channel: Option<ReplyMode>,
+}
+
+/// `[auth]`: access tokens.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthConfig {
+    /// Accepted tokens (comma-separated on the command line).
+    #[arg(
+        long = "token",
+        env = "HOLOFACE_TOKENS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub tokens: Option<Vec<String>>,
+    /// File with one accepted token per line (added to `tokens`).
+    #[arg(long)]
+    pub tokens_file: Option<PathBuf>,
+    /// Accept clients without a valid token (development only) [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub allow_anonymous: Option<bool>,
+}
+
+/// `[limits]`: what one client, and all of them, may use.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LimitsConfig {
+    /// Concurrent clients; more are closed with Overloaded [default: 64].
+    #[arg(long, env = "HOLOFACE_MAX_CLIENTS")]
+    pub max_clients: Option<usize>,
+    /// Frames one client may have in flight (open frame streams) [default: 2].
+    #[arg(long)]
+    pub max_in_flight: Option<u16>,
+    /// Frames older than this (or their own deadline) are dropped, ms [default: 100].
+    #[arg(long)]
+    pub max_frame_age_ms: Option<u32>,
+    /// Bound on graceful shutdown, ms [default: 5000].
+    #[arg(long)]
+    pub shutdown_timeout_ms: Option<u64>,
+}
+
+/// `[batch]`: the dynamic batcher.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BatchConfig {
+    /// Largest inference batch [default: 8].
+    #[arg(long, env = "HOLOFACE_MAX_BATCH")]
+    pub max_batch: Option<usize>,
+    /// Longest wait for a fuller batch, µs [default: 2000].
+    #[arg(long)]
+    pub max_wait_us: Option<u64>,
+    /// Queued frames kept per client; newer ones supersede older [default: 1].
+    #[arg(long)]
+    pub per_client_queue: Option<usize>,
+}
+
+/// `[engine]`: ONNX Runtime.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EngineConfig {
+    /// The DAN ONNX model [default: models/assets/dan.onnx].
+    #[arg(long, env = "HOLOFACE_MODEL")]
+    pub model: Option<PathBuf>,
+    /// libonnxruntime.so [default: $ORT_DYLIB_PATH, else .cache/onnxruntime/libonnxruntime.so.1.31.1].
+    #[arg(long)]
+    pub ort_dylib: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads [default: available cores].
+    #[arg(long, env = "HOLOFACE_INTRA_THREADS")]
+    pub intra_threads: Option<usize>,
+    /// Use the CUDA execution provider (needs the `cuda` build feature) [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub cuda: Option<bool>,
+}
+
+/// `[internal]`: the metrics/health listener.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InternalConfig {
+    /// Serve /metrics and /health here (loopback or private address only) [default: off].
+    #[arg(long, env = "HOLOFACE_METRICS_LISTEN")]
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+/// `[log]`: logging (installed by the binary).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogConfig {
+    /// Log filter, e.g. `info` or `holoface_server=debug`; RUST_LOG overrides [default: info].
+    #[arg(long = "log-level", env = "HOLOFACE_LOG")]
+    pub level: Option<String>,
+}
+
+impl LogConfig {
+    /// The `tracing_subscriber::EnvFilter` directive: `RUST_LOG` if set, else
+    /// the configured level, with quinn and rustls capped at `info`.
+    pub fn filter_directive(&self) -> String {
+        if let Ok(env) = std::env::var("RUST_LOG")
+            && !env.trim().is_empty()
+        {
+            return env;
+        }
+        let level = self.level.as_deref().unwrap_or("info");
+        format!("{level},quinn=info,quinn_proto=info,rustls=info")
+    }
+}
+
+/// Everything the server can be configured with, as parsed (all optional).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Parser, Serialize, Deserialize)]
+#[command(
+    name = "holoface-server",
+    version,
+    about = "HoloFace alignment server (QUIC + ONNX Runtime)"
+)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// TOML config file (see deploy/server.example.toml).
+    #[arg(long, short = 'c', env = "HOLOFACE_CONFIG")]
+    #[serde(skip)]
+    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub quic: QuicConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub auth: AuthConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub limits: LimitsConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub batch: BatchConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub engine: EngineConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub internal: InternalConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub log: LogConfig,
+}
+
+macro_rules! merge_fields {
+    ($hi:expr, $lo:expr, $($f:ident),+) => {
+        Self { $($f: $hi.$f.or($lo.$f)),+ }
+    };
+}
+
+impl QuicConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(
+            self,
+            lo,
+            listen,
+            cert,
+            key,
+            self_signed_names,
+            fingerprint_file,
+            idle_timeout_ms,
+            hello_timeout_ms,
+            reply_channel
+        )
+    }
+}
+impl AuthConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, tokens, tokens_file, allow_anonymous)
+    }
+}
+impl LimitsConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(
+            self,
+            lo,
+            max_clients,
+            max_in_flight,
+            max_frame_age_ms,
+            shutdown_timeout_ms
+        )
+    }
+}
+impl BatchConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, max_batch, max_wait_us, per_client_queue)
+    }
+}
+impl EngineConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda)
+    }
+}
+impl InternalConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, metrics_listen)
+    }
+}
+impl LogConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, level)
+    }
+}
+
+impl ServerConfig {
+    /// Field-by-field: values set in `self` win, unset ones come from `lower`.
+    pub fn merge(self, lower: Self) -> Self {
+        Self {
+            config: self.config.or(lower.config),
+            quic: self.quic.merge(lower.quic),
+            auth: self.auth.merge(lower.auth),
+            limits: self.limits.merge(lower.limits),
+            batch: self.batch.merge(lower.batch),
+            engine: self.engine.merge(lower.engine),
+            internal: self.internal.merge(lower.internal),
+            log: self.log.merge(lower.log),
+        }
+    }
+
+    /// Parses a TOML config file's text.
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Toml {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })
+    }
+
+    /// Parses `args` (program name first), reads the `--config` file through
+    /// `read_file` if one is named, and merges: CLI/env over file. Pure apart
+    /// from `read_file` and clap's environment look-ups.
+    pub fn parse_and_merge<I, T>(
+        args: I,
+        read_file: impl FnOnce(&Path) -> std::io::Result<String>,
+    ) -> Result<Self, ConfigError>
+    where
+        I: IntoIterator<Item = T>,
+        T: Into<OsString> + Clone,
+    {
+        let cli = Self::try_parse_from(args)?;
+        let Some(path) = cli.config.clone() else {
+            return Ok(cli);
+        };
+        let text = read_file(&path).map_err(|source| ConfigError::Read {
+            path: path.clone(),
+            source,
+        })?;
+        let file = Self::from_toml(&text, &path)?;
+        Ok(cli.merge(file))
+    }
+
+    /// The binary's entry point: process arguments, the config file, then
+    /// [`Self::resolve`].
+    pub fn load() -> Result<(Settings, LogConfig), ConfigError> {
+        let cfg = Self::parse_and_merge(std::env::args_os(), |p| std::fs::read_to_string(p))?;
+        let log = cfg.log.clone();
+        Ok((cfg.resolve()?, log))
+    }
+
+    /// Applies defaults and checks ranges. Reads `auth.tokens_file` if set.
+    pub fn resolve(self) -> Result<Settings, ConfigError> {
+        let invalid = |m: String| ConfigError::Invalid(m);
+        let q = self.quic;
+        let tls = match (q.cert, q.key) {
+            (Some(cert), Some(key)) => TlsSource::Files { cert, key },
+            (None, None) => TlsSource::SelfSigned {
+                names: q
+                    .self_signed_names
+                    .unwrap_or_else(|| vec!["localhost".to_owned()]),
+            },
+            _ => return Err(invalid("quic.cert and quic.key must be given together".into())),
+        };
+        let listen = match q.listen {
+            Some(a) => a,
+            None => DEFAULT_LISTEN
+                .parse()
+                .map_err(|e| invalid(format!("default listen address: {e}")))?,
+        };
+        let mut tokens = self.auth.tokens.unwrap_or_default();
+        if let Some(path) = &self.auth.tokens_file {
+            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                path: path.clone(),
+                source,
+            })?;
+            tokens.extend(
+                text.lines()
+                    .map(str::trim)
+                    .filter(|l| !l.is_empty() && !l.starts_with('#'))
+                    .map(str::to_owned),
+            );
+        }
+        tokens.retain(|t| !t.is_empty());
+        let allow_anonymous = self.auth.allow_anonymous.unwrap_or(false);
+        if tokens.is_empty() && !allow_anonymous {
+            return Err(invalid(
+                "no access tokens: set auth.tokens / --token / HOLOFACE_TOKENS (or auth.allow_anonymous for development)"
+                    .into(),
+            ));
+        }
+        if let Some(t) = tokens
+            .iter()
+            .find(|t| t.len() > holoface_protocol::limits::MAX_TOKEN_LEN)
+        {
+            return Err(invalid(format!(
+                "a token is {} bytes; the protocol allows at most {}",
+                t.len(),
+                holoface_protocol::limits::MAX_TOKEN_LEN
+            )));
+        }
+        let max_batch = self.batch.max_batch.unwrap_or(8);
+        if !(1..=256).contains(&max_batch) {
+            return Err(invalid(format!("batch.max_batch = {max_batch}, allowed 1..=256")));
+        }
+        let max_clients = self.limits.max_clients.unwrap_or(64);
+        if max_clients == 0 {
+            return Err(invalid("limits.max_clients must be at least 1".into()));
+        }
+        let max_in_flight = self.limits.max_in_flight.unwrap_or(2).max(1);
+        if let Some(addr) = self.internal.metrics_listen
+            && !is_internal_addr(addr.ip())
+        {
+            return Err(invalid(format!(
+                "internal.metrics_listen {addr} must be a loopback or private address"
+            )));
+        }
+        let ort_dylib = self
+            .engine
+            .ort_dylib
+            .or_else(|| {
+                std::env::var_os("ORT_DYLIB_PATH")
+                    .filter(|v| !v.is_empty())
+                    .map(PathBuf::from)
+            })
+            .unwrap_or_else(|| PathBuf::from(DEFAULT_ORT_DYLIB));
+        let intra_threads = self
+            .engine
+            .intra_threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from))
+            .max(1);
+        Ok(Settings {
+            listen,
+            tls,
+            fingerprint_file: q.fingerprint_file,
+            idle_timeout: Duration::from_millis(q.idle_timeout_ms.unwrap_or(10_000).max(100)),
+            hello_timeout: Duration::from_millis(q.hello_timeout_ms.unwrap_or(5_000).max(1)),
+            reply_channel: q.reply_channel.unwrap_or(ReplyMode::Datagram).into(),
+            tokens,
+            allow_anonymous,
+            max_clients,
+            max_in_flight,
+            max_frame_age: Duration::from_millis(u64::from(
+                self.limits.max_frame_age_ms.unwrap_or(100).max(1),
+            )),
+            shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
+            batch: BatcherConfig {
+                max_batch,
+                max_wait: Duration::from_micros(self.batch.max_wait_us.unwrap_or(2_000)),
+                per_client_queue: self.batch.per_client_queue.unwrap_or(1).max(1),
+                max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
+            },
+            engine: OnnxOptions {
+                model: self.engine.model.unwrap_or_else(|| PathBuf::from(DEFAULT_MODEL)),
+                ort_dylib,
+                intra_threads,
+                max_batch,
+                cuda: self.engine.cuda.unwrap_or(false),
+            },
+            metrics_listen: self.internal.metrics_listen,
+        })
+    }
+}
+
+/// Where the server's certificate comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TlsSource {
+    /// PEM files.
+    Files {
+        /// Certificate chain.
+        cert: PathBuf,
+        /// Private key.
+        key: PathBuf,
+    },
+    /// A self-signed certificate generated at start for these names.
+    SelfSigned {
+        /// Subject alternative names.
+        names: Vec<String>,
+    },
+}
+
+/// The resolved configuration the server runs with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// UDP listen address.
+    pub listen: SocketAddr,
+    /// Certificate source.
+    pub tls: TlsSource,
+    /// Where to write the certificate fingerprint, if anywhere.
+    pub fingerprint_file: Option<PathBuf>,
+    /// QUIC idle timeout.
+    pub idle_timeout: Duration,
+    /// Time allowed for the ClientHello.
+    pub hello_timeout: Duration,
+    /// Reply transport offered to clients.
+    pub reply_channel: ReplyChannel,
+    /// Accepted tokens.
+    pub tokens: Vec<String>,
+    /// Accept any token.
+    pub allow_anonymous: bool,
+    /// Concurrent client cap.
+    pub max_clients: usize,
+    /// Per-client frames in flight.
+    pub max_in_flight: u16,
+    /// Server-side cap on a frame's age.
+    pub max_frame_age: Duration,
+    /// Bound on graceful shutdown.
+    pub shutdown_timeout: Duration,
+    /// Batcher limits.
+    pub batch: BatcherConfig,
+    /// ONNX Runtime engine options.
+    pub engine: OnnxOptions,
+    /// Internal metrics listener.
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+impl Settings {
+    /// Settings for tests and benchmarks: loopback on an ephemeral port,
+    /// self-signed certificate, one token, everything else default.
+    pub fn for_loopback(token: &str, model: PathBuf, ort_dylib: PathBuf) -> Result<Self, ConfigError> {
+        let cfg = ServerConfig {
+            quic: QuicConfig {
+                listen: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
+                ..QuicConfig::default()
+            },
+            auth: AuthConfig {
+                tokens: Some(vec![token.to_owned()]),
+                ..AuthConfig::default()
+            },
+            engine: EngineConfig {
+                model: Some(model),
+                ort_dylib: Some(ort_dylib),
+                ..EngineConfig::default()
+            },
+            ..ServerConfig::default()
+        };
+        cfg.resolve()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TOML: &str = r#"
+        [quic]
+        listen = "127.0.0.1:5000"
+        reply_channel = "stream"
+        [auth]
+        tokens = ["from-file"]
+        [batch]
+        max_batch = 16
+        max_wait_us = 500
+        [engine]
+        model = "/srv/dan.onnx"
+        intra_threads = 3
+        [limits]
+        max_clients = 7
+    "#;
+
+    fn parse(args: &[&str]) -> ServerConfig {
+        let mut argv = vec!["holoface-server", "--config", "server.toml"];
+        argv.extend_from_slice(args);
+        ServerConfig::parse_and_merge(argv, |p| {
+            assert_eq!(p, Path::new("server.toml"));
+            Ok(TOML.to_owned())
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_when_flags_absent() {
+        let cfg = parse(&[]);
+        assert_eq!(cfg.batch.max_batch, Some(16));
+        assert_eq!(cfg.batch.max_wait_us, Some(500));
+        assert_eq!(cfg.quic.reply_channel, Some(ReplyMode::Stream));
+        assert_eq!(cfg.engine.intra_threads, Some(3));
+        assert_eq!(cfg.limits.max_clients, Some(7));
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.batch.max_batch, 16);
+        assert_eq!(s.reply_channel, ReplyChannel::Stream);
+        assert_eq!(s.listen, "127.0.0.1:5000".parse().unwrap());
+        assert_eq!(s.tokens, vec!["from-file".to_owned()]);
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_other_fields_of_a_section() {
+        // Setting one batch flag must not reset the other batch fields.
+        let cfg = parse(&["--max-batch", "4"]);
+        assert_eq!(cfg.batch.max_batch, Some(4));
+        assert_eq!(cfg.batch.max_wait_us, Some(500));
+        assert_eq!(cfg.engine.model, Some(PathBuf::from("/srv/dan.onnx")));
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_but_explicit_flags_win() {
+        let cfg = parse(&[
+            "--listen",
+            "127.0.0.1:6000",
+            "--reply-channel",
+            "datagram",
+            "--token",
+            "a,b",
+        ]);
+        assert_eq!(cfg.quic.listen, Some("127.0.0.1:6000".parse().unwrap()));
+        assert_eq!(cfg.quic.reply_channel, Some(ReplyMode::Datagram));
+        assert_eq!(cfg.auth.tokens, Some(vec!["a".to_owned(), "b".to_owned()]));
+        assert_eq!(cfg.limits.max_clients, Some(7));
+    }
+
+    #[test]
+    fn defaults_without_a_file() {
+        let cfg =
+            ServerConfig::parse_and_merge(["holoface-server", "--token", "t"], |_| panic!("no file named"))
+                .unwrap();
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.listen, DEFAULT_LISTEN.parse().unwrap());
+        assert_eq!(s.batch.max_batch, 8);
+        assert_eq!(s.batch.per_client_queue, 1);
+        assert_eq!(s.max_in_flight, 2);
+        assert_eq!(s.reply_channel, ReplyChannel::Datagram);
+        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+        assert_eq!(s.metrics_listen, None);
+        assert!(matches!(s.tls, TlsSource::SelfSigned { ref names } if names == &["localhost"]));
+    }
+
+    #[test]
+    fn unknown_toml_keys_are_rejected() {
+        let err =
+            ServerConfig::parse_and_merge(["x", "-c", "f.toml"], |_| Ok("[batch]\nmax_bach = 3\n".into()))
+                .unwrap_err();
+        assert!(err.to_string().contains("max_bach"), "{err}");
+    }
+
+    #[test]
+    fn invalid_values_are_refused() {
+        let no_tokens = ServerConfig::default().resolve().unwrap_err().to_string();
+        assert!(no_tokens.contains("no access tokens"), "{no_tokens}");
+        let mut cfg = ServerConfig::default();
+        cfg.auth.allow_anonymous = Some(true);
+        cfg.internal.metrics_listen = Some("0.0.0.0:9000".parse().unwrap());
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("loopback or private")
+        );
+        cfg.internal.metrics_listen = None;
+        cfg.quic.cert = Some("c.pem".into());
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("together")
+        );
+        cfg.quic.cert = None;
+        cfg.batch.max_batch = Some(0);
+        assert!(cfg.resolve().unwrap_err().to_string().contains("max_batch"));
+    }
+
+    #[test]
+    fn example_config_parses() {
+        let text = include_str!("../../deploy/server.example.toml");
+        let cfg = ServerConfig::from_toml(text, Path::new("deploy/server.example.toml")).unwrap();
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+    }
+}

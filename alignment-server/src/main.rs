@@ -1,0 +1,28 @@
+//! `holoface-server`: see `holoface-server --help` and deploy/server.example.toml.
+
+use alignment_server::{Server, ServerConfig, config::ConfigError, shutdown_signal};
+use anyhow::Context as _;
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let (settings, log) = match ServerConfig::load() {
+        Ok(v) => v,
+        Err(ConfigError::Cli(e)) => e.exit(),
+        Err(e) => return Err(e).context("configuration"),
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(log.filter_directive()))
+        .init();
+    let server = Server::bind(settings)
+        .await
+        .context("starting the alignment server")?;
+    println!(
+        "holoface-server on {} certificate-sha256 {}",
+        server.local_addr()?,
+        server.fingerprint()
+    );
+    server
+        .run(shutdown_signal())
+        .await
+        .context("running the alignment server")
+}
