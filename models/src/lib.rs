@@ -6,10 +6,14 @@
 //! caller-provided buffers.
 #![deny(missing_docs)]
 
+pub mod candide;
 pub mod crop;
 pub mod geometry;
 pub mod image;
+pub mod kalman;
+pub mod math3;
 pub mod metrics;
+pub mod pose;
 pub mod shape;
 
 pub use crop::{CROP_PIXELS, CROP_SIZE, Crop112, crop_bilinear};
