@@ -425,19 +425,31 @@ pub struct OnnxEngine {
     _env: ort::environment::Environment,
 }
 
+/// The process's ONNX Runtime environment: ort allows one per process, ever,
+/// so it is created once and shared by every engine.
+static ENVIRONMENT: std::sync::Mutex<Option<ort::environment::Environment>> = std::sync::Mutex::new(None);
+
 /// Loads the ONNX Runtime library (once per process; later calls reuse the
-/// first library) and returns an environment.
+/// first library) and returns the shared environment.
 fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
     if !dylib.is_file() {
         return Err(EngineError::RuntimeMissing {
             path: dylib.to_path_buf(),
         });
     }
+    let mut slot = ENVIRONMENT
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    if let Some(env) = slot.as_ref() {
+        return Ok(env.clone());
+    }
     let builder = ort::init_from(dylib).map_err(|e| EngineError::RuntimeLoad {
         path: dylib.to_path_buf(),
         detail: e.to_string(),
     })?;
-    Ok(builder.with_name("holoface-server").build()?)
+    let env = builder.with_name("holoface-server").build()?;
+    *slot = Some(env.clone());
+    Ok(env)
 }
 
 fn spec_of(outlet: &ort::value::Outlet) -> TensorSpec {

@@ -16,8 +16,12 @@ async fn main() -> anyhow::Result<()> {
     let server = Server::bind(settings)
         .await
         .context("starting the alignment server")?;
+    // One machine-readable line for scripts and the loopback benchmark.
+    let metrics = server
+        .metrics_addr()
+        .map_or_else(|| "off".to_owned(), |a| a.to_string());
     println!(
-        "holoface-server on {} certificate-sha256 {}",
+        "holoface-server on {} certificate-sha256 {} metrics {metrics}",
         server.local_addr()?,
         server.fingerprint()
     );

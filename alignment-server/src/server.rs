@@ -611,10 +611,18 @@ async fn reply_writer(conn: Connection, mut rx: mpsc::Receiver<Bytes>) {
             return;
         }
     }
-    if let Some(mut s) = stream {
-        let _ = s.finish();
+    if let Some(mut s) = stream
+        && s.finish().is_ok()
+    {
+        let _ = tokio::time::timeout(CLOSE_GRACE, s.stopped()).await;
     }
 }
+
+/// A draining connection stops accepting frame streams after this long without one.
+const DRAIN_QUIET: Duration = Duration::from_millis(100);
+
+/// How long a draining connection waits for the peer to acknowledge its last data.
+const CLOSE_GRACE: Duration = Duration::from_secs(1);
 
 async fn session(conn: &Connection, client: ClientId, shared: &Arc<Shared>) -> SessionEnd {
     let settings = &shared.settings;
@@ -766,12 +774,34 @@ async fn session(conn: &Connection, client: ClientId, shared: &Arc<Shared>) -> S
                 let _ = tokio::time::timeout(Duration::from_millis(500), ctl_send.write_all(&buf)).await;
             }
             let deadline = shared.settings.shutdown_timeout;
-            let _ =
-                tokio::time::timeout(deadline, async { while frames.join_next().await.is_some() {} }).await;
+            // Frames the client sent before it saw the Goaway still get an
+            // answer (landmarks if already batched, else ShuttingDown): keep
+            // accepting until in-flight work is done and the link is quiet.
+            let drain = async {
+                loop {
+                    tokio::select! {
+                        Some(_) = frames.join_next(), if !frames.is_empty() => {}
+                        stream = conn.accept_uni() => match stream {
+                            Ok(recv) => {
+                                frames.spawn(frame_task(recv, Arc::clone(&ctx)));
+                            }
+                            Err(_) => break,
+                        },
+                        () = tokio::time::sleep(DRAIN_QUIET), if frames.is_empty() => break,
+                    }
+                }
+            };
+            let _ = tokio::time::timeout(deadline, drain).await;
             frames.abort_all();
             drop(ctx);
             if let Some(w) = writer {
-                let _ = tokio::time::timeout(Duration::from_millis(500), w).await;
+                let _ = tokio::time::timeout(CLOSE_GRACE, w).await;
+            }
+            // Finish the control stream and wait (bounded) for the peer to
+            // acknowledge it: the Goaway and the last replies, queued before
+            // the FIN, are then on the client's side before the close.
+            if ctl_send.finish().is_ok() {
+                let _ = tokio::time::timeout(CLOSE_GRACE.min(deadline), ctl_send.stopped()).await;
             }
             SessionEnd::Shutdown
         }

@@ -1,0 +1,526 @@
+//! Loopback benchmark of the alignment server (numbers in BENCHMARKS.md).
+//!
+//! ```text
+//! cargo build --release -p holoface-server -p holoface-e2e
+//! target/release/holoface-server-bench ort        # raw ONNX Runtime, batch 1/8/32
+//! target/release/holoface-server-bench throughput # server vs raw ORT, same run
+//! target/release/holoface-server-bench latency    # p50/p99/p999 at 30 fps per client
+//! target/release/holoface-server-bench idle       # memory per idle connection, 1000 held
+//! ```
+//!
+//! The server runs as a child process (`target/release/holoface-server`), so
+//! its RSS is its own; the raw-ORT baseline runs in this process with the
+//! same model, threads and batch size.
+
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use alignment_server::Fingerprint;
+use alignment_server::engine::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
+use anyhow::{Context, anyhow, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use hdrhistogram::Histogram;
+use holoface_e2e::{TestClient, client_endpoint_with, frame, hello};
+use holoface_protocol::{DropReason, ReplyOutcome};
+
+const TOKEN: &str = "bench-token";
+
+#[derive(Debug, Parser)]
+#[command(about = "Loopback benchmark of the HoloFace alignment server")]
+struct Cli {
+    /// ONNX model [default: $HOLOFACE_DAN_MODEL or models/assets/dan.onnx].
+    #[arg(long, global = true)]
+    model: Option<PathBuf>,
+    /// libonnxruntime [default: $ORT_DYLIB_PATH, .cache/onnxruntime/…, .venv].
+    #[arg(long, global = true)]
+    ort_dylib: Option<PathBuf>,
+    /// The server binary.
+    #[arg(long, global = true, default_value = "target/release/holoface-server")]
+    server_bin: PathBuf,
+    /// Intra-op threads (server and raw baseline).
+    #[arg(long, global = true, default_value_t = 2)]
+    threads: usize,
+    /// Append one JSON line per result here.
+    #[arg(long, global = true, default_value = "target/bench/server.jsonl")]
+    out: PathBuf,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Reply {
+    Datagram,
+    Stream,
+}
+
+impl Reply {
+    const fn as_str(self) -> &'static str {
+        match self {
+            Self::Datagram => "datagram",
+            Self::Stream => "stream",
+        }
+    }
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Raw ONNX Runtime throughput at several batch sizes.
+    Ort {
+        #[arg(long, value_delimiter = ',', default_value = "1,8,32")]
+        batches: Vec<usize>,
+        #[arg(long, default_value_t = 8.0)]
+        seconds: f64,
+    },
+    /// Saturated server throughput versus raw ORT at the same batch size.
+    Throughput {
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        #[arg(long, default_value_t = 16)]
+        clients: usize,
+        #[arg(long, default_value_t = 15.0)]
+        seconds: f64,
+        #[arg(long, value_enum, default_value = "datagram")]
+        reply: Reply,
+    },
+    /// Latency at a fixed frame rate per client.
+    Latency {
+        #[arg(long, value_delimiter = ',', default_value = "1,4")]
+        clients: Vec<usize>,
+        #[arg(long, default_value_t = 30.0)]
+        fps: f64,
+        #[arg(long, default_value_t = 20.0)]
+        seconds: f64,
+        #[arg(long, default_value_t = 1)]
+        batch: usize,
+        #[arg(long, default_value_t = 200)]
+        deadline_ms: u16,
+        #[arg(long, value_enum, default_value = "datagram")]
+        reply: Reply,
+    },
+    /// Memory per idle connection; holds N idle connections.
+    Idle {
+        #[arg(long, default_value_t = 1000)]
+        connections: usize,
+        #[arg(long, default_value_t = 15.0)]
+        hold_seconds: f64,
+    },
+}
+
+fn model(cli: &Cli) -> PathBuf {
+    cli.model.clone().unwrap_or_else(holoface_e2e::model_path)
+}
+
+fn dylib(cli: &Cli) -> PathBuf {
+    cli.ort_dylib.clone().unwrap_or_else(holoface_e2e::ort_dylib_path)
+}
+
+fn record(cli: &Cli, value: &serde_json::Value) -> anyhow::Result<()> {
+    use std::io::Write as _;
+    if let Some(dir) = cli.out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&cli.out)
+        .with_context(|| format!("opening {}", cli.out.display()))?;
+    writeln!(f, "{value}")?;
+    println!("{value}");
+    Ok(())
+}
+
+/// Raw ORT: images per second at `batch` for about `seconds`.
+fn raw_ort(cli: &Cli, batch: usize, seconds: f64) -> anyhow::Result<(f64, f64)> {
+    let mut engine = OnnxEngine::load(&OnnxOptions {
+        model: model(cli),
+        ort_dylib: dylib(cli),
+        intra_threads: cli.threads,
+        max_batch: batch,
+        cuda: false,
+    })?;
+    let mut tensor = BatchTensor::new(batch, 112 * 112);
+    for i in 0..batch {
+        tensor.push(&frame(0, u8::try_from(i % 200).unwrap_or(0), 0).crop.data)?;
+    }
+    let mut out = vec![LandmarkOut::default(); batch];
+    engine.infer(&tensor, &mut out)?; // warm-up
+    let start = Instant::now();
+    let mut runs = 0_u64;
+    while start.elapsed().as_secs_f64() < seconds {
+        engine.infer(&tensor, &mut out)?;
+        runs += 1;
+    }
+    let dt = start.elapsed().as_secs_f64();
+    Ok(((runs as f64 * batch as f64) / dt, dt * 1e3 / runs as f64))
+}
+
+/// The server as a child process.
+struct ServerChild {
+    child: Child,
+    addr: SocketAddr,
+    fingerprint: Fingerprint,
+    metrics: Option<SocketAddr>,
+}
+
+impl ServerChild {
+    fn start(cli: &Cli, extra: &[String]) -> anyhow::Result<Self> {
+        let mut cmd = Command::new(&cli.server_bin);
+        cmd.args(["--listen", "127.0.0.1:0", "--token", TOKEN, "--log-level", "warn"])
+            .arg("--model")
+            .arg(model(cli))
+            .arg("--ort-dylib")
+            .arg(dylib(cli))
+            .args(["--intra-threads", &cli.threads.to_string()])
+            .args(["--metrics-listen", "127.0.0.1:0"])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
+        let mut child = cmd
+            .spawn()
+            .with_context(|| format!("starting {} (build it with --release)", cli.server_bin.display()))?;
+        let stdout = child.stdout.take().ok_or_else(|| anyhow!("no stdout"))?;
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line)?;
+        // "holoface-server on ADDR certificate-sha256 FP metrics ADDR"
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let (Some(addr), Some(fp), Some(m)) = (words.get(2), words.get(4), words.get(6)) else {
+            let _ = child.kill();
+            bail!("unexpected server output {line:?}");
+        };
+        Ok(Self {
+            addr: addr.parse()?,
+            fingerprint: fp.parse()?,
+            metrics: m.parse().ok(),
+            child,
+        })
+    }
+
+    fn rss_kib(&self) -> anyhow::Result<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id()))?;
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            .ok_or_else(|| anyhow!("no VmRSS"))
+    }
+
+    async fn metric(&self, name: &str) -> anyhow::Result<f64> {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let addr = self.metrics.ok_or_else(|| anyhow!("no metrics listener"))?;
+        let mut s = tokio::net::TcpStream::connect(addr).await?;
+        s.write_all(b"GET /metrics HTTP/1.1\r\n\r\n").await?;
+        let mut body = String::new();
+        s.read_to_string(&mut body).await?;
+        body.lines()
+            .find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
+            .ok_or_else(|| anyhow!("metric {name} not found"))
+    }
+
+    fn stop(mut self) {
+        // SIGTERM would be nicer; kill is enough for a benchmark child.
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+async fn connect(server: &ServerChild, max_in_flight: u16) -> anyhow::Result<TestClient> {
+    let mut h = hello(TOKEN);
+    h.max_in_flight = max_in_flight;
+    let endpoint = client_endpoint_with(server.fingerprint, Some(Duration::from_secs(2)))?;
+    Ok(TestClient::connect_on(endpoint, server.addr, h).await?)
+}
+
+/// Saturating client: keeps `in_flight` frames outstanding; counts aligned
+/// replies that arrive between `count_from` and `until`.
+async fn saturate(
+    mut c: TestClient,
+    in_flight: usize,
+    count_from: Instant,
+    until: Instant,
+    aligned: Arc<AtomicU64>,
+) -> anyhow::Result<()> {
+    let mut next = 1_u64;
+    let mut outstanding = 0;
+    while Instant::now() < until {
+        while outstanding < in_flight {
+            c.send_frame(&frame(next, u8::try_from(next % 200).unwrap_or(0), 0))
+                .await?;
+            next += 1;
+            outstanding += 1;
+        }
+        let reply = tokio::time::timeout(Duration::from_secs(10), c.next_reply()).await??;
+        outstanding -= 1;
+        let now = Instant::now();
+        if matches!(reply.outcome, ReplyOutcome::Landmarks { .. }) && now >= count_from && now < until {
+            aligned.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+    Ok(())
+}
+
+async fn throughput(
+    cli: &Cli,
+    batch: usize,
+    clients: usize,
+    seconds: f64,
+    reply: Reply,
+) -> anyhow::Result<()> {
+    let (raw, raw_ms) = raw_ort(cli, batch, seconds)?;
+    let server = ServerChild::start(
+        cli,
+        &[
+            "--max-batch".into(),
+            batch.to_string(),
+            "--max-clients".into(),
+            (clients + 8).to_string(),
+            "--max-frame-age-ms".into(),
+            "60000".into(),
+            "--reply-channel".into(),
+            reply.as_str().into(),
+        ],
+    )?;
+    let mut conns = Vec::new();
+    for _ in 0..clients {
+        conns.push(connect(&server, 2).await?);
+    }
+    // Warm-up, then the measured window.
+    let start_at = Instant::now() + Duration::from_secs(3);
+    let until = start_at + Duration::from_secs_f64(seconds);
+    let measured = Arc::new(AtomicU64::new(0));
+    let mut tasks = Vec::new();
+    for c in conns {
+        tasks.push(tokio::spawn(saturate(
+            c,
+            2,
+            start_at,
+            until,
+            Arc::clone(&measured),
+        )));
+    }
+    tokio::time::sleep_until(tokio::time::Instant::from_std(start_at)).await;
+    let before = server.metric("holoface_batch_size_count").await.unwrap_or(0.0);
+    let frames_before = server
+        .metric("holoface_frames_aligned_total")
+        .await
+        .unwrap_or(0.0);
+    tokio::time::sleep_until(tokio::time::Instant::from_std(until)).await;
+    let after = server.metric("holoface_batch_size_count").await.unwrap_or(0.0);
+    let frames_after = server
+        .metric("holoface_frames_aligned_total")
+        .await
+        .unwrap_or(0.0);
+    for t in tasks {
+        t.await??;
+    }
+    let got = measured.load(Ordering::Relaxed) as f64 / seconds;
+    let mean_batch = (frames_after - frames_before) / (after - before).max(1.0);
+    server.stop();
+    record(
+        cli,
+        &serde_json::json!({
+            "bench": "throughput", "batch": batch, "threads": cli.threads, "clients": clients,
+            "reply": reply.as_str(), "seconds": seconds,
+            "raw_ort_img_s": raw, "raw_ort_ms_per_batch": raw_ms,
+            "server_img_s": got, "ratio": got / raw, "server_mean_batch": mean_batch,
+        }),
+    )
+}
+
+async fn latency(
+    cli: &Cli,
+    clients: usize,
+    fps: f64,
+    seconds: f64,
+    batch: usize,
+    deadline_ms: u16,
+    reply: Reply,
+) -> anyhow::Result<()> {
+    let server = ServerChild::start(
+        cli,
+        &[
+            "--max-batch".into(),
+            batch.to_string(),
+            "--max-clients".into(),
+            (clients + 8).to_string(),
+            "--reply-channel".into(),
+            reply.as_str().into(),
+            "--max-frame-age-ms".into(),
+            deadline_ms.to_string(),
+        ],
+    )?;
+    let period = Duration::from_secs_f64(1.0 / fps);
+    let start = Instant::now() + Duration::from_millis(500);
+    let until = start + Duration::from_secs_f64(seconds);
+    let mut tasks = Vec::new();
+    for i in 0..clients {
+        let mut c = connect(&server, 1).await?;
+        // Stagger clients across one frame period.
+        let offset = period.mul_f64(i as f64 / clients as f64);
+        tasks.push(tokio::spawn(async move {
+            let mut hist = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3)?;
+            let mut drops: HashMap<&'static str, u64> = HashMap::new();
+            let mut sent_at: HashMap<u64, Instant> = HashMap::new();
+            let mut ticker = tokio::time::interval_at(tokio::time::Instant::from_std(start + offset), period);
+            ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+            let (mut next, mut skipped, mut sent) = (1_u64, 0_u64, 0_u64);
+            loop {
+                tokio::select! {
+                    _ = ticker.tick() => {
+                        if Instant::now() >= until { break; }
+                        // At most one frame in flight, newest wins: a tick
+                        // while one is outstanding is a skipped frame.
+                        if sent_at.is_empty() {
+                            c.send_frame(&frame(next, u8::try_from(next % 200).unwrap_or(0), deadline_ms)).await?;
+                            sent_at.insert(next, Instant::now());
+                            sent += 1;
+                        } else {
+                            skipped += 1;
+                        }
+                        next += 1;
+                    }
+                    r = c.next_reply() => {
+                        let r = r?;
+                        let Some(t) = sent_at.remove(&r.frame_id) else { continue };
+                        match r.outcome {
+                            ReplyOutcome::Landmarks { .. } => {
+                                hist.record(u64::try_from(t.elapsed().as_micros()).unwrap_or(u64::MAX))?;
+                            }
+                            ReplyOutcome::Dropped { reason } => {
+                                *drops.entry(drop_name(reason)).or_default() += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            Ok::<_, anyhow::Error>((hist, drops, sent, skipped))
+        }));
+    }
+    let mut all = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3)?;
+    let mut drops: HashMap<&'static str, u64> = HashMap::new();
+    let (mut sent, mut skipped) = (0, 0);
+    for t in tasks {
+        let (h, d, s, k) = t.await??;
+        all.add(&h)?;
+        for (k2, v) in d {
+            *drops.entry(k2).or_default() += v;
+        }
+        sent += s;
+        skipped += k;
+    }
+    server.stop();
+    let ms = |q: f64| all.value_at_quantile(q) as f64 / 1e3;
+    record(
+        cli,
+        &serde_json::json!({
+            "bench": "latency", "clients": clients, "fps": fps, "batch": batch, "threads": cli.threads,
+            "reply": reply.as_str(), "seconds": seconds, "deadline_ms": deadline_ms,
+            "sent": sent, "aligned": all.len(), "skipped_ticks": skipped, "drops": drops,
+            "p50_ms": ms(0.5), "p99_ms": ms(0.99), "p999_ms": ms(0.999), "max_ms": all.max() as f64 / 1e3,
+        }),
+    )
+}
+
+const fn drop_name(r: DropReason) -> &'static str {
+    alignment_server::metrics::drop_label(r)
+}
+
+async fn idle(cli: &Cli, connections: usize, hold_seconds: f64) -> anyhow::Result<()> {
+    let server = ServerChild::start(
+        cli,
+        &[
+            "--max-clients".into(),
+            (connections + 16).to_string(),
+            "--idle-timeout-ms".into(),
+            "10000".into(),
+        ],
+    )?;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let rss0 = server.rss_kib()?;
+    // A few client endpoints (UDP sockets), many connections each.
+    let endpoints: Vec<_> = (0..8)
+        .map(|_| client_endpoint_with(server.fingerprint, Some(Duration::from_secs(3))))
+        .collect::<Result<_, _>>()?;
+    let mut clients = Vec::with_capacity(connections);
+    for i in 0..connections {
+        let ep = endpoints
+            .get(i % endpoints.len())
+            .ok_or_else(|| anyhow!("no endpoint"))?
+            .clone();
+        clients.push(TestClient::connect_on(ep, server.addr, hello(TOKEN)).await?);
+    }
+    let connected_at = server.metric("holoface_connected_clients").await?;
+    tokio::time::sleep(Duration::from_secs_f64(hold_seconds)).await;
+    let rss1 = server.rss_kib()?;
+    let connected_after = server.metric("holoface_connected_clients").await?;
+    let still_open = clients.iter().filter(|c| c.conn.close_reason().is_none()).count();
+    server.stop();
+    record(
+        cli,
+        &serde_json::json!({
+            "bench": "idle", "connections": connections, "hold_seconds": hold_seconds,
+            "server_rss_before_kib": rss0, "server_rss_after_kib": rss1,
+            "kib_per_connection": (rss1.saturating_sub(rss0)) as f64 / connections as f64,
+            "server_connected_gauge_start": connected_at, "server_connected_gauge_end": connected_after,
+            "client_side_still_open": still_open,
+        }),
+    )
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(
+            std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
+        ))
+        .init();
+    let cli = Cli::parse();
+    println!(
+        "machine: {} cores; note any background load (load average {})",
+        std::thread::available_parallelism().map_or(0, usize::from),
+        std::fs::read_to_string("/proc/loadavg")
+            .unwrap_or_default()
+            .trim()
+    );
+    match &cli.cmd {
+        Cmd::Ort { batches, seconds } => {
+            for &b in batches {
+                let (img_s, ms) = raw_ort(&cli, b, *seconds)?;
+                record(
+                    &cli,
+                    &serde_json::json!({"bench": "raw_ort", "batch": b, "threads": cli.threads,
+                        "img_s": img_s, "ms_per_batch": ms}),
+                )?;
+            }
+            Ok(())
+        }
+        Cmd::Throughput {
+            batch,
+            clients,
+            seconds,
+            reply,
+        } => throughput(&cli, *batch, *clients, *seconds, *reply).await,
+        Cmd::Latency {
+            clients,
+            fps,
+            seconds,
+            batch,
+            deadline_ms,
+            reply,
+        } => {
+            for &n in clients {
+                latency(&cli, n, *fps, *seconds, *batch, *deadline_ms, *reply).await?;
+            }
+            Ok(())
+        }
+        Cmd::Idle {
+            connections,
+            hold_seconds,
+        } => idle(&cli, *connections, *hold_seconds).await,
+    }
+}

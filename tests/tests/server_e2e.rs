@@ -1,0 +1,456 @@
+//! The real alignment server (real ONNX Runtime, real DAN model) on loopback,
+//! with a well-behaved client next to misbehaving ones.
+//!
+//! Needs the model (`$HOLOFACE_DAN_MODEL` or `models/assets/dan.onnx`) and
+//! ONNX Runtime (`$ORT_DYLIB_PATH`, `.cache/onnxruntime/` or `.venv`): the
+//! tests fail, they do not skip, when either is missing.
+
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
+
+use std::time::Duration;
+
+use alignment_server::config::Settings;
+use alignment_server::engine::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine};
+use bytes::Bytes;
+use holoface_e2e::{
+    RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
+    refused_with, send_frame_on, write_framed,
+};
+use holoface_protocol::{
+    CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
+};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// Generous: the untrained DAN takes tens of ms per crop on a loaded 2-core box.
+const DEADLINE_MS: u16 = 3_000;
+const WAIT: Duration = Duration::from_secs(20);
+
+fn settings() -> Settings {
+    let mut s = loopback_settings();
+    s.max_frame_age = Duration::from_millis(u64::from(DEADLINE_MS));
+    s
+}
+
+async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
+    match tokio::time::timeout(WAIT, fut).await {
+        Ok(v) => v,
+        Err(_) => panic!("timed out waiting for {what}"),
+    }
+}
+
+/// Landmarks the engine computes for the same crop, run directly.
+fn reference(seed: u8) -> LandmarkOut {
+    let s = loopback_settings();
+    let mut opts = s.engine.clone();
+    opts.max_batch = 1;
+    let mut engine = OnnxEngine::load(&opts).unwrap();
+    let mut batch = BatchTensor::new(1, 112 * 112);
+    batch.push(&frame(0, seed, 0).crop.data).unwrap();
+    let mut out = vec![LandmarkOut::default()];
+    engine.infer(&batch, &mut out).unwrap();
+    out.remove(0)
+}
+
+fn assert_landmarks(reply: &FrameReply, expected: &LandmarkOut) {
+    let ReplyOutcome::Landmarks {
+        landmarks, face_prob, ..
+    } = &reply.outcome
+    else {
+        panic!("frame {} was not aligned: {:?}", reply.frame_id, reply.outcome)
+    };
+    assert_eq!(landmarks.len(), 68);
+    assert!((0.0..=1.0).contains(face_prob), "face_prob {face_prob}");
+    assert!(
+        (face_prob - expected.face_prob).abs() < 1e-3,
+        "face_prob {face_prob} vs {}",
+        expected.face_prob
+    );
+    for (got, want) in landmarks.iter().zip(&expected.landmarks) {
+        assert!(
+            (got[0] - want[0]).abs() < 1e-2 && (got[1] - want[1]).abs() < 1e-2,
+            "landmark {got:?} vs {want:?}"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
+    let expected = reference(3);
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut client = within(
+        "connect",
+        TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN)),
+    )
+    .await
+    .unwrap();
+    let w = &client.welcome;
+    assert_eq!(w.version, PROTOCOL_VERSION);
+    assert_eq!((w.landmark_count, w.crop_size), (68, 112));
+    assert_eq!(w.mean_shape.len(), 68);
+    assert_eq!(w.encoding, CropEncoding::Raw);
+    assert_eq!(w.reply_channel, ReplyChannel::Datagram);
+    assert_eq!(w.max_in_flight, 2);
+    for id in 1..=3 {
+        let reply = within("reply", client.request(&frame(id, 3, DEADLINE_MS)))
+            .await
+            .unwrap();
+        assert_eq!(reply.frame_id, id);
+        assert_landmarks(&reply, &expected);
+    }
+    assert_eq!(
+        server
+            .metrics
+            .frames_aligned
+            .load(std::sync::atomic::Ordering::Relaxed),
+        3
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replies_on_a_stream_when_configured() {
+    let expected = reference(5);
+    let mut s = settings();
+    s.reply_channel = ReplyChannel::Stream;
+    let server = RunningServer::start(s).await.unwrap();
+    let mut client = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    assert_eq!(client.welcome.reply_channel, ReplyChannel::Stream);
+    for id in [10, 11] {
+        let reply = within("stream reply", client.request(&frame(id, 5, DEADLINE_MS)))
+            .await
+            .unwrap();
+        assert_landmarks(&reply, &expected);
+    }
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn handshake_failures_get_their_close_codes_before_inference() {
+    let server = RunningServer::start(settings()).await.unwrap();
+    let (addr, fp) = (server.addr, server.fingerprint);
+    let mut wrong_version = hello(TEST_TOKEN);
+    wrong_version.version = PROTOCOL_VERSION + 1;
+    assert_eq!(
+        within("bad version", refused_with(addr, fp, wrong_version)).await,
+        Some(CloseCode::BadVersion)
+    );
+    assert_eq!(
+        within("bad token", refused_with(addr, fp, hello("wrong"))).await,
+        Some(CloseCode::Unauthorized)
+    );
+    // A frame request where the hello should be.
+    let endpoint = client_endpoint(fp).unwrap();
+    let conn = connect_raw(&endpoint, addr).await.unwrap();
+    let (mut send, _recv) = conn.open_bi().await.unwrap();
+    write_framed(&mut send, &Message::FrameRequest(frame(1, 0, 10)))
+        .await
+        .unwrap();
+    let code = holoface_e2e::app_close_code(&within("out of order", conn.closed()).await);
+    assert_eq!(code, Some(CloseCode::ProtocolViolation));
+
+    let m = &server.metrics;
+    use std::sync::atomic::Ordering::Relaxed;
+    assert_eq!(m.auth_bad_version.load(Relaxed), 1);
+    assert_eq!(m.auth_unauthorized.load(Relaxed), 1);
+    assert_eq!(
+        m.frames_received.load(Relaxed),
+        0,
+        "no frame was read from unauthenticated clients"
+    );
+    assert_eq!(m.batch_size.count(), 0, "no inference was spent on them");
+    server.shutdown().await.unwrap();
+}
+
+/// Runs a misbehaving client to its close code while a good client keeps
+/// getting landmarks.
+async fn misbehaviour_next_to_good_client<F, Fut>(name: &str, expected: CloseCode, misbehave: F)
+where
+    F: FnOnce(TestClient) -> Fut,
+    Fut: Future<Output = Option<CloseCode>> + Send + 'static,
+{
+    let reference = reference(9);
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut good = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    let bad = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    let bad_task = tokio::spawn(misbehave(bad));
+    for id in 1..=4 {
+        let reply = within("good reply", good.request(&frame(id, 9, DEADLINE_MS)))
+            .await
+            .unwrap();
+        assert_landmarks(&reply, &reference);
+    }
+    let code = within(name, bad_task).await.unwrap();
+    assert_eq!(code, Some(expected), "{name}");
+    // And after it is gone.
+    let reply = within("good reply after", good.request(&frame(100, 9, DEADLINE_MS)))
+        .await
+        .unwrap();
+    assert_landmarks(&reply, &reference);
+    assert_eq!(
+        server.metrics.closes_for(expected),
+        1,
+        "{name}: close counted once"
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_frame_stream_is_closed_malformed() {
+    misbehaviour_next_to_good_client("malformed", CloseCode::Malformed, |bad| async move {
+        let _ = bad.send_stream_bytes(&[0x03, 0xde, 0xad, 0xbe, 0xef]).await;
+        bad.close_code().await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversize_frame_stream_is_closed_too_large() {
+    misbehaviour_next_to_good_client("oversize", CloseCode::TooLarge, |bad| async move {
+        let _ = bad.send_stream_bytes(&vec![0x03; 200 * 1024]).await;
+        bad.close_code().await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn oversize_length_prefix_is_closed_too_large() {
+    misbehaviour_next_to_good_client("huge crop length", CloseCode::TooLarge, |bad| async move {
+        // A FrameRequest header announcing a 1 GiB crop.
+        let mut bytes = vec![0x03];
+        bytes.extend_from_slice(&[0; 18]);
+        bytes.extend_from_slice(&[0, 112, 0, 112, 0]);
+        bytes.extend_from_slice(&(1_u32 << 30).to_le_bytes());
+        let _ = bad.send_stream_bytes(&bytes).await;
+        bad.close_code().await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn garbage_datagram_is_closed_malformed() {
+    misbehaviour_next_to_good_client("garbage datagram", CloseCode::Malformed, |bad| async move {
+        let _ = bad.send_datagram(Bytes::from_static(&[0xff, 0x00, 0x13, 0x37]));
+        bad.close_code().await
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn second_hello_is_a_protocol_violation() {
+    misbehaviour_next_to_good_client(
+        "second hello",
+        CloseCode::ProtocolViolation,
+        |mut bad| async move {
+            let mut buf = bytes::BytesMut::new();
+            holoface_protocol::encode_framed(&Message::ClientHello(hello(TEST_TOKEN)), &mut buf).unwrap();
+            let _ = bad.send_control_bytes(&buf).await;
+            bad.close_code().await
+        },
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn flooding_client_is_shed_not_served_first() {
+    let reference = reference(9);
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut good = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    let mut flooder = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    // The flooder opens frame streams as fast as flow control lets it,
+    // while another task reads its replies.
+    let conn = flooder.conn.clone();
+    let sender = tokio::spawn(async move {
+        let mut sent = 0_u64;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
+        while tokio::time::Instant::now() < deadline {
+            if send_frame_on(&conn, &frame(sent + 1, 1, DEADLINE_MS))
+                .await
+                .is_err()
+            {
+                break;
+            }
+            sent += 1;
+        }
+        sent
+    });
+    let reader = tokio::spawn(async move {
+        let mut replies: Vec<FrameReply> = Vec::new();
+        while let Ok(Ok(r)) = tokio::time::timeout(Duration::from_secs(2), flooder.next_reply()).await {
+            replies.push(r);
+        }
+        (replies, flooder)
+    });
+    let mut good_latencies = Vec::new();
+    for id in 1..=5 {
+        let t = std::time::Instant::now();
+        let reply = within("good reply under flood", good.request(&frame(id, 9, DEADLINE_MS)))
+            .await
+            .unwrap();
+        good_latencies.push(t.elapsed());
+        assert_landmarks(&reply, &reference);
+    }
+    let sent = within("flood sender", sender).await.unwrap();
+    let (replies, flooder) = within("flood reader", reader).await.unwrap();
+    assert!(sent > 5, "the flooder sent {sent} frames");
+    let superseded = replies
+        .iter()
+        .filter(|r| {
+            r.outcome
+                == ReplyOutcome::Dropped {
+                    reason: DropReason::Superseded,
+                }
+        })
+        .count();
+    assert!(
+        superseded > 0,
+        "flooded frames were superseded, not queued: {replies:?}"
+    );
+    // The flooder was shed, not disconnected: it still gets an answer.
+    let mut flooder = flooder;
+    let last = within(
+        "flooder still served",
+        flooder.request(&frame(1_000_000, 1, DEADLINE_MS)),
+    )
+    .await;
+    assert!(last.is_ok(), "{last:?}");
+    assert_eq!(server.metrics.closes_for(CloseCode::Malformed), 0);
+    eprintln!("good client latencies under flood: {good_latencies:?}");
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn client_cap_closes_extra_clients_overloaded() {
+    let mut s = settings();
+    s.max_clients = 1;
+    let server = RunningServer::start(s).await.unwrap();
+    let mut first = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    let code = within(
+        "over cap",
+        refused_with(server.addr, server.fingerprint, hello(TEST_TOKEN)),
+    )
+    .await;
+    assert_eq!(code, Some(CloseCode::Overloaded));
+    assert!(
+        within("first still served", first.request(&frame(1, 2, DEADLINE_MS)))
+            .await
+            .is_ok()
+    );
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_sends_goaway_and_closes_shutting_down() {
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut client = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    assert!(
+        within("reply", client.request(&frame(1, 4, DEADLINE_MS)))
+            .await
+            .is_ok()
+    );
+    // One frame in flight when shutdown starts: it is answered, not lost.
+    client.send_frame(&frame(2, 4, DEADLINE_MS)).await.unwrap();
+    let stop = tokio::spawn(server.shutdown());
+    let goaway = within("goaway", client.next_control()).await.unwrap();
+    assert!(
+        matches!(&goaway, Message::Goaway(g) if g.reason == CloseCode::ShuttingDown),
+        "{goaway:?}"
+    );
+    let last = within("in-flight reply", client.next_reply()).await.unwrap();
+    assert_eq!(last.frame_id, 2);
+    assert!(
+        matches!(
+            last.outcome,
+            ReplyOutcome::Landmarks { .. }
+                | ReplyOutcome::Dropped {
+                    reason: DropReason::ShuttingDown
+                }
+        ),
+        "{last:?}"
+    );
+    assert_eq!(
+        within("close", client.close_code()).await,
+        Some(CloseCode::ShuttingDown)
+    );
+    within("server stopped", stop).await.unwrap().unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_and_health_are_served_on_loopback() {
+    let mut s = settings();
+    s.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    let server = RunningServer::start(s).await.unwrap();
+    let addr = server.metrics_addr.expect("metrics listener");
+    assert_eq!(
+        refused_with(server.addr, server.fingerprint, hello("nope")).await,
+        Some(CloseCode::Unauthorized)
+    );
+    let mut client = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    client.request(&frame(1, 1, DEADLINE_MS)).await.unwrap();
+    let get = |path: &'static str| async move {
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        s.write_all(format!("GET {path} HTTP/1.1\r\n\r\n").as_bytes())
+            .await
+            .unwrap();
+        let mut out = String::new();
+        s.read_to_string(&mut out).await.unwrap();
+        out
+    };
+    assert!(get("/health").await.starts_with("HTTP/1.1 200"));
+    let m = get("/metrics").await;
+    for needle in [
+        "holoface_connected_clients 1",
+        "holoface_auth_failures_total{reason=\"unauthorized\"} 1",
+        "holoface_frames_aligned_total 1",
+        "holoface_batch_size_count 1",
+        "holoface_inference_seconds_count 1",
+    ] {
+        assert!(m.contains(needle), "missing {needle} in\n{m}");
+    }
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test]
+async fn missing_model_is_a_clear_startup_error() {
+    let mut s = settings();
+    s.engine.model = "/nonexistent/dan.onnx".into();
+    let err = RunningServer::start(s).await.unwrap_err().to_string();
+    assert!(
+        err.contains("model file not found: /nonexistent/dan.onnx"),
+        "{err}"
+    );
+    let mut s = settings();
+    s.engine.ort_dylib = "/nonexistent/libonnxruntime.so".into();
+    s.engine.model = holoface_e2e::model_path();
+    let err = RunningServer::start(s).await.unwrap_err().to_string();
+    assert!(
+        err.contains("ONNX Runtime library not found at /nonexistent/libonnxruntime.so"),
+        "{err}"
+    );
+}
+
+#[tokio::test]
+async fn non_onnx_model_file_is_rejected() {
+    let path = std::env::temp_dir().join(format!("holoface-not-a-model-{}.onnx", std::process::id()));
+    std::fs::write(&path, b"definitely not protobuf").unwrap();
+    let mut s = settings();
+    s.engine.model = path.clone();
+    let err = RunningServer::start(s).await.unwrap_err().to_string();
+    let _ = std::fs::remove_file(&path);
+    assert!(err.contains("inference engine"), "{err}");
+}
