@@ -9,8 +9,10 @@
 pub mod candide;
 pub mod crop;
 pub mod geometry;
+pub mod hog;
 pub mod image;
 pub mod kalman;
+pub mod krfws;
 pub mod math3;
 pub mod metrics;
 pub mod pose;

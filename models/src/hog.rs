@@ -1,0 +1,379 @@
+//! Per-landmark HOG of HoloFace's simplified KRFWS (algorithms.md 2.2).
+//!
+//! One descriptor per landmark:
+//! * the landmark is rounded to the nearest pixel `p` (`floor(x + 0.5)`); the window is `[p − 8, p + 8)` in
+//!   x and y, 16×16 pixels = 4×4 cells of 4×4 pixels;
+//! * gradients are central differences divided by 2 on the 8-bit grey levels of the window; the window's
+//!   own border pixels (first and last row and column) have no central difference and are skipped, so
+//!   the 14×14 interior pixels vote (window pixels outside the image read as 0);
+//! * orientation is unsigned (0–180°), 9 bins of 20° centred at 10°, 30°, …, 170°; each vote is split
+//!   linearly between the two nearest bin centres, wrapping at 0/180°; the vote's weight is the gradient
+//!   magnitude;
+//! * each vote is spread bilinearly over the 4 nearest cell centres (cell centres at window coordinates
+//!   1.5, 5.5, 9.5, 13.5; a share that would fall on a cell outside the 4×4 grid is dropped);
+//! * the 144 values (cell-major: `(cell_y · 4 + cell_x) · 9 + bin`) are L2-normalised once,
+//!   `v / (‖v‖ + 1e-8)`.
+//!
+//! [`hog_patch`] is the fast path (no `atan2`: a branch-free polynomial arctangent, max error 1e-5 rad,
+//! and a padded cell grid so every pixel makes exactly 8 unconditional votes). [`hog_patch_naive`] is the
+//! readable specification the tests and benches compare it with.
+
+use thiserror::Error;
+
+use crate::geometry::Point2;
+use crate::image::GrayView;
+
+/// Window side in pixels.
+pub const PATCH: usize = 16;
+/// Pixels in one window.
+pub const PATCH_PIXELS: usize = PATCH * PATCH;
+/// Cells per window side.
+pub const CELLS: usize = 4;
+/// Cell side in pixels.
+pub const CELL_PIXELS: usize = 4;
+/// Orientation bins.
+pub const BINS: usize = 9;
+/// Descriptor length per landmark (4·4·9).
+pub const HOG_DIM: usize = CELLS * CELLS * BINS;
+
+/// Errors of the HOG entry points.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum HogError {
+    /// The output buffer does not hold `points · 144` values.
+    #[error("HOG output holds {actual} values, {points} points need {}", points * HOG_DIM)]
+    BadOutput {
+        /// Number of points.
+        points: usize,
+        /// Output length.
+        actual: usize,
+    },
+}
+
+/// Side of the padded cell grid: cells −1..=4, so out-of-grid shares land in a discarded border.
+const PAD: usize = CELLS + 2;
+
+/// Per window coordinate `u` (0..16): padded index of the lower cell and the weights of the lower and
+/// upper cell (bilinear in the cell-centre lattice 1.5 + 4·i).
+const SPATIAL: [(usize, f32, f32); PATCH] = spatial_table();
+
+const fn spatial_table() -> [(usize, f32, f32); PATCH] {
+    let mut t = [(0usize, 0.0f32, 0.0f32); PATCH];
+    let mut u = 0;
+    while u < PATCH {
+        // f = (u − 1.5) / 4 ∈ [−0.375, 3.375]; lower cell floor(f) ∈ −1..=3 → padded floor(f) + 1.
+        let f = (u as f32 - 1.5) / CELL_PIXELS as f32;
+        let shifted = f + 1.0; // ≥ 0.625
+        let lo = shifted as usize; // floor for non-negative values
+        let frac = shifted - lo as f32;
+        t[u] = (lo, 1.0 - frac, frac);
+        u += 1;
+    }
+    t
+}
+
+/// `floor(f + 1)` (0..=9) → lower and upper bin, wrapping.
+const BIN_LO: [usize; 10] = [8, 0, 1, 2, 3, 4, 5, 6, 7, 8];
+const BIN_HI: [usize; 10] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 0];
+
+/// Unsigned gradient orientation in radians, `[0, π]`, without `atan2`.
+#[inline(always)]
+fn unsigned_angle(dx: f32, dy: f32) -> f32 {
+    let (ax, ay) = (dx.abs(), dy.abs());
+    let mx = ax.max(ay);
+    let mn = ax.min(ay);
+    let t = mn / (mx + 1e-30);
+    let t2 = t * t;
+    // atan(t) on [0, 1], minimax polynomial (Abramowitz–Stegun 4.4.49 style), |error| < 1e-5 rad.
+    let p = 0.020_835_1f32;
+    let p = p * t2 - 0.085_133f32;
+    let p = p * t2 + 0.180_141f32;
+    let p = p * t2 - 0.330_299_5f32;
+    let p = p * t2 + 0.999_866f32;
+    let mut a = p * t;
+    if ay > ax {
+        a = std::f32::consts::FRAC_PI_2 - a;
+    }
+    // atan2 mod π: the same angle when dx and dy share a sign, its supplement otherwise.
+    if (dx < 0.0) != (dy < 0.0) {
+        a = std::f32::consts::PI - a;
+    }
+    a
+}
+
+/// HOG of one 16×16 window (row-major grey levels) into `out` (144 values).
+///
+/// Fast path: two passes per row (gradients and orientation vectorisable, then 8 unconditional votes
+/// per pixel into a padded 6×6×9 accumulator).
+pub fn hog_patch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+    let mut acc = [0.0f32; PAD * PAD * BINS];
+    const N: usize = PATCH - 2;
+    let scale = BINS as f32 / std::f32::consts::PI;
+    for y in 1..PATCH - 1 {
+        let above = &patch[(y - 1) * PATCH..y * PATCH];
+        let row = &patch[y * PATCH..(y + 1) * PATCH];
+        let below = &patch[(y + 1) * PATCH..(y + 2) * PATCH];
+        let mut mag = [0.0f32; N];
+        let mut pos = [0.0f32; N];
+        for x in 0..N {
+            let dx = 0.5 * (f32::from(row[x + 2]) - f32::from(row[x]));
+            let dy = 0.5 * (f32::from(below[x + 1]) - f32::from(above[x + 1]));
+            mag[x] = (dx * dx + dy * dy).sqrt();
+            // Bin coordinate + 1: θ·9/π − 0.5 + 1 ∈ [0.5, 9.5].
+            pos[x] = unsigned_angle(dx, dy) * scale + 0.5;
+        }
+        let (cy, wy0, wy1) = SPATIAL[y];
+        let row0 = cy * PAD;
+        let row1 = (cy + 1) * PAD;
+        for x in 0..N {
+            let m = mag[x];
+            let p = pos[x];
+            let b = (p as usize).min(9);
+            let frac = p - b as f32;
+            let (b0, b1) = (BIN_LO[b], BIN_HI[b]);
+            let (v0, v1) = (m * (1.0 - frac), m * frac);
+            let (cx, wx0, wx1) = SPATIAL[x + 1];
+            let c00 = (row0 + cx) * BINS;
+            let c01 = (row0 + cx + 1) * BINS;
+            let c10 = (row1 + cx) * BINS;
+            let c11 = (row1 + cx + 1) * BINS;
+            let (w00, w01, w10, w11) = (wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1);
+            acc[c00 + b0] += w00 * v0;
+            acc[c00 + b1] += w00 * v1;
+            acc[c01 + b0] += w01 * v0;
+            acc[c01 + b1] += w01 * v1;
+            acc[c10 + b0] += w10 * v0;
+            acc[c10 + b1] += w10 * v1;
+            acc[c11 + b0] += w11 * v0;
+            acc[c11 + b1] += w11 * v1;
+        }
+    }
+    let mut ss = 0.0f32;
+    for cy in 0..CELLS {
+        let src = ((cy + 1) * PAD + 1) * BINS;
+        let dst = cy * CELLS * BINS;
+        out[dst..dst + CELLS * BINS].copy_from_slice(&acc[src..src + CELLS * BINS]);
+    }
+    for v in out.iter() {
+        ss += v * v;
+    }
+    let inv = 1.0 / (ss.sqrt() + 1e-8);
+    for v in out.iter_mut() {
+        *v *= inv;
+    }
+}
+
+/// The readable specification of [`hog_patch`]: `atan2` in `f64`, explicit range checks, no tables.
+/// Used by tests and the benchmark as the reference (agreement within 1e-4 per value).
+pub fn hog_patch_naive(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+    let mut hist = [0.0f64; HOG_DIM];
+    let px = |x: usize, y: usize| f64::from(patch[y * PATCH + x]);
+    for y in 1..PATCH - 1 {
+        for x in 1..PATCH - 1 {
+            let dx = (px(x + 1, y) - px(x - 1, y)) / 2.0;
+            let dy = (px(x, y + 1) - px(x, y - 1)) / 2.0;
+            let mag = dx.hypot(dy);
+            let mut deg = dy.atan2(dx).to_degrees();
+            if deg < 0.0 {
+                deg += 180.0;
+            }
+            if deg >= 180.0 {
+                deg -= 180.0;
+            }
+            let fb = deg / 20.0 - 0.5;
+            let b0 = fb.floor();
+            let fr = fb - b0;
+            let lo = (b0 as i64).rem_euclid(9) as usize;
+            let hi = (b0 as i64 + 1).rem_euclid(9) as usize;
+            let fx = (x as f64 - 1.5) / 4.0;
+            let fy = (y as f64 - 1.5) / 4.0;
+            let (cx0, cy0) = (fx.floor(), fy.floor());
+            let (ax, ay) = (fx - cx0, fy - cy0);
+            for (cy, wy) in [(cy0 as i64, 1.0 - ay), (cy0 as i64 + 1, ay)] {
+                for (cx, wx) in [(cx0 as i64, 1.0 - ax), (cx0 as i64 + 1, ax)] {
+                    if (0..4).contains(&cx) && (0..4).contains(&cy) {
+                        let base = (cy as usize * 4 + cx as usize) * 9;
+                        hist[base + lo] += wy * wx * mag * (1.0 - fr);
+                        hist[base + hi] += wy * wx * mag * fr;
+                    }
+                }
+            }
+        }
+    }
+    let norm = hist.iter().map(|v| v * v).sum::<f64>().sqrt() + 1e-8;
+    for (o, h) in out.iter_mut().zip(hist) {
+        *o = (h / norm) as f32;
+    }
+}
+
+/// Copies the 16×16 window at the rounded `p` out of `image` (pixels outside the image are 0).
+pub fn window_at(image: &GrayView<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
+    let (cx, cy) = (round_coord(p.x), round_coord(p.y));
+    let (x0, y0) = (cx - 8, cy - 8);
+    let (w, h) = (image.width() as i64, image.height() as i64);
+    let inside = x0 >= 0 && y0 >= 0 && x0 + PATCH as i64 <= w && y0 + PATCH as i64 <= h;
+    for (v, dst) in out.chunks_exact_mut(PATCH).enumerate() {
+        let y = y0 + v as i64;
+        let row = if y >= 0 { image.row(y as usize) } else { None };
+        match row {
+            Some(r) if inside => {
+                let s = x0 as usize;
+                dst.copy_from_slice(&r[s..s + PATCH]);
+            }
+            Some(r) => {
+                for (u, d) in dst.iter_mut().enumerate() {
+                    let x = x0 + u as i64;
+                    *d = if x >= 0 && x < w { r[x as usize] } else { 0 };
+                }
+            }
+            None => dst.fill(0),
+        }
+    }
+}
+
+/// `floor(v + 0.5)` as an integer, saturating for huge or non-finite input (NaN → 0).
+#[inline]
+pub fn round_coord(v: f32) -> i64 {
+    let r = (v + 0.5).floor();
+    if r.is_finite() {
+        r.clamp(-1.0e9, 1.0e9) as i64
+    } else {
+        0
+    }
+}
+
+/// HOG of the windows at `points` (rounded) in `image`, written row by row into `out`
+/// (`points.len() · 144` values; row `i` belongs to `points[i]`). Allocation-free.
+pub fn hog_points(image: &GrayView<'_>, points: &[Point2], out: &mut [f32]) -> Result<(), HogError> {
+    if out.len() != points.len() * HOG_DIM {
+        return Err(HogError::BadOutput {
+            points: points.len(),
+            actual: out.len(),
+        });
+    }
+    let mut patch = [0u8; PATCH_PIXELS];
+    for (p, row) in points.iter().zip(out.chunks_exact_mut(HOG_DIM)) {
+        window_at(image, *p, &mut patch);
+        if let Ok(dst) = <&mut [f32; HOG_DIM]>::try_from(row) {
+            hog_patch(&patch, dst);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn patch_from(f: impl Fn(usize, usize) -> u8) -> [u8; PATCH_PIXELS] {
+        std::array::from_fn(|i| f(i % PATCH, i / PATCH))
+    }
+
+    fn bin_energy(h: &[f32; HOG_DIM]) -> [f32; BINS] {
+        let mut e = [0.0; BINS];
+        for (i, v) in h.iter().enumerate() {
+            e[i % BINS] += v;
+        }
+        e
+    }
+
+    #[test]
+    fn horizontal_ramp_votes_at_zero_degrees() {
+        // Intensity grows with x: gradient angle 0°, halfway between bin 8 (170°) and bin 0 (10°).
+        let p = patch_from(|x, _| (x * 10) as u8);
+        let mut h = [0.0; HOG_DIM];
+        hog_patch(&p, &mut h);
+        let e = bin_energy(&h);
+        assert!((e[0] - e[8]).abs() < 1e-4, "{e:?}");
+        assert!(e[0] > 0.4 && e[1..8].iter().all(|v| v.abs() < 1e-6), "{e:?}");
+    }
+
+    #[test]
+    fn vertical_ramp_votes_at_ninety_degrees() {
+        // Intensity grows with y: 90° is the centre of bin 4.
+        let p = patch_from(|_, y| (y * 12) as u8);
+        let mut h = [0.0; HOG_DIM];
+        hog_patch(&p, &mut h);
+        let e = bin_energy(&h);
+        let total: f32 = e.iter().sum();
+        assert!(e[4] / total > 0.999, "{e:?}");
+    }
+
+    #[test]
+    fn diagonal_edge_and_its_negation_share_bins() {
+        // Unsigned: a dark-to-bright edge and a bright-to-dark edge give the same histogram.
+        let a = patch_from(|x, y| if x + y > 15 { 200 } else { 20 });
+        let b = patch_from(|x, y| if x + y > 15 { 20 } else { 200 });
+        let (mut ha, mut hb) = ([0.0; HOG_DIM], [0.0; HOG_DIM]);
+        hog_patch(&a, &mut ha);
+        hog_patch(&b, &mut hb);
+        for (x, y) in ha.iter().zip(&hb) {
+            assert!((x - y).abs() < 1e-6);
+        }
+        // Gradient along (1, 1): 45°, a quarter of the way from bin 2 (50°) to bin 1 (30°): shares 3 : 1.
+        let e = bin_energy(&ha);
+        assert!((e[2] - 3.0 * e[1]).abs() < 1e-3 && e[1] > 0.3, "{e:?}");
+        assert!(e.iter().enumerate().all(|(i, v)| i == 1 || i == 2 || v.abs() < 1e-6));
+    }
+
+    #[test]
+    fn fast_matches_naive_on_noise_and_is_unit_norm() {
+        let mut s = 0x1234_5678_u32;
+        for _ in 0..50 {
+            let p: [u8; PATCH_PIXELS] = std::array::from_fn(|_| {
+                s ^= s << 13;
+                s ^= s >> 17;
+                s ^= s << 5;
+                (s >> 24) as u8
+            });
+            let (mut f, mut n) = ([0.0; HOG_DIM], [0.0; HOG_DIM]);
+            hog_patch(&p, &mut f);
+            hog_patch_naive(&p, &mut n);
+            for (a, b) in f.iter().zip(&n) {
+                assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+            }
+            let norm: f32 = f.iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn spatial_votes_land_in_the_cell_of_the_edge() {
+        // A vertical edge only in the top-left cell region.
+        let p = patch_from(|x, y| if y < 4 && x >= 2 { 255 } else { 0 });
+        let mut h = [0.0; HOG_DIM];
+        hog_patch(&p, &mut h);
+        let cell = |cx: usize, cy: usize| h[(cy * 4 + cx) * 9..(cy * 4 + cx + 1) * 9].iter().sum::<f32>();
+        assert!(cell(0, 0) > cell(3, 3) + 0.1 && cell(3, 3).abs() < 1e-6);
+    }
+
+    #[test]
+    fn flat_patch_is_all_zero_and_windows_clip_to_zero() {
+        let p = [77u8; PATCH_PIXELS];
+        let mut h = [1.0; HOG_DIM];
+        hog_patch(&p, &mut h);
+        assert!(h.iter().all(|v| *v == 0.0));
+        let img = vec![9u8; 20 * 20];
+        let v = GrayView::new(&img, 20, 20, 20).unwrap();
+        let mut w = [1u8; PATCH_PIXELS];
+        window_at(&v, Point2::new(0.2, 0.4), &mut w);
+        assert_eq!(w[0], 0);
+        assert_eq!(w[8 * PATCH + 8], 9);
+        let mut out = vec![0.0; 2 * HOG_DIM];
+        assert!(
+            hog_points(
+                &v,
+                &[Point2::new(3.0, 3.0), Point2::new(f32::NAN, 1e30)],
+                &mut out
+            )
+            .is_ok()
+        );
+        assert!(matches!(
+            hog_points(&v, &[Point2::new(3.0, 3.0)], &mut out),
+            Err(HogError::BadOutput {
+                points: 1,
+                actual: 288
+            })
+        ));
+    }
+}

@@ -1,0 +1,479 @@
+//! The `krfws.bin` model file: versioned, little-endian, CRC-32 checked.
+//!
+//! ```text
+//! offset  size  field
+//! 0       8     magic  b"HFKRFWS\0"
+//! 8       4     version u32 (= FORMAT_VERSION)
+//! 12      4     payload length P u32
+//! 16      P     payload
+//! 16+P    4     CRC-32 (IEEE, crc32fast) of bytes 0 .. 16+P
+//!
+//! payload:
+//!   n_points u32 (= 51) · hog_dim u32 (= 144) · n_stages u32 (1..=8)
+//!   mean shape: 51 × (x f32, y f32)
+//!   per stage:
+//!     scale f32 · trees_per_forest u32 (1..=64)
+//!     51 · trees_per_forest trees, landmark-major, each:
+//!       n_nodes u32 (1..=4095) · n_leaves u32 (= n_nodes + 1)
+//!       n_nodes × (left i32, right i32, threshold f32)   child ≥ 0: node index > parent; < 0: leaf −c−1
+//!       n_nodes × 144 projections, f16
+//!     n_leaves_total u32 (= Σ n_leaves) · n_leaves_total × 102 regression weights, f16
+//!   failure detector: 51·144 weights f32 · intercept f32 · threshold f32
+//! ```
+//!
+//! Projections and `W` are stored as IEEE half floats (the model is about half the size; the trainer
+//! rounds them before it evaluates, so the numbers it reports are those of the stored model). Every
+//! count is bounded and checked against the remaining bytes before anything is allocated; every child
+//! pointer and leaf id is checked so that each tree is a proper binary tree (each node and each leaf
+//! reached exactly once, children after parents). A bad file is a [`ModelError`], never a panic.
+
+use half::f16;
+use thiserror::Error;
+
+use super::{DELTA_DIM, FAILURE_DIM, FailureModel, Krfws, N_POINTS, Node, Stage, Tree};
+use crate::geometry::Point2;
+use crate::hog::HOG_DIM;
+
+/// File magic.
+pub const MAGIC: [u8; 8] = *b"HFKRFWS\0";
+/// Format version this build reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+/// Largest accepted payload (256 MiB).
+pub const MAX_PAYLOAD: u32 = 256 << 20;
+const MAX_STAGES: u32 = 8;
+const MAX_TREES: u32 = 64;
+const MAX_NODES: u32 = 4095;
+
+/// Errors loading a model file.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum ModelError {
+    /// The file ends before a field.
+    #[error("model file truncated: {needed} bytes needed at offset {offset}, file has {len}")]
+    Truncated {
+        /// Offset of the field.
+        offset: usize,
+        /// Bytes the field needs.
+        needed: usize,
+        /// File length.
+        len: usize,
+    },
+    /// Not a KRFWS model.
+    #[error("not a KRFWS model file (magic {found:02x?})")]
+    BadMagic {
+        /// The first 8 bytes.
+        found: [u8; 8],
+    },
+    /// Written by another format version.
+    #[error("unsupported KRFWS model version {found} (this build reads {supported})")]
+    UnsupportedVersion {
+        /// Version in the file.
+        found: u32,
+        /// Version this build reads.
+        supported: u32,
+    },
+    /// The header's payload length disagrees with the file size.
+    #[error("header declares a {declared}-byte payload, the file holds {actual}")]
+    LengthMismatch {
+        /// Declared payload length.
+        declared: u64,
+        /// Payload bytes present.
+        actual: u64,
+    },
+    /// The checksum does not match (corrupted file).
+    #[error("checksum mismatch: stored {stored:#010x}, computed {computed:#010x}")]
+    Checksum {
+        /// CRC in the file.
+        stored: u32,
+        /// CRC of the bytes.
+        computed: u32,
+    },
+    /// A count or size is outside its allowed range.
+    #[error("{field} = {value} is outside {min}..={max}")]
+    OutOfRange {
+        /// Which field.
+        field: &'static str,
+        /// Its value.
+        value: u64,
+        /// Smallest allowed.
+        min: u64,
+        /// Largest allowed.
+        max: u64,
+    },
+    /// A tree's structure is invalid.
+    #[error("stage {stage}, tree {tree}, node {node}: {reason}")]
+    BadTree {
+        /// Stage index.
+        stage: usize,
+        /// Tree index within the stage.
+        tree: usize,
+        /// Node index within the tree.
+        node: usize,
+        /// What is wrong.
+        reason: &'static str,
+    },
+    /// A value is NaN or infinite.
+    #[error("non-finite value in {field} at index {index}")]
+    NotFinite {
+        /// Which field.
+        field: &'static str,
+        /// Index of the value.
+        index: usize,
+    },
+    /// Bytes left after the payload was parsed.
+    #[error("{count} unparsed bytes at the end of the payload")]
+    TrailingBytes {
+        /// How many.
+        count: usize,
+    },
+}
+
+struct Reader<'a> {
+    buf: &'a [u8],
+    pos: usize,
+    /// Offset of `buf[0]` in the file, for error messages.
+    base: usize,
+    file_len: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], ModelError> {
+        let end = self.pos.checked_add(n);
+        match end.and_then(|e| self.buf.get(self.pos..e)) {
+            Some(s) => {
+                self.pos += n;
+                Ok(s)
+            }
+            None => Err(ModelError::Truncated {
+                offset: self.base + self.pos,
+                needed: n,
+                len: self.file_len,
+            }),
+        }
+    }
+    fn need(&self, n: u64) -> Result<(), ModelError> {
+        let left = (self.buf.len() - self.pos.min(self.buf.len())) as u64;
+        if n > left {
+            return Err(ModelError::Truncated {
+                offset: self.base + self.pos,
+                needed: usize::try_from(n).unwrap_or(usize::MAX),
+                len: self.file_len,
+            });
+        }
+        Ok(())
+    }
+    fn u32(&mut self) -> Result<u32, ModelError> {
+        let b = self.take(4)?;
+        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+    fn i32(&mut self) -> Result<i32, ModelError> {
+        Ok(self.u32()? as i32)
+    }
+    fn f32(&mut self, field: &'static str, index: usize) -> Result<f32, ModelError> {
+        let v = f32::from_bits(self.u32()?);
+        if !v.is_finite() {
+            return Err(ModelError::NotFinite { field, index });
+        }
+        Ok(v)
+    }
+    fn f16s(&mut self, n: usize, field: &'static str, out: &mut Vec<f32>) -> Result<(), ModelError> {
+        let b = self.take(n.saturating_mul(2))?;
+        for (i, c) in b.chunks_exact(2).enumerate() {
+            let v = f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32();
+            if !v.is_finite() {
+                return Err(ModelError::NotFinite { field, index: i });
+            }
+            out.push(v);
+        }
+        Ok(())
+    }
+    fn count(&mut self, field: &'static str, min: u32, max: u32) -> Result<u32, ModelError> {
+        let v = self.u32()?;
+        if v < min || v > max {
+            return Err(ModelError::OutOfRange {
+                field,
+                value: u64::from(v),
+                min: u64::from(min),
+                max: u64::from(max),
+            });
+        }
+        Ok(v)
+    }
+}
+
+fn check_tree(tree: &Tree, stage: usize, index: usize) -> Result<(), ModelError> {
+    let n = tree.nodes.len();
+    let bad = |node: usize, reason: &'static str| ModelError::BadTree {
+        stage,
+        tree: index,
+        node,
+        reason,
+    };
+    let mut node_seen = vec![false; n];
+    let mut leaf_seen = vec![false; tree.n_leaves as usize];
+    for (i, node) in tree.nodes.iter().enumerate() {
+        if !node.threshold.is_finite() {
+            return Err(bad(i, "non-finite threshold"));
+        }
+        for c in [node.left, node.right] {
+            if c >= 0 {
+                let c = c as usize;
+                if c <= i || c >= n {
+                    return Err(bad(i, "child node index out of order or out of range"));
+                }
+                if std::mem::replace(&mut node_seen[c], true) {
+                    return Err(bad(i, "node reached twice"));
+                }
+            } else {
+                let leaf = (-(i64::from(c) + 1)) as usize;
+                match leaf_seen.get_mut(leaf) {
+                    None => return Err(bad(i, "leaf id out of range")),
+                    Some(s) if *s => return Err(bad(i, "leaf reached twice")),
+                    Some(s) => *s = true,
+                }
+            }
+        }
+    }
+    if node_seen.iter().skip(1).any(|s| !s) {
+        return Err(bad(0, "unreachable node"));
+    }
+    if leaf_seen.iter().any(|s| !s) {
+        return Err(bad(0, "unreachable leaf"));
+    }
+    Ok(())
+}
+
+impl Krfws {
+    /// Loads a model from the bytes of a `krfws.bin` file (see the module docs for the layout).
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, ModelError> {
+        let len = bytes.len();
+        let mut head = Reader {
+            buf: bytes,
+            pos: 0,
+            base: 0,
+            file_len: len,
+        };
+        let magic = head.take(8)?;
+        if magic != MAGIC {
+            let mut found = [0u8; 8];
+            found.copy_from_slice(magic);
+            return Err(ModelError::BadMagic { found });
+        }
+        let version = head.u32()?;
+        if version != FORMAT_VERSION {
+            return Err(ModelError::UnsupportedVersion {
+                found: version,
+                supported: FORMAT_VERSION,
+            });
+        }
+        let declared = head.u32()?;
+        let actual = len.saturating_sub(20) as u64;
+        if len < 20 || u64::from(declared) != actual || declared > MAX_PAYLOAD {
+            return Err(ModelError::LengthMismatch {
+                declared: u64::from(declared),
+                actual,
+            });
+        }
+        let body_end = 16 + declared as usize;
+        let crc_bytes = head_slice(bytes, body_end)?;
+        let stored = u32::from_le_bytes(crc_bytes);
+        let computed = crc32fast::hash(bytes.get(..body_end).unwrap_or_default());
+        if stored != computed {
+            return Err(ModelError::Checksum { stored, computed });
+        }
+        let mut r = Reader {
+            buf: bytes.get(16..body_end).unwrap_or_default(),
+            pos: 0,
+            base: 16,
+            file_len: len,
+        };
+        let model = parse_payload(&mut r)?;
+        if r.pos != r.buf.len() {
+            return Err(ModelError::TrailingBytes {
+                count: r.buf.len() - r.pos,
+            });
+        }
+        Ok(model)
+    }
+
+    /// Serialises the model (projections and `W` rounded to f16; see [`Krfws::round_to_storage`]).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut p = Vec::new();
+        let put_u32 = |p: &mut Vec<u8>, v: u32| p.extend_from_slice(&v.to_le_bytes());
+        let put_f32 = |p: &mut Vec<u8>, v: f32| p.extend_from_slice(&v.to_le_bytes());
+        let put_f16 =
+            |p: &mut Vec<u8>, v: f32| p.extend_from_slice(&f16::from_f32(v).to_bits().to_le_bytes());
+        put_u32(&mut p, N_POINTS as u32);
+        put_u32(&mut p, HOG_DIM as u32);
+        put_u32(&mut p, self.stages.len() as u32);
+        for m in &self.mean {
+            put_f32(&mut p, m.x);
+            put_f32(&mut p, m.y);
+        }
+        for s in &self.stages {
+            put_f32(&mut p, s.scale);
+            put_u32(&mut p, s.trees_per_forest as u32);
+            for t in &s.trees {
+                put_u32(&mut p, t.nodes.len() as u32);
+                put_u32(&mut p, t.n_leaves);
+                for n in &t.nodes {
+                    put_u32(&mut p, n.left as u32);
+                    put_u32(&mut p, n.right as u32);
+                    put_f32(&mut p, n.threshold);
+                }
+                for &v in &t.projections {
+                    put_f16(&mut p, v);
+                }
+            }
+            put_u32(&mut p, s.n_leaves() as u32);
+            for &v in &s.weights {
+                put_f16(&mut p, v);
+            }
+        }
+        for &w in &self.failure.weights {
+            put_f32(&mut p, w);
+        }
+        put_f32(&mut p, self.failure.intercept);
+        put_f32(&mut p, self.failure.threshold);
+        let mut out = Vec::with_capacity(p.len() + 20);
+        out.extend_from_slice(&MAGIC);
+        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        out.extend_from_slice(&(p.len() as u32).to_le_bytes());
+        out.extend_from_slice(&p);
+        let crc = crc32fast::hash(&out);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out
+    }
+
+    /// Rounds projections and `W` to their stored (f16) precision, saturating at ±65504, so that
+    /// `from_bytes(to_bytes(m)) == m`.
+    pub fn round_to_storage(&mut self) {
+        for s in &mut self.stages {
+            for t in &mut s.trees {
+                round_f16(&mut t.projections);
+            }
+            round_f16(&mut s.weights);
+        }
+    }
+}
+
+/// Rounds values to f16 precision in place (saturating, NaN → 0).
+pub fn round_f16(v: &mut [f32]) {
+    for x in v {
+        let c = if x.is_nan() {
+            0.0
+        } else {
+            x.clamp(-65504.0, 65504.0)
+        };
+        *x = f16::from_f32(c).to_f32();
+    }
+}
+
+fn head_slice(bytes: &[u8], at: usize) -> Result<[u8; 4], ModelError> {
+    bytes
+        .get(at..at + 4)
+        .and_then(|s| <[u8; 4]>::try_from(s).ok())
+        .ok_or(ModelError::Truncated {
+            offset: at,
+            needed: 4,
+            len: bytes.len(),
+        })
+}
+
+fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
+    r.count("n_points", N_POINTS as u32, N_POINTS as u32)?;
+    r.count("hog_dim", HOG_DIM as u32, HOG_DIM as u32)?;
+    let n_stages = r.count("n_stages", 1, MAX_STAGES)? as usize;
+    let mut mean = [Point2::default(); N_POINTS];
+    for (i, m) in mean.iter_mut().enumerate() {
+        *m = Point2::new(r.f32("mean", 2 * i)?, r.f32("mean", 2 * i + 1)?);
+    }
+    if crate::geometry::Rect::bounding(&mean).is_none_or(|b| b.width() <= 0.0 || b.height() <= 0.0) {
+        return Err(ModelError::OutOfRange {
+            field: "mean shape extent",
+            value: 0,
+            min: 1,
+            max: u64::MAX,
+        });
+    }
+    let mut stages = Vec::with_capacity(n_stages);
+    for si in 0..n_stages {
+        let scale = r.f32("scale", si)?;
+        if !(0.01..=100.0).contains(&scale) {
+            return Err(ModelError::OutOfRange {
+                field: "stage scale (x1000)",
+                value: (scale.abs() * 1000.0) as u64,
+                min: 10,
+                max: 100_000,
+            });
+        }
+        let tpf = r.count("trees_per_forest", 1, MAX_TREES)? as usize;
+        let n_trees = N_POINTS * tpf;
+        let mut trees = Vec::with_capacity(n_trees);
+        let mut total_leaves = 0u64;
+        for ti in 0..n_trees {
+            let n_nodes = r.count("n_nodes", 1, MAX_NODES)? as usize;
+            let n_leaves = r.count("n_leaves", 2, MAX_NODES + 1)?;
+            if n_leaves as usize != n_nodes + 1 {
+                return Err(ModelError::BadTree {
+                    stage: si,
+                    tree: ti,
+                    node: 0,
+                    reason: "a binary tree has one leaf more than internal nodes",
+                });
+            }
+            r.need((n_nodes * (12 + 2 * HOG_DIM)) as u64)?;
+            let mut nodes = Vec::with_capacity(n_nodes);
+            for _ in 0..n_nodes {
+                let left = r.i32()?;
+                let right = r.i32()?;
+                let threshold = f32::from_bits(r.u32()?);
+                nodes.push(Node {
+                    left,
+                    right,
+                    threshold,
+                });
+            }
+            let mut projections = Vec::with_capacity(n_nodes * HOG_DIM);
+            r.f16s(n_nodes * HOG_DIM, "projections", &mut projections)?;
+            let tree = Tree {
+                nodes,
+                projections,
+                n_leaves,
+            };
+            check_tree(&tree, si, ti)?;
+            total_leaves += u64::from(n_leaves);
+            trees.push(tree);
+        }
+        let declared = r.u32()?;
+        if u64::from(declared) != total_leaves {
+            return Err(ModelError::OutOfRange {
+                field: "n_leaves_total",
+                value: u64::from(declared),
+                min: total_leaves,
+                max: total_leaves,
+            });
+        }
+        let nw = total_leaves as usize * DELTA_DIM;
+        r.need(2 * nw as u64)?;
+        let mut weights = Vec::with_capacity(nw);
+        r.f16s(nw, "W", &mut weights)?;
+        stages.push(Stage::new(&mean, scale, tpf, trees, weights));
+    }
+    r.need(4 * (FAILURE_DIM as u64 + 2))?;
+    let mut fw = Vec::with_capacity(FAILURE_DIM);
+    for i in 0..FAILURE_DIM {
+        fw.push(r.f32("failure weights", i)?);
+    }
+    let intercept = r.f32("failure intercept", 0)?;
+    let threshold = r.f32("failure threshold", 0)?;
+    Ok(Krfws::new(
+        mean,
+        stages,
+        FailureModel {
+            weights: fw,
+            intercept,
+            threshold,
+        },
+    ))
+}
