@@ -27,7 +27,9 @@ fn decode_all(chunks: &mut dyn Iterator<Item = &[u8]>) -> (Vec<Message>, bool) {
 }
 
 fuzz_target!(|data: &[u8]| {
-    let Some((&chunk, stream)) = data.split_first() else { return };
+    let Some((&chunk, stream)) = data.split_first() else {
+        return;
+    };
     let chunk = usize::from(chunk.max(1));
     let whole = decode_all(&mut std::iter::once(stream));
     let chunked = decode_all(&mut stream.chunks(chunk));
