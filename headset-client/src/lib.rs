@@ -1,1 +1,10 @@
-//! Placeholder; filled in by its issue.
+//! The HoloFace headset client: frame sources, face detection, tracking with an interchangeable aligner,
+//! CANDIDE-3 fitting, world pose and prediction, and the `holoface` command line.
+#![deny(missing_docs)]
+
+pub mod align;
+pub mod cli;
+pub mod data;
+pub mod detect;
+pub mod plot;
+pub mod runtime;

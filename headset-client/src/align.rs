@@ -1,0 +1,166 @@
+//! Interchangeable landmark aligners: the tracker, the evaluation tool and the demo all call [`Aligner`].
+//!
+//! * [`DanAligner`] runs the DAN model in-process through the alignment server's ONNX engine (used by
+//!   `holoface eval`; the remote path sends the same crop over QUIC instead).
+//! * The KRFWS aligner lives beside it once the model is trained (`krfws` module).
+
+use alignment_server::engine::{BatchTensor, EngineError, InferenceEngine, LandmarkOut};
+use holoface_models::crop::{Crop112, crop_bilinear};
+use holoface_models::geometry::{Point2, Similarity2};
+use holoface_models::image::GrayView;
+use thiserror::Error;
+
+/// Which landmarks an alignment fills.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LandmarkSet {
+    /// All 68 iBUG points.
+    Ibug68,
+    /// The 51 inner points (iBUG 17..=67); the jaw slots hold the initial shape.
+    Inner51,
+}
+
+/// The aligner's own verdict on its result.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Confidence {
+    /// DAN's face/no-face head: probability that the crop holds an aligned face (higher is better).
+    FaceProbability(f32),
+    /// KRFWS failure detector: predicted landmark error (lower is better).
+    PredictedError(f32),
+}
+
+/// Result of one alignment, in image pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Alignment {
+    /// Landmarks in image pixels.
+    pub landmarks: [Point2; 68],
+    /// Which of them the aligner produced.
+    pub set: LandmarkSet,
+    /// The aligner's confidence signal.
+    pub confidence: Confidence,
+    /// Whether the confidence passes the aligner's threshold (a face is tracked).
+    pub accepted: bool,
+}
+
+/// Errors of an aligner.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum AlignError {
+    /// The initial shape is degenerate (all points equal or not finite).
+    #[error("initial shape is degenerate")]
+    DegenerateInit,
+    /// The crop could not be cut.
+    #[error("crop: {0}")]
+    Crop(#[from] holoface_models::crop::CropError),
+    /// The inference engine failed.
+    #[error("inference: {0}")]
+    Engine(#[from] EngineError),
+    /// The model's output is unusable.
+    #[error("model output: {0}")]
+    BadOutput(String),
+}
+
+/// Aligns landmarks in a frame starting from an initial 68-point shape (image pixels).
+pub trait Aligner {
+    /// Short name for reports (`dan`, `krfws`).
+    fn name(&self) -> &'static str;
+    /// Aligns one face.
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError>;
+}
+
+/// The similarity that maps `init` onto the canonical crop shape.
+pub fn crop_from_image(init: &[Point2; 68], canonical: &[Point2; 68]) -> Result<Similarity2, AlignError> {
+    if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
+        return Err(AlignError::DegenerateInit);
+    }
+    Similarity2::fit(init, canonical).ok_or(AlignError::DegenerateInit)
+}
+
+/// DAN in-process: similarity crop onto the model's mean shape, one ONNX Runtime call, inverse map.
+#[derive(Debug)]
+pub struct DanAligner<E> {
+    engine: E,
+    canonical: [Point2; 68],
+    threshold: f32,
+    crop: Crop112,
+    batch: BatchTensor,
+    out: Vec<LandmarkOut>,
+}
+
+impl<E: InferenceEngine> DanAligner<E> {
+    /// Wraps an engine; the canonical shape and threshold come from the model's metadata.
+    pub fn new(engine: E) -> Result<Self, AlignError> {
+        let info = engine.info();
+        if info.landmark_count != 68 || info.crop_size != 112 || info.mean_shape.len() != 68 {
+            return Err(AlignError::BadOutput(format!(
+                "model has {} landmarks on a {} px crop; the client needs 68 on 112",
+                info.landmark_count, info.crop_size
+            )));
+        }
+        let canonical = std::array::from_fn(|i| Point2::new(info.mean_shape[i][0], info.mean_shape[i][1]));
+        let threshold = info.face_threshold;
+        Ok(Self {
+            engine,
+            canonical,
+            threshold,
+            crop: Crop112::default(),
+            batch: BatchTensor::new(1, 112 * 112),
+            out: vec![LandmarkOut::default()],
+        })
+    }
+
+    /// The face-probability threshold in use.
+    pub fn threshold(&self) -> f32 {
+        self.threshold
+    }
+
+    /// Overrides the face-probability threshold.
+    pub fn set_threshold(&mut self, t: f32) {
+        self.threshold = t;
+    }
+}
+
+impl<E: InferenceEngine> Aligner for DanAligner<E> {
+    fn name(&self) -> &'static str {
+        "dan"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        let sim = crop_from_image(init, &self.canonical)?;
+        crop_bilinear(image, &sim, &mut self.crop)?;
+        self.batch.clear();
+        self.batch.push(self.crop.as_slice())?;
+        self.engine.infer(&self.batch, &mut self.out)?;
+        let out = self
+            .out
+            .first()
+            .ok_or_else(|| AlignError::BadOutput("no output".into()))?;
+        landmarks_from_crop(&out.landmarks, out.face_prob, &sim, self.threshold)
+    }
+}
+
+/// Maps DAN's crop-pixel landmarks back to the image and applies the face threshold.
+pub fn landmarks_from_crop(
+    crop_landmarks: &[[f32; 2]],
+    face_prob: f32,
+    crop_from_image: &Similarity2,
+    threshold: f32,
+) -> Result<Alignment, AlignError> {
+    if crop_landmarks.len() != 68 {
+        return Err(AlignError::BadOutput(format!(
+            "{} landmarks, expected 68",
+            crop_landmarks.len()
+        )));
+    }
+    let image_from_crop = crop_from_image.inverse().ok_or(AlignError::DegenerateInit)?;
+    let landmarks = std::array::from_fn(|i| {
+        image_from_crop.apply(Point2::new(crop_landmarks[i][0], crop_landmarks[i][1]))
+    });
+    Ok(Alignment {
+        landmarks,
+        set: LandmarkSet::Ibug68,
+        confidence: Confidence::FaceProbability(face_prob),
+        accepted: face_prob >= threshold,
+    })
+}

@@ -1,0 +1,262 @@
+//! `holoface eval`: the single-image pipeline (detect, place the mean shape, align) over an annotated folder,
+//! with 68- and 49-point errors normalised by the outer eye corners, AUC@0.08, failure rate and a CED plot.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::geometry::{Point2, Rect};
+use holoface_models::metrics::{ErrorSummary, nme49, nme68, summarise};
+use holoface_models::shape::{dan_mean_shape, fit_to_box};
+use serde::Serialize;
+
+use crate::align::{Aligner, Confidence};
+use crate::data::{Split, default_data_root, load_folder};
+use crate::detect::{BlazeFace, FaceDetector, shape_from_detection};
+use crate::plot::{Curve, ced_plot_png};
+use crate::runtime;
+
+/// How the initial shape is placed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Init {
+    /// BlazeFace detection, mean shape placed on its keypoints (the full pipeline).
+    Detector,
+    /// Mean shape fitted to the ground truth's bounding box (compares aligners without the detector).
+    GtBox,
+}
+
+/// Which split of the folder to evaluate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum SplitArg {
+    /// Every image.
+    All,
+    /// The fixed validation split (`models/splits/val.txt`).
+    Validation,
+}
+
+/// Aligners `eval` can run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlignerArg {
+    /// DAN through ONNX Runtime in-process.
+    Dan,
+}
+
+/// Arguments of `holoface eval`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// Folder of `NAME.jpg`/`.png` + `NAME.pts` (68 points, 0-based), optionally one level of subfolders.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Evaluate every image or only the validation split.
+    #[arg(long, value_enum, default_value = "all")]
+    pub split: SplitArg,
+    /// Aligners to run (comma-separated).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "dan")]
+    pub aligner: Vec<AlignerArg>,
+    /// Initial shape.
+    #[arg(long, value_enum, default_value = "detector")]
+    pub init: Init,
+    #[command(flatten)]
+    /// Runtime assets.
+    pub runtime: runtime::RuntimeArgs,
+    /// JSON report.
+    #[arg(long, default_value = "runs/eval.json")]
+    pub out: PathBuf,
+    /// CED plot (PNG).
+    #[arg(long, default_value = "runs/ced.png")]
+    pub plot: PathBuf,
+}
+
+#[derive(Debug, Serialize)]
+struct PerImage {
+    name: String,
+    detected: bool,
+    nme68: Option<f64>,
+    nme49: Option<f64>,
+    confidence: Option<Confidence>,
+    accepted: bool,
+}
+
+#[derive(Debug, Serialize)]
+struct SummaryJson {
+    mean: f64,
+    auc: f64,
+    failure_rate: f64,
+}
+
+impl From<ErrorSummary> for SummaryJson {
+    fn from(s: ErrorSummary) -> Self {
+        Self {
+            mean: s.mean,
+            auc: s.auc,
+            failure_rate: s.failure_rate,
+        }
+    }
+}
+
+#[derive(Debug, Serialize)]
+struct AlignerReport {
+    aligner: &'static str,
+    init: Init,
+    images: usize,
+    detected: usize,
+    /// NME over 68 points (outer-eye-corner normalised); `null` for aligners that only give 51 points.
+    nme68: Option<SummaryJson>,
+    nme49: SummaryJson,
+    ms_per_face: f64,
+    per_image: Vec<PerImage>,
+}
+
+/// Runs `holoface eval`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let data = args
+        .data
+        .clone()
+        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let split = match args.split {
+        SplitArg::All => Split::All,
+        SplitArg::Validation => Split::Validation,
+    };
+    let samples = load_folder(&data, split, true)?;
+    tracing::info!(count = samples.len(), folder = %data.display(), "evaluating");
+    let mean = dan_mean_shape();
+
+    // Initial shapes, shared by all aligners.
+    let mut inits: Vec<Option<[Point2; 68]>> = Vec::with_capacity(samples.len());
+    let mut detector = match args.init {
+        Init::Detector => Some(BlazeFace::load(
+            &args.runtime.detector_model(),
+            &args.runtime.ort_dylib(),
+            1,
+        )?),
+        Init::GtBox => None,
+    };
+    for s in &samples {
+        let gt = s.landmarks.context("annotation missing")?;
+        let gt_box = Rect::bounding(&gt).context("empty annotation")?;
+        let init = match detector.as_mut() {
+            Some(det) => {
+                let found = det
+                    .detect(&s.image.view())
+                    .with_context(|| format!("detecting faces in {}", s.name))?;
+                // The detection that matches the annotated face (the images may hold others).
+                found
+                    .iter()
+                    .filter(|d| d.bbox.iou(&gt_box) > 0.2)
+                    .max_by(|a, b| a.bbox.iou(&gt_box).total_cmp(&b.bbox.iou(&gt_box)))
+                    .and_then(|d| {
+                        let mut out = [Point2::default(); 68];
+                        shape_from_detection(&mean, d, &mut out).then_some(out)
+                    })
+            }
+            None => {
+                let mut out = [Point2::default(); 68];
+                fit_to_box(&mean, &gt_box, &mut out);
+                Some(out)
+            }
+        };
+        inits.push(init);
+    }
+
+    let mut reports = Vec::new();
+    let mut curves = Vec::new();
+    for which in &args.aligner {
+        let mut aligner: Box<dyn Aligner> = match which {
+            AlignerArg::Dan => Box::new(args.runtime.dan_aligner()?),
+        };
+        let mut per_image = Vec::with_capacity(samples.len());
+        let (mut e68, mut e49) = (Vec::new(), Vec::new());
+        let mut aligned = 0usize;
+        let t0 = Instant::now();
+        for (s, init) in samples.iter().zip(&inits) {
+            let gt = s.landmarks.context("annotation missing")?;
+            let Some(init) = init else {
+                per_image.push(PerImage {
+                    name: s.name.clone(),
+                    detected: false,
+                    nme68: None,
+                    nme49: None,
+                    confidence: None,
+                    accepted: false,
+                });
+                e68.push(f64::INFINITY);
+                e49.push(f64::INFINITY);
+                continue;
+            };
+            let a = aligner
+                .align(&s.image.view(), init)
+                .with_context(|| format!("aligning {}", s.name))?;
+            aligned += 1;
+            let n68 = match a.set {
+                crate::align::LandmarkSet::Ibug68 => nme68(&a.landmarks, &gt),
+                crate::align::LandmarkSet::Inner51 => None,
+            };
+            let n49 = nme49(&a.landmarks, &gt);
+            e68.push(n68.unwrap_or(f64::INFINITY));
+            e49.push(n49.unwrap_or(f64::INFINITY));
+            per_image.push(PerImage {
+                name: s.name.clone(),
+                detected: true,
+                nme68: n68,
+                nme49: n49,
+                confidence: Some(a.confidence),
+                accepted: a.accepted,
+            });
+        }
+        let ms = t0.elapsed().as_secs_f64() * 1e3 / aligned.max(1) as f64;
+        let has68 = per_image.iter().any(|p| p.nme68.is_some());
+        let s49 = summarise(&e49);
+        println!(
+            "{:<6} init={:?} images={} detected={} NME49={:.2}% AUC49={:.2} fail49={:.2}%{}",
+            aligner.name(),
+            args.init,
+            samples.len(),
+            aligned,
+            100.0 * s49.mean,
+            100.0 * s49.auc,
+            100.0 * s49.failure_rate,
+            if has68 {
+                let s = summarise(&e68);
+                format!(
+                    " NME68={:.2}% AUC68={:.2} fail68={:.2}%",
+                    100.0 * s.mean,
+                    100.0 * s.auc,
+                    100.0 * s.failure_rate
+                )
+            } else {
+                String::new()
+            }
+        );
+        curves.push(Curve {
+            label: aligner.name().to_owned(),
+            errors: e49.clone(),
+        });
+        reports.push(AlignerReport {
+            aligner: aligner.name(),
+            init: args.init,
+            images: samples.len(),
+            detected: inits.iter().filter(|i| i.is_some()).count(),
+            nme68: has68.then(|| summarise(&e68).into()),
+            nme49: s49.into(),
+            ms_per_face: ms,
+            per_image,
+        });
+    }
+    if reports.is_empty() {
+        bail!("no aligner selected");
+    }
+    for path in [&args.out, &args.plot] {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
+    let json = serde_json::to_string_pretty(&reports)?;
+    std::fs::write(&args.out, json).with_context(|| format!("writing {}", args.out.display()))?;
+    let png = ced_plot_png(&curves, 0.08);
+    std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
+    println!("wrote {} and {}", args.out.display(), args.plot.display());
+    Ok(())
+}

@@ -1,0 +1,38 @@
+//! The `holoface` command line. Each subcommand lives in its own module and exposes `Args` + `run`.
+
+use clap::{Parser, Subcommand};
+
+pub mod eval;
+
+/// HoloFace: find, track and understand faces for AR headsets.
+#[derive(Debug, Parser)]
+#[command(name = "holoface", version, about)]
+pub struct Cli {
+    /// Log filter (tracing `EnvFilter` syntax); `RUST_LOG` overrides it.
+    #[arg(long, global = true, default_value = "info", env = "HOLOFACE_LOG")]
+    pub log: String,
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
+    Eval(eval::Args),
+}
+
+/// Runs the parsed command line.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Eval(args) => eval::run(args),
+    }
+}
+
+/// Installs the tracing subscriber (binaries only; libraries never do).
+pub fn init_logging(filter: &str) {
+    let env = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{filter},quinn=info,rustls=info")));
+    let _ = tracing_subscriber::fmt().with_env_filter(env).with_writer(std::io::stderr).try_init();
+}

@@ -1,0 +1,151 @@
+//! Annotated face folders (`NAME.jpg` + `NAME.pts`, 68 points, 0-based) and the fixed validation split.
+//!
+//! This is the only place the client reads training or evaluation data; `models` stays IO-free.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use holoface_models::geometry::Point2;
+use holoface_models::image::GrayImage;
+use holoface_models::shape::parse_pts68;
+
+/// The committed validation split (names `<subset>/<stem>` relative to `faces68/train`).
+pub const VALIDATION_SPLIT: &str = include_str!("../../models/splits/val.txt");
+
+/// One annotated face.
+#[derive(Debug, Clone)]
+pub struct Sample {
+    /// `<subset>/<stem>` relative to the data root (or the stem for a flat folder).
+    pub name: String,
+    /// Grayscale image.
+    pub image: GrayImage,
+    /// Ground-truth landmarks in image pixels, when a `.pts` file exists.
+    pub landmarks: Option<[Point2; 68]>,
+}
+
+/// Names in the validation split.
+pub fn validation_names() -> HashSet<String> {
+    VALIDATION_SPLIT
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .map(str::to_owned)
+        .collect()
+}
+
+/// Which part of a folder to take.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Split {
+    /// Every sample.
+    All,
+    /// Samples named in the validation split.
+    Validation,
+    /// Samples not named in the validation split.
+    Train,
+}
+
+/// The data folder: `$HOLOFACE_DATA`, else `../shared/data` beside the current directory or the workspace.
+pub fn default_data_root() -> PathBuf {
+    if let Some(p) = std::env::var_os("HOLOFACE_DATA") {
+        return PathBuf::from(p);
+    }
+    let here = PathBuf::from("../shared/data");
+    if here.is_dir() {
+        return here;
+    }
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
+}
+
+/// Image paths (`.jpg`, `.jpeg`, `.png`) under `root`, one level of subfolders deep, sorted by name.
+pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    let mut out = Vec::new();
+    let mut visit = |dir: &Path, prefix: &str| -> anyhow::Result<Vec<PathBuf>> {
+        let mut subdirs = Vec::new();
+        for entry in std::fs::read_dir(dir).with_context(|| format!("reading folder {}", dir.display()))? {
+            let path = entry?.path();
+            if path.is_dir() {
+                subdirs.push(path);
+                continue;
+            }
+            let ext = path
+                .extension()
+                .and_then(|e| e.to_str())
+                .map(str::to_ascii_lowercase);
+            if matches!(ext.as_deref(), Some("jpg" | "jpeg" | "png")) {
+                let stem = path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                out.push((format!("{prefix}{stem}"), path));
+            }
+        }
+        Ok(subdirs)
+    };
+    let subdirs = visit(root, "")?;
+    for sub in subdirs {
+        let name = sub
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        visit(&sub, &format!("{name}/"))?;
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// Reads an image file as 8-bit grayscale.
+pub fn read_gray(path: &Path) -> anyhow::Result<GrayImage> {
+    let img = image::open(path)
+        .with_context(|| format!("decoding image {}", path.display()))?
+        .to_luma8();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    Ok(GrayImage::from_vec(img.into_raw(), w, h)?)
+}
+
+/// Reads a 68-point `.pts` file.
+pub fn read_pts(path: &Path) -> anyhow::Result<[Point2; 68]> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    parse_pts68(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// Loads a folder of images with their `.pts` annotations.
+///
+/// With `require_landmarks`, a folder without any `.pts` file or an image without one is an error.
+pub fn load_folder(root: &Path, split: Split, require_landmarks: bool) -> anyhow::Result<Vec<Sample>> {
+    if !root.is_dir() {
+        bail!(
+            "data folder {} does not exist (set --data or HOLOFACE_DATA)",
+            root.display()
+        );
+    }
+    let val = validation_names();
+    let mut out = Vec::new();
+    for (name, path) in list_images(root)? {
+        let keep = match split {
+            Split::All => true,
+            Split::Validation => val.contains(&name),
+            Split::Train => !val.contains(&name),
+        };
+        if !keep {
+            continue;
+        }
+        let pts_path = path.with_extension("pts");
+        let landmarks = if pts_path.is_file() {
+            Some(read_pts(&pts_path)?)
+        } else if require_landmarks {
+            bail!("{} has no annotation {}", path.display(), pts_path.display());
+        } else {
+            None
+        };
+        out.push(Sample {
+            name,
+            image: read_gray(&path)?,
+            landmarks,
+        });
+    }
+    if out.is_empty() {
+        bail!("no images found in {} for the {:?} split", root.display(), split);
+    }
+    Ok(out)
+}

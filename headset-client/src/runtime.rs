@@ -1,0 +1,57 @@
+//! Where the runtime assets live (ONNX Runtime library, models) and how the CLI builds engines from them.
+
+use std::path::PathBuf;
+
+use alignment_server::engine::{OnnxEngine, OnnxOptions};
+use anyhow::Context;
+use clap::Args;
+
+use crate::align::DanAligner;
+
+/// Paths and threads of the runtime assets; every path has an env override set by `make setup`.
+#[derive(Debug, Clone, Args)]
+pub struct RuntimeArgs {
+    /// ONNX Runtime shared library (`make setup` fetches it from the pinned PyPI wheel).
+    #[arg(
+        long,
+        env = "ORT_DYLIB_PATH",
+        default_value = ".cache/onnxruntime/libonnxruntime.so.1.31.1"
+    )]
+    pub ort_dylib: PathBuf,
+    /// DAN model (ONNX).
+    #[arg(long, env = "HOLOFACE_DAN_MODEL", default_value = "models/assets/dan.onnx")]
+    pub dan_model: PathBuf,
+    /// Face detector model (BlazeFace short range, ONNX).
+    #[arg(
+        long,
+        env = "HOLOFACE_DETECTOR_MODEL",
+        default_value = ".cache/blazeface/face_detection_front_128x128.onnx"
+    )]
+    pub detector: PathBuf,
+    /// ONNX Runtime intra-op threads for DAN.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+}
+
+impl RuntimeArgs {
+    /// The ONNX Runtime library path.
+    pub fn ort_dylib(&self) -> PathBuf {
+        self.ort_dylib.clone()
+    }
+    /// The detector model path.
+    pub fn detector_model(&self) -> PathBuf {
+        self.detector.clone()
+    }
+    /// DAN through ONNX Runtime in this process.
+    pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
+        let engine = OnnxEngine::load(&OnnxOptions {
+            model: self.dan_model.clone(),
+            ort_dylib: self.ort_dylib.clone(),
+            intra_threads: self.threads,
+            max_batch: 1,
+            cuda: false,
+        })
+        .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
+        Ok(DanAligner::new(engine)?)
+    }
+}
