@@ -263,12 +263,12 @@ proptest! {
         payload[p] ^= 1 << bit;
         if reseal {
             // Structural checks only: may load (a flipped weight is still a model) but must not panic.
-            if let Ok(model) = Krfws::from_bytes(&seal(&payload)) {
-                let (_, faces) = &*model_faces();
+            if let Ok(loaded) = Krfws::from_bytes(&seal(&payload)) {
+                let (_, faces) = model();
                 let mut scratch = KrfwsScratch::new();
                 let mut out = [Point2::default(); N_POINTS];
-                let init = model.init_from_box(&gt_box(&faces[0].landmarks));
-                let _ = model.align(&faces[0].image.view(), &init, &mut scratch, &mut out);
+                let init = loaded.init_from_box(&gt_box(&faces[0].landmarks));
+                let _ = loaded.align(&faces[0].image.view(), &init, &mut scratch, &mut out);
             }
         } else {
             let mut b = bytes.clone();
@@ -277,8 +277,4 @@ proptest! {
             prop_assert!(Krfws::from_bytes(&b).is_err());
         }
     }
-}
-
-fn model_faces() -> &'static (Krfws, Vec<TrainFace>) {
-    model()
 }

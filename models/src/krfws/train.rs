@@ -6,9 +6,10 @@
 //! # Cascade
 //! Stage-1 start shapes are the box initialisation ([`Krfws::init_from_box`] on the ground-truth 68-point
 //! extent) of every face and of its mirror image (`MIRROR68`), perturbed by random similarities about the
-//! shape centroid: sample 0 unperturbed, then in turn small noise (σ 5 % translation, 5°, 5 % scale:
-//! the jitter of a detector box or of the previous frame), medium noise (10 %, 10°, 10 %) and the full
-//! DAN σ (20 % of the shape's width/height translation, 20° rotation, 25 % scale). Later stages start from the previous
+//! shape centroid: sample 0 unperturbed; sample `k > 0` gets the full DAN σ (20 % of the shape's
+//! width/height translation, 20° rotation, 25 % scale) when `k % full_period == 0`, else small noise
+//! (σ 5 % translation, 5°, 5 % scale: the jitter of a detector box or of the previous frame) for an odd
+//! remainder or medium noise (10 %, 10°, 10 %) for an even one ([`TrainConfig::full_period`]). Later stages start from the previous
 //! stage's outputs. Targets are the per-landmark displacements ground truth − current in the stage's
 //! normalised frame divided by the stage scale (mean-shape units).
 //!
@@ -80,6 +81,9 @@ pub struct TrainConfig {
     pub depth: usize,
     /// Stage-1 start shapes per face and per mirror image.
     pub perturbations: usize,
+    /// Stage-1 start shape `k > 0` gets the DAN σ when `k % full_period == 0`, else small (odd
+    /// remainder) or medium (even remainder) noise; 3 gives the cycle small, medium, DAN.
+    pub full_period: usize,
     /// Smallest number of samples a child may receive.
     pub min_leaf: usize,
     /// Largest number of samples entering the Fisher discriminant at a node.
@@ -109,6 +113,7 @@ impl Default for TrainConfig {
             trees: 6,
             depth: 5,
             perturbations: 10,
+            full_period: 3,
             min_leaf: 8,
             lda_samples: 500,
             shrinkage: 0.2,
@@ -854,11 +859,15 @@ pub fn train_cascade(
         let base = proto.init_from_box(&gt_box(&f.landmarks));
         for k in 0..cfg.perturbations {
             let mut rng = Rng::stream(cfg.seed, &[0, fi as u64, k as u64]);
-            let shape = match k % 3 {
-                _ if k == 0 => base,
-                1 => perturb(&base, SMALL_PERTURBATION, &mut rng),
-                2 => perturb(&base, MEDIUM_PERTURBATION, &mut rng),
-                _ => perturb(&base, DAN_PERTURBATION, &mut rng),
+            let r = k % cfg.full_period.max(2);
+            let shape = if k == 0 {
+                base
+            } else if r == 0 {
+                perturb(&base, DAN_PERTURBATION, &mut rng)
+            } else if r % 2 == 1 {
+                perturb(&base, SMALL_PERTURBATION, &mut rng)
+            } else {
+                perturb(&base, MEDIUM_PERTURBATION, &mut rng)
             };
             samples.push(Sample { face: fi, shape });
         }

@@ -1,0 +1,95 @@
+//! The full KRFWS pipeline per face on one thread: 3 stages + failure score, from a full frame and an
+//! initial shape (the GT-box initialisation).
+//!
+//! Loads `models/assets/krfws.bin` at bench time. The frame is the first validation image of
+//! `$HOLOFACE_DATA/faces68/train` (default `../shared/data`) when present, else a synthetic frame.
+//!
+//! `cargo bench -p holoface-models --bench krfws -- --warm-up-time 1 --measurement-time 5`
+#![allow(clippy::unwrap_used)] // bench setup; a panic is a failed run
+
+use std::hint::black_box;
+use std::path::PathBuf;
+
+use criterion::{Criterion, Throughput, criterion_group};
+use holoface_models::geometry::{Point2, Rect};
+use holoface_models::image::{GrayImage, GrayView};
+use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
+use holoface_models::shape::parse_pts68;
+
+fn data_root() -> PathBuf {
+    std::env::var_os("HOLOFACE_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
+}
+
+/// A validation face (image + GT box) or a synthetic 352×352 frame with a box in the middle.
+fn frame() -> (GrayImage, Rect, &'static str) {
+    let base = data_root().join("faces68/train");
+    let split = include_str!("../splits/val.txt");
+    if let Some(name) = split
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))
+    {
+        let jpg = base.join(format!("{name}.jpg"));
+        let pts = base.join(format!("{name}.pts"));
+        if let (Ok(img), Ok(text)) = (image::open(&jpg), std::fs::read_to_string(&pts)) {
+            let g = img.to_luma8();
+            let (w, h) = (g.width() as usize, g.height() as usize);
+            let lm = parse_pts68(&text).unwrap();
+            return (
+                GrayImage::from_vec(g.into_raw(), w, h).unwrap(),
+                Rect::bounding(&lm).unwrap(),
+                "validation",
+            );
+        }
+    }
+    let (w, h) = (352usize, 352usize);
+    let img = (0..w * h)
+        .map(|i| {
+            let (x, y) = ((i % w) as f32, (i / w) as f32);
+            (120.0 + 50.0 * (x / 17.0).sin() * (y / 13.0).cos()) as u8
+        })
+        .collect();
+    let r = Rect {
+        x0: 96.0,
+        y0: 96.0,
+        x1: 256.0,
+        y1: 256.0,
+    };
+    (GrayImage::from_vec(img, w, h).unwrap(), r, "synthetic")
+}
+
+fn bench_align(c: &mut Criterion) {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/krfws.bin");
+    let Ok(bytes) = std::fs::read(&path) else {
+        eprintln!(
+            "{} missing: train it with `holoface train-krfws` first; skipping",
+            path.display()
+        );
+        return;
+    };
+    let model = Krfws::from_bytes(&bytes).unwrap();
+    let (img, bbox, kind) = frame();
+    eprintln!("frame: {kind} {}x{}", img.width(), img.height());
+    let view: GrayView<'_> = img.view();
+    let init = model.init_from_box(&bbox);
+    let mut scratch = KrfwsScratch::new();
+    let mut out = [Point2::default(); N_POINTS];
+    let mut g = c.benchmark_group("krfws");
+    g.throughput(Throughput::Elements(1));
+    g.bench_function("align_3_stages+failure", |b| {
+        b.iter(|| model.align(black_box(&view), black_box(&init), &mut scratch, &mut out))
+    });
+    g.bench_function("from_bytes", |b| {
+        b.iter(|| Krfws::from_bytes(black_box(&bytes)).unwrap())
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_align);
+
+fn main() {
+    benches();
+    Criterion::default().configure_from_args().final_summary();
+}
