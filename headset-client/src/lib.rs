@@ -8,3 +8,4 @@ pub mod data;
 pub mod detect;
 pub mod plot;
 pub mod runtime;
+pub mod session;
