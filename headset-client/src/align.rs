@@ -164,3 +164,43 @@ pub fn landmarks_from_crop(
         accepted: face_prob >= threshold,
     })
 }
+
+/// KRFWS on the headset: 51 inner landmarks plus the failure detector's predicted error.
+#[derive(Debug)]
+pub struct KrfwsAligner {
+    model: holoface_models::krfws::Krfws,
+    scratch: holoface_models::krfws::KrfwsScratch,
+}
+
+impl KrfwsAligner {
+    /// Wraps a loaded model.
+    pub fn new(model: holoface_models::krfws::Krfws) -> Self {
+        Self {
+            model,
+            scratch: holoface_models::krfws::KrfwsScratch::new(),
+        }
+    }
+}
+
+impl Aligner for KrfwsAligner {
+    fn name(&self) -> &'static str {
+        "krfws"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
+            return Err(AlignError::DegenerateInit);
+        }
+        let start: [Point2; 51] = std::array::from_fn(|i| init[17 + i]);
+        let mut out = start;
+        let score = self.model.align(image, &start, &mut self.scratch, &mut out);
+        let mut landmarks = *init;
+        landmarks[17..].copy_from_slice(&out);
+        Ok(Alignment {
+            landmarks,
+            set: LandmarkSet::Inner51,
+            confidence: Confidence::PredictedError(score),
+            accepted: score < self.model.threshold(),
+        })
+    }
+}

@@ -6,7 +6,7 @@ use alignment_server::engine::{OnnxEngine, OnnxOptions};
 use anyhow::Context;
 use clap::Args;
 
-use crate::align::DanAligner;
+use crate::align::{DanAligner, KrfwsAligner};
 
 /// Paths and threads of the runtime assets; every path has an env override set by `make setup`.
 #[derive(Debug, Clone, Args)]
@@ -28,6 +28,9 @@ pub struct RuntimeArgs {
         default_value = ".cache/blazeface/face_detection_front_128x128.onnx"
     )]
     pub detector: PathBuf,
+    /// KRFWS model (the local aligner).
+    #[arg(long, env = "HOLOFACE_KRFWS_MODEL", default_value = "models/assets/krfws.bin")]
+    pub krfws_model: PathBuf,
     /// ONNX Runtime intra-op threads for DAN.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
@@ -53,5 +56,14 @@ impl RuntimeArgs {
         })
         .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
         Ok(DanAligner::new(engine)?)
+    }
+
+    /// KRFWS from its model file.
+    pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
+        let bytes = std::fs::read(&self.krfws_model)
+            .with_context(|| format!("reading KRFWS model {}", self.krfws_model.display()))?;
+        let model = holoface_models::krfws::Krfws::from_bytes(&bytes)
+            .with_context(|| format!("loading KRFWS model {}", self.krfws_model.display()))?;
+        Ok(KrfwsAligner::new(model))
     }
 }

@@ -42,6 +42,8 @@ pub enum SplitArg {
 pub enum AlignerArg {
     /// DAN through ONNX Runtime in-process.
     Dan,
+    /// KRFWS (51 inner points; reported on the 49-point protocol only).
+    Krfws,
 }
 
 /// Arguments of `holoface eval`.
@@ -166,6 +168,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for which in &args.aligner {
         let mut aligner: Box<dyn Aligner> = match which {
             AlignerArg::Dan => Box::new(args.runtime.dan_aligner()?),
+            AlignerArg::Krfws => Box::new(args.runtime.krfws_aligner()?),
         };
         let mut per_image = Vec::with_capacity(samples.len());
         let (mut e68, mut e49) = (Vec::new(), Vec::new());
