@@ -53,6 +53,7 @@ impl RuntimeArgs {
             intra_threads: self.threads,
             max_batch: 1,
             cuda: false,
+            spin: false,
         })
         .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
         Ok(DanAligner::new(engine)?)
