@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all setup venv venv-train ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+.PHONY: all setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
 
 all: test
 
@@ -30,8 +30,13 @@ $(VENV)/.train-installed: models/dan/requirements.txt $(VENV)/.eval-installed
 	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements.txt
 	touch $@
 
+$(VENV)/.peer-installed: models/dan/requirements-peer.txt $(VENV)/.eval-installed
+	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements-peer.txt
+	touch $@
+
 venv: $(VENV)/.eval-installed
 venv-train: $(VENV)/.train-installed
+venv-peer: $(VENV)/.peer-installed
 
 # The ONNX Runtime shared library comes from the pinned PyPI wheel (onnxruntime==$(ORT_VERSION)).
 $(ORT_LIB): $(VENV)/.eval-installed
@@ -62,9 +67,10 @@ detector: $(BLAZEFACE)
 setup: venv ort detector
 
 ## ---- main job -----------------------------------------------------------------------------------
+# Until the loopback demo lands: the full single-image pipeline (detect, place, align) on the validation split.
 demo: setup
-	$(CARGO) build --release -p holoface-client -p holoface-server
-	./target/release/holoface demo
+	$(CARGO) build --release -p holoface-client
+	./target/release/holoface eval --split validation --init detector --aligner dan --out runs/eval.json --plot runs/ced.png
 
 ## ---- tests --------------------------------------------------------------------------------------
 golden: venv
@@ -98,6 +104,13 @@ fuzz:
 
 bench: setup
 	$(CARGO) bench --workspace
+
+# Side-by-side accuracy table: our aligners and dlib's 68-point predictor on the validation split.
+compare: setup venv-peer
+	$(CARGO) build --release -p holoface-client
+	./target/release/holoface eval --split validation --init detector --aligner dan,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
+	./target/release/holoface eval --split validation --init gt-box --aligner dan,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
+	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 train-dan: venv-train
 	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 16000 --threads 1
