@@ -9,3 +9,4 @@ pub mod detect;
 pub mod plot;
 pub mod runtime;
 pub mod session;
+pub mod source;

@@ -3,6 +3,8 @@
 use clap::{Parser, Subcommand};
 
 pub mod eval;
+pub mod track;
+pub mod train_krfws;
 
 /// HoloFace: find, track and understand faces for AR headsets.
 #[derive(Debug, Parser)]
@@ -21,12 +23,18 @@ pub struct Cli {
 pub enum Command {
     /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
     Eval(eval::Args),
+    /// Track faces over an image folder or a recorded stream; one JSON line per frame.
+    Track(track::Args),
+    /// Train the KRFWS local aligner and evaluate it on the validation split.
+    TrainKrfws(train_krfws::Args),
 }
 
 /// Runs the parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Eval(args) => eval::run(args),
+        Command::Track(args) => track::run(args),
+        Command::TrainKrfws(args) => train_krfws::run(args),
     }
 }
 
@@ -34,5 +42,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 pub fn init_logging(filter: &str) {
     let env = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{filter},quinn=info,rustls=info")));
-    let _ = tracing_subscriber::fmt().with_env_filter(env).with_writer(std::io::stderr).try_init();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(env)
+        .with_writer(std::io::stderr)
+        .try_init();
 }

@@ -1,0 +1,166 @@
+//! `holoface track`: runs the tracker session over a frame source and writes one JSON line per frame.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::candide::{FaceModel, Wfm};
+use holoface_models::shape::dan_mean_shape;
+use serde_json::json;
+
+use crate::align::Aligner;
+use crate::detect::BlazeFace;
+use crate::runtime::RuntimeArgs;
+use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use crate::source::open_source;
+
+/// Local aligner for `track`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum TrackAligner {
+    /// KRFWS (the headset's local aligner).
+    Krfws,
+    /// DAN in-process through ONNX Runtime.
+    Dan,
+}
+
+/// Arguments of `holoface track`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// A folder of PNG/JPEG frames (name order) or a recorded stream (`.hfrec`).
+    #[arg(long)]
+    pub source: PathBuf,
+    /// Frame rate of an image folder.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Aligner.
+    #[arg(long, value_enum, default_value = "krfws")]
+    pub aligner: TrackAligner,
+    /// CANDIDE-3 model (`.wfm`), resolved by the set-up command.
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+    /// Disable headset-motion compensation of the tracking initialisation.
+    #[arg(long)]
+    pub no_motion_compensation: bool,
+    /// Prediction horizon in milliseconds.
+    #[arg(long, default_value_t = 120.0)]
+    pub lookahead_ms: f64,
+    /// JSON-lines output, one line per frame.
+    #[arg(long, default_value = "runs/track.jsonl")]
+    pub out: PathBuf,
+    /// Runtime assets.
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+/// Runs `holoface track`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let text = std::fs::read(&args.candide).with_context(|| format!("reading {}", args.candide.display()))?;
+    let wfm = Wfm::parse(&String::from_utf8_lossy(&text))
+        .with_context(|| format!("parsing {}", args.candide.display()))?;
+    let model = FaceModel::from_wfm(&wfm)?;
+    let detector = BlazeFace::load(&args.runtime.detector_model(), &args.runtime.ort_dylib(), 1)?;
+    let mut aligner: Box<dyn Aligner> = match args.aligner {
+        TrackAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
+        TrackAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+    };
+    let opts = SessionOptions {
+        motion_compensation: !args.no_motion_compensation,
+        lookahead_s: args.lookahead_ms / 1e3,
+        ..SessionOptions::default()
+    };
+    let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);
+    let mut source = open_source(&args.source, args.fps)?;
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let file =
+        std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    let (mut frames, mut faces) = (0usize, 0usize);
+    while let Some(sf) = source.next_frame()? {
+        let frame = Frame {
+            timestamp_us: sf.timestamp_us,
+            image: sf.image.view(),
+            intrinsics: sf.intrinsics,
+            world_from_camera: sf.world_from_camera,
+        };
+        let t0 = Instant::now();
+        let prepared = session.prepare(&frame)?;
+        let t_prepare = t0.elapsed();
+        let t1 = Instant::now();
+        let alignment = match prepared {
+            Prepared::Align { init, .. } => Some(aligner.align(&frame.image, &init)?),
+            Prepared::NoFace => None,
+        };
+        let t_align = t1.elapsed();
+        let t2 = Instant::now();
+        let result = if matches!(prepared, Prepared::NoFace) {
+            session.complete(&frame, None)
+        } else {
+            session.complete(&frame, alignment)
+        };
+        let t_complete = t2.elapsed();
+        frames += 1;
+        let timings = json!({
+            "prepare_ms": t_prepare.as_secs_f64() * 1e3,
+            "align_ms": t_align.as_secs_f64() * 1e3,
+            "fit_pose_filter_ms": t_complete.as_secs_f64() * 1e3,
+        });
+        let line = match result {
+            FrameResult::Face(u) => {
+                faces += 1;
+                json!({
+                    "frame": sf.index,
+                    "timestamp_us": sf.timestamp_us,
+                    "face": true,
+                    "aligner": aligner.name(),
+                    "init": u.init,
+                    "confidence": u.confidence,
+                    "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
+                    "camera": {
+                        "translation_m": u.fit.translation.to_array(),
+                        "rotation_wxyz": [u.fit.rotation.w, u.fit.rotation.x, u.fit.rotation.y, u.fit.rotation.z],
+                        "rmse_px": u.fit.rmse_px,
+                    },
+                    "world": {
+                        "position_m": u.world.position.to_array(),
+                        "rotation_wxyz": [u.world.rotation.w, u.world.rotation.x, u.world.rotation.y, u.world.rotation.z],
+                        "predicted_position_m": u.predicted_position.to_array(),
+                        "display_position_m": u.display.0.to_array(),
+                    },
+                    "weights": {
+                        "jaw_drop": u.fit.weights[0], "lip_stretcher": u.fit.weights[1], "brow_lowerer": u.fit.weights[2],
+                        "lip_corner_depressor": u.fit.weights[3], "eyes_closed": u.fit.weights[4],
+                    },
+                    "attributes": {
+                        "smile": u.attributes.smile, "brows_raised": u.attributes.brows_raised,
+                        "mouth_open": u.attributes.mouth_open,
+                    },
+                    "timings": timings,
+                })
+            }
+            FrameResult::NoFace(reason) => json!({
+                "frame": sf.index,
+                "timestamp_us": sf.timestamp_us,
+                "face": false,
+                "reason": reason,
+                "timings": timings,
+            }),
+        };
+        serde_json::to_writer(&mut out, &line)?;
+        out.write_all(b"\n")?;
+    }
+    out.flush()
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!(
+        "{frames} frames, {faces} with a face; wrote {}",
+        args.out.display()
+    );
+    Ok(())
+}

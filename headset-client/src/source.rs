@@ -1,0 +1,203 @@
+//! Frame sources: image sequences and recorded streams. Each frame carries a timestamp, intrinsics and a
+//! camera-to-world pose (identity when the source does not know it).
+//!
+//! This module and `data.rs` are the only places the client reads frames from files.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use holoface_models::candide::Intrinsics;
+use holoface_models::image::GrayImage;
+use holoface_models::math3::Pose;
+use holoface_protocol::CropEncoding;
+use holoface_protocol::recording::{FramePayload, RecordingReader};
+
+use crate::data::{list_images, read_gray};
+
+/// One owned frame from a source.
+#[derive(Debug, Clone)]
+pub struct SourceFrame {
+    /// Index in the source.
+    pub index: usize,
+    /// Capture time in microseconds.
+    pub timestamp_us: u64,
+    /// Grayscale pixels.
+    pub image: GrayImage,
+    /// Camera intrinsics.
+    pub intrinsics: Intrinsics,
+    /// Camera-to-world pose.
+    pub world_from_camera: Pose,
+    /// Ground-truth landmarks when the source has them.
+    pub ground_truth: Option<Vec<holoface_models::geometry::Point2>>,
+}
+
+/// Intrinsics for a camera with a 60° horizontal field of view and the principal point at the centre, used
+/// when a source does not state its own.
+pub fn default_intrinsics(width: usize, height: usize) -> Intrinsics {
+    let f = 0.5 * width as f64 / (30f64.to_radians()).tan();
+    Intrinsics {
+        fx: f,
+        fy: f,
+        cx: 0.5 * (width as f64 - 1.0),
+        cy: 0.5 * (height as f64 - 1.0),
+    }
+}
+
+/// A sequence of frames.
+pub trait FrameSource {
+    /// The next frame, `Ok(None)` at the end.
+    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>>;
+}
+
+/// A folder of PNG/JPEG images in name order, at a fixed frame rate, identity pose.
+#[derive(Debug)]
+pub struct ImageSequence {
+    paths: Vec<PathBuf>,
+    next: usize,
+    fps: f64,
+    intrinsics: Option<Intrinsics>,
+}
+
+impl ImageSequence {
+    /// Lists the images of `dir`.
+    pub fn open(dir: &Path, fps: f64, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
+        let paths: Vec<PathBuf> = list_images(dir)?.into_iter().map(|(_, p)| p).collect();
+        if paths.is_empty() {
+            bail!("no PNG or JPEG images in {}", dir.display());
+        }
+        if !(fps.is_finite() && fps > 0.0) {
+            bail!("frame rate must be positive, got {fps}");
+        }
+        Ok(Self {
+            paths,
+            next: 0,
+            fps,
+            intrinsics,
+        })
+    }
+}
+
+impl FrameSource for ImageSequence {
+    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+        let Some(path) = self.paths.get(self.next) else {
+            return Ok(None);
+        };
+        let index = self.next;
+        self.next += 1;
+        let image = read_gray(path)?;
+        let intrinsics = self
+            .intrinsics
+            .unwrap_or_else(|| default_intrinsics(image.width(), image.height()));
+        Ok(Some(SourceFrame {
+            index,
+            timestamp_us: (index as f64 * 1e6 / self.fps) as u64,
+            image,
+            intrinsics,
+            world_from_camera: Pose::IDENTITY,
+            ground_truth: None,
+        }))
+    }
+}
+
+/// A recorded stream (`.hfrec`) of full frames. Crop records are skipped (they carry no full frame).
+#[derive(Debug)]
+pub struct RecordedStream {
+    reader: RecordingReader<BufReader<File>>,
+    intrinsics: Intrinsics,
+    path: PathBuf,
+    index: usize,
+}
+
+impl RecordedStream {
+    /// Opens a recording and reads its header.
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        let file = File::open(path).with_context(|| format!("opening recording {}", path.display()))?;
+        let reader = RecordingReader::new(BufReader::new(file))
+            .with_context(|| format!("reading the header of {}", path.display()))?;
+        let c = reader.header().intrinsics;
+        let intrinsics = Intrinsics {
+            fx: f64::from(c.fx),
+            fy: f64::from(c.fy),
+            cx: f64::from(c.cx),
+            cy: f64::from(c.cy),
+        };
+        Ok(Self {
+            reader,
+            intrinsics,
+            path: path.to_path_buf(),
+            index: 0,
+        })
+    }
+}
+
+impl FrameSource for RecordedStream {
+    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+        loop {
+            let rec = self
+                .reader
+                .next_record()
+                .with_context(|| format!("reading {}", self.path.display()))?;
+            let Some(rec) = rec else { return Ok(None) };
+            let FramePayload::FullFrame {
+                width,
+                height,
+                encoding,
+                data,
+            } = rec.payload
+            else {
+                continue;
+            };
+            let (w, h) = (width as usize, height as usize);
+            let image = match encoding {
+                CropEncoding::Raw => GrayImage::from_vec(data.to_vec(), w, h)?,
+                CropEncoding::Png | CropEncoding::Jpeg => {
+                    let img = image::load_from_memory(&data)
+                        .with_context(|| format!("decoding frame {} of {}", self.index, self.path.display()))?
+                        .to_luma8();
+                    if (img.width() as usize, img.height() as usize) != (w, h) {
+                        bail!(
+                            "frame {} of {}: encoded image size differs from the record",
+                            self.index,
+                            self.path.display()
+                        );
+                    }
+                    GrayImage::from_vec(img.into_raw(), w, h)?
+                }
+            };
+            let world_from_camera = Pose::from_row_major_4x4(&rec.camera_to_world).with_context(|| {
+                format!(
+                    "frame {} of {}: camera-to-world is not a rigid transform",
+                    self.index,
+                    self.path.display()
+                )
+            })?;
+            let index = self.index;
+            self.index += 1;
+            return Ok(Some(SourceFrame {
+                index,
+                timestamp_us: rec.timestamp_us,
+                image,
+                intrinsics: self.intrinsics,
+                world_from_camera,
+                ground_truth: rec.ground_truth.map(|g| {
+                    g.iter()
+                        .map(|p| holoface_models::geometry::Point2::new(p[0], p[1]))
+                        .collect()
+                }),
+            }));
+        }
+    }
+}
+
+/// Opens a folder as an image sequence or a file as a recorded stream.
+pub fn open_source(path: &Path, fps: f64) -> anyhow::Result<Box<dyn FrameSource>> {
+    if path.is_dir() {
+        Ok(Box::new(ImageSequence::open(path, fps, None)?))
+    } else if path.is_file() {
+        Ok(Box::new(RecordedStream::open(path)?))
+    } else {
+        bail!("frame source {} does not exist", path.display())
+    }
+}
