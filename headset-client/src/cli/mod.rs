@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod eval;
+pub mod record;
 pub mod track;
 pub mod train_krfws;
 
@@ -23,6 +24,8 @@ pub struct Cli {
 pub enum Command {
     /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
     Eval(eval::Args),
+    /// Write a recorded stream (`.hfrec`) from an image folder or another recording.
+    Record(record::Args),
     /// Track faces over an image folder or a recorded stream; one JSON line per frame.
     Track(track::Args),
     /// Train the KRFWS local aligner and evaluate it on the validation split.
@@ -34,6 +37,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Eval(args) => eval::run(args),
         Command::Track(args) => track::run(args),
+        Command::Record(args) => record::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
     }
 }

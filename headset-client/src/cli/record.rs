@@ -1,0 +1,112 @@
+//! `holoface record`: writes a recorded stream (`.hfrec`, the protocol's format) from any frame source.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Args as ClapArgs, ValueEnum};
+use holoface_protocol::CropEncoding;
+use holoface_protocol::recording::{
+    CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
+};
+
+use crate::source::open_source;
+
+/// How full frames are stored.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum FrameEncoding {
+    /// Uncompressed gray8.
+    Raw,
+    /// Lossless PNG.
+    Png,
+}
+
+/// Arguments of `holoface record`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// A folder of PNG/JPEG frames or an existing recording.
+    #[arg(long)]
+    pub source: PathBuf,
+    /// Frame rate of an image folder.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Output `.hfrec` file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Frame storage.
+    #[arg(long, value_enum, default_value = "png")]
+    pub encoding: FrameEncoding,
+}
+
+/// Runs `holoface record`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut source = open_source(&args.source, args.fps)?;
+    let Some(first) = source.next_frame()? else {
+        bail!("{} holds no frames", args.source.display())
+    };
+    let k = first.intrinsics;
+    let header = RecordingHeader {
+        intrinsics: CameraIntrinsics {
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+            width: first.image.width() as u32,
+            height: first.image.height() as u32,
+        },
+        source: format!("holoface record {}", args.source.display())
+            .chars()
+            .take(1000)
+            .collect(),
+        created_unix_ms: std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64),
+    };
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let file =
+        std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut writer = RecordingWriter::new(std::io::BufWriter::new(file), &header)?;
+    let mut frame = Some(first);
+    let mut count = 0usize;
+    while let Some(f) = frame {
+        let (w, h) = (f.image.width() as u32, f.image.height() as u32);
+        let (encoding, data) = match args.encoding {
+            FrameEncoding::Raw => (CropEncoding::Raw, f.image.as_bytes().to_vec()),
+            FrameEncoding::Png => {
+                let mut png = Vec::new();
+                let enc = image::codecs::png::PngEncoder::new(&mut png);
+                image::ImageEncoder::write_image(
+                    enc,
+                    f.image.as_bytes(),
+                    w,
+                    h,
+                    image::ExtendedColorType::L8,
+                )?;
+                (CropEncoding::Png, png)
+            }
+        };
+        let record = FrameRecord {
+            timestamp_us: f.timestamp_us,
+            camera_to_world: f.world_from_camera.to_row_major_4x4(),
+            payload: FramePayload::FullFrame {
+                width: w,
+                height: h,
+                encoding,
+                data: data.into(),
+            },
+            ground_truth: f.ground_truth.map(|g| g.iter().map(|p| [p.x, p.y]).collect()),
+            face_present: None,
+        };
+        writer
+            .write_record(&record)
+            .with_context(|| format!("writing frame {}", f.index))?;
+        count += 1;
+        frame = source.next_frame()?;
+    }
+    writer
+        .finish()
+        .with_context(|| format!("finishing {}", args.out.display()))?;
+    println!("wrote {count} frames to {}", args.out.display());
+    Ok(())
+}

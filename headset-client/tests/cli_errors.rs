@@ -1,0 +1,170 @@
+//! The `holoface` binary on bad input: clear errors, never a panic, never a silent success.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn holoface(args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(args)
+        .current_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+        .env("RUST_BACKTRACE", "0")
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!text.contains("panicked"), "panic: {text}");
+    (out.status.success(), text)
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("holoface-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn write_png(path: &Path, w: u32, h: u32) {
+    let px: Vec<u8> = (0..w * h).map(|i| (i % 251) as u8).collect();
+    image::save_buffer(path, &px, w, h, image::ExtendedColorType::L8).unwrap();
+}
+
+fn pts68() -> String {
+    (0..68).map(|i| format!("{} {}\n", 10 + i, 20 + i % 7)).collect()
+}
+
+#[test]
+fn eval_without_annotations_names_the_missing_file() {
+    let d = tmp("nopts");
+    write_png(&d.join("a.png"), 64, 64);
+    let (ok, text) = holoface(&["eval", "--data", d.to_str().unwrap(), "--init", "gt-box"]);
+    assert!(!ok);
+    assert!(
+        text.contains("has no annotation") && text.contains("a.pts"),
+        "{text}"
+    );
+}
+
+#[test]
+fn eval_with_a_corrupt_image_names_it() {
+    let d = tmp("corrupt");
+    std::fs::write(d.join("b.jpg"), b"not a jpeg at all").unwrap();
+    std::fs::write(d.join("b.pts"), pts68()).unwrap();
+    let (ok, text) = holoface(&["eval", "--data", d.to_str().unwrap(), "--init", "gt-box"]);
+    assert!(!ok);
+    assert!(
+        text.contains("decoding image") && text.contains("b.jpg"),
+        "{text}"
+    );
+}
+
+#[test]
+fn eval_with_a_model_of_the_wrong_shape_says_so() {
+    let d = tmp("wrongmodel");
+    write_png(&d.join("c.png"), 64, 64);
+    std::fs::write(d.join("c.pts"), pts68()).unwrap();
+    // A real ONNX model with another contract: the face detector.
+    let detector = std::env::var("HOLOFACE_DETECTOR_MODEL")
+        .unwrap_or_else(|_| ".cache/blazeface/face_detection_front_128x128.onnx".into());
+    let (ok, text) = holoface(&[
+        "eval",
+        "--data",
+        d.to_str().unwrap(),
+        "--init",
+        "gt-box",
+        "--dan-model",
+        &detector,
+    ]);
+    assert!(!ok);
+    assert!(text.contains("loading DAN model"), "{text}");
+    let garbage = d.join("garbage.onnx");
+    std::fs::write(&garbage, b"\x08\x01garbage").unwrap();
+    let (ok, text) = holoface(&[
+        "eval",
+        "--data",
+        d.to_str().unwrap(),
+        "--init",
+        "gt-box",
+        "--dan-model",
+        garbage.to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert!(text.contains("loading DAN model"), "{text}");
+}
+
+#[test]
+fn track_rejects_missing_bad_and_truncated_sources() {
+    let d = tmp("track");
+    let (ok, text) = holoface(&["track", "--source", d.join("nope").to_str().unwrap()]);
+    assert!(!ok && text.contains("does not exist"), "{text}");
+    let bad = d.join("bad.hfrec");
+    std::fs::write(&bad, b"garbage").unwrap();
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        bad.to_str().unwrap(),
+        "--out",
+        d.join("o.jsonl").to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("header"), "{text}");
+
+    // A real recording, cut in the middle of its second record.
+    let frames = d.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for i in 0..3 {
+        write_png(&frames.join(format!("{i:03}.png")), 80, 60);
+    }
+    let rec = d.join("rec.hfrec");
+    let (ok, text) = holoface(&[
+        "record",
+        "--source",
+        frames.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let bytes = std::fs::read(&rec).unwrap();
+    let cut = d.join("cut.hfrec");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        cut.to_str().unwrap(),
+        "--out",
+        d.join("o.jsonl").to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("file ends inside record"), "{text}");
+}
+
+#[test]
+fn frames_without_faces_get_explicit_no_face_lines() {
+    let d = tmp("noface");
+    let frames = d.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for i in 0..4 {
+        write_png(&frames.join(format!("{i:03}.png")), 96, 72);
+    }
+    let out = d.join("track.jsonl");
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        frames.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 4, "one line per frame");
+    for (i, l) in lines.iter().enumerate() {
+        assert_eq!(l["frame"], i);
+        assert_eq!(l["face"], false);
+        assert_eq!(l["reason"], "not_detected");
+    }
+}
