@@ -87,9 +87,46 @@ fn bench_align(c: &mut Criterion) {
     g.finish();
 }
 
+/// On-CPU nanoseconds of this thread (`/proc/thread-self/schedstat`), robust to a loaded machine.
+fn thread_cpu_ns() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    s.split_whitespace().next()?.parse().ok()
+}
+
+/// Prints wall and on-CPU time per face over a fixed number of aligns (the machine may be shared).
+fn cpu_time_report() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/krfws.bin");
+    let Ok(bytes) = std::fs::read(&path) else { return };
+    let model = Krfws::from_bytes(&bytes).unwrap();
+    let (img, bbox, _) = frame();
+    let view = img.view();
+    let init = model.init_from_box(&bbox);
+    let mut scratch = KrfwsScratch::new();
+    let mut out = [Point2::default(); N_POINTS];
+    for _ in 0..200 {
+        model.align(&view, &init, &mut scratch, &mut out);
+    }
+    let n = 3000;
+    let (t0, c0) = (std::time::Instant::now(), thread_cpu_ns());
+    for _ in 0..n {
+        black_box(model.align(black_box(&view), &init, &mut scratch, &mut out));
+    }
+    let wall = t0.elapsed().as_secs_f64() / f64::from(n);
+    if let (Some(c0), Some(c1)) = (c0, thread_cpu_ns()) {
+        let cpu = (c1 - c0) as f64 * 1e-9 / f64::from(n);
+        eprintln!(
+            "krfws align: {:.1} us/face on-CPU ({:.0} faces/s per core), {:.1} us/face wall",
+            cpu * 1e6,
+            1.0 / cpu,
+            wall * 1e6
+        );
+    }
+}
+
 criterion_group!(benches, bench_align);
 
 fn main() {
+    cpu_time_report();
     benches();
     Criterion::default().configure_from_args().final_summary();
 }

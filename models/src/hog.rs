@@ -55,7 +55,7 @@ const PAD: usize = CELLS + 2;
 
 /// Per window coordinate `u` (0..16): padded index of the lower cell and the weights of the lower and
 /// upper cell (bilinear in the cell-centre lattice 1.5 + 4·i).
-const SPATIAL: [(usize, f32, f32); PATCH] = spatial_table();
+static SPATIAL: [(usize, f32, f32); PATCH] = spatial_table();
 
 const fn spatial_table() -> [(usize, f32, f32); PATCH] {
     let mut t = [(0usize, 0.0f32, 0.0f32); PATCH];
@@ -73,8 +73,8 @@ const fn spatial_table() -> [(usize, f32, f32); PATCH] {
 }
 
 /// `floor(f + 1)` (0..=9) → lower and upper bin, wrapping.
-const BIN_LO: [usize; 10] = [8, 0, 1, 2, 3, 4, 5, 6, 7, 8];
-const BIN_HI: [usize; 10] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 0];
+static BIN_LO: [usize; 10] = [8, 0, 1, 2, 3, 4, 5, 6, 7, 8];
+static BIN_HI: [usize; 10] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 0];
 
 /// Unsigned gradient orientation in radians, `[0, π]`, without `atan2`.
 #[inline(always)]
@@ -90,15 +90,18 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
     let p = p * t2 + 0.180_141f32;
     let p = p * t2 - 0.330_299_5f32;
     let p = p * t2 + 0.999_866f32;
-    let mut a = p * t;
-    if ay > ax {
-        a = std::f32::consts::FRAC_PI_2 - a;
-    }
+    let a = p * t;
+    let a = if ay > ax {
+        std::f32::consts::FRAC_PI_2 - a
+    } else {
+        a
+    };
     // atan2 mod π: the same angle when dx and dy share a sign, its supplement otherwise.
     if (dx < 0.0) != (dy < 0.0) {
-        a = std::f32::consts::PI - a;
+        std::f32::consts::PI - a
+    } else {
+        a
     }
-    a
 }
 
 /// HOG of one 16×16 window (row-major grey levels) into `out` (144 values).
@@ -107,32 +110,35 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
 /// per pixel into a padded 6×6×9 accumulator).
 pub fn hog_patch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     let mut acc = [0.0f32; PAD * PAD * BINS];
-    const N: usize = PATCH - 2;
     let scale = BINS as f32 / std::f32::consts::PI;
+    // Pass 1 over the whole flattened window (vectorises): grey levels, then magnitude and bin position.
+    // Columns 0 and 15 get meaningless values (their neighbours wrap to the adjacent row) and are skipped.
+    let mut f = [0.0f32; PATCH_PIXELS];
+    for (d, s) in f.iter_mut().zip(patch) {
+        *d = f32::from(*s);
+    }
+    let mut mag = [0.0f32; PATCH_PIXELS];
+    let mut pos = [0.0f32; PATCH_PIXELS];
+    for i in PATCH..PATCH_PIXELS - PATCH {
+        let dx = 0.5 * (f[i + 1] - f[i - 1]);
+        let dy = 0.5 * (f[i + PATCH] - f[i - PATCH]);
+        mag[i] = (dx * dx + dy * dy).sqrt();
+        // Bin coordinate + 1: θ·9/π − 0.5 + 1 ∈ [0.5, 9.5].
+        pos[i] = unsigned_angle(dx, dy) * scale + 0.5;
+    }
+    // Pass 2: 8 unconditional votes per interior pixel.
     for y in 1..PATCH - 1 {
-        let above = &patch[(y - 1) * PATCH..y * PATCH];
-        let row = &patch[y * PATCH..(y + 1) * PATCH];
-        let below = &patch[(y + 1) * PATCH..(y + 2) * PATCH];
-        let mut mag = [0.0f32; N];
-        let mut pos = [0.0f32; N];
-        for x in 0..N {
-            let dx = 0.5 * (f32::from(row[x + 2]) - f32::from(row[x]));
-            let dy = 0.5 * (f32::from(below[x + 1]) - f32::from(above[x + 1]));
-            mag[x] = (dx * dx + dy * dy).sqrt();
-            // Bin coordinate + 1: θ·9/π − 0.5 + 1 ∈ [0.5, 9.5].
-            pos[x] = unsigned_angle(dx, dy) * scale + 0.5;
-        }
         let (cy, wy0, wy1) = SPATIAL[y];
         let row0 = cy * PAD;
         let row1 = (cy + 1) * PAD;
-        for x in 0..N {
-            let m = mag[x];
-            let p = pos[x];
+        for x in 1..PATCH - 1 {
+            let m = mag[y * PATCH + x];
+            let p = pos[y * PATCH + x];
             let b = (p as usize).min(9);
             let frac = p - b as f32;
             let (b0, b1) = (BIN_LO[b], BIN_HI[b]);
             let (v0, v1) = (m * (1.0 - frac), m * frac);
-            let (cx, wx0, wx1) = SPATIAL[x + 1];
+            let (cx, wx0, wx1) = SPATIAL[x];
             let c00 = (row0 + cx) * BINS;
             let c01 = (row0 + cx + 1) * BINS;
             let c10 = (row1 + cx) * BINS;
@@ -313,7 +319,11 @@ mod tests {
         // Gradient along (1, 1): 45°, a quarter of the way from bin 2 (50°) to bin 1 (30°): shares 3 : 1.
         let e = bin_energy(&ha);
         assert!((e[2] - 3.0 * e[1]).abs() < 1e-3 && e[1] > 0.3, "{e:?}");
-        assert!(e.iter().enumerate().all(|(i, v)| i == 1 || i == 2 || v.abs() < 1e-6));
+        assert!(
+            e.iter()
+                .enumerate()
+                .all(|(i, v)| i == 1 || i == 2 || v.abs() < 1e-6)
+        );
     }
 
     #[test]

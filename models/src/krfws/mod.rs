@@ -141,17 +141,48 @@ impl Stage {
 
     /// Global leaf indices reached by the 51 HOG rows, one per tree, into `leaves`
     /// (`trees.len()` entries).
+    ///
+    /// Level-synchronous: every tree advances one level per pass, so the projection loads of different
+    /// trees are independent and overlap in memory (the stage's projections do not fit in cache).
     pub fn leaves(&self, hog: &[f32], leaves: &mut [u32]) {
+        const DONE: u32 = 1 << 31;
         let t = self.trees_per_forest.max(1);
-        for (((k, tree), off), out) in self.trees.iter().enumerate().zip(&self.leaf_offsets).zip(leaves) {
-            let l = k / t;
-            let row = hog
-                .get(l * HOG_DIM..(l + 1) * HOG_DIM)
-                .and_then(|r| <&[f32; HOG_DIM]>::try_from(r).ok());
-            *out = match row {
-                Some(r) => off + tree.leaf(r),
-                None => *off,
-            };
+        leaves.fill(0);
+        loop {
+            let mut active = false;
+            for (k, (tree, state)) in self.trees.iter().zip(leaves.iter_mut()).enumerate() {
+                if *state & DONE != 0 {
+                    continue;
+                }
+                let l = k / t;
+                let idx = *state as usize;
+                let (Some(node), Some(proj), Some(row)) = (
+                    tree.nodes.get(idx),
+                    tree.projections.get(idx * HOG_DIM..(idx + 1) * HOG_DIM),
+                    hog.get(l * HOG_DIM..(l + 1) * HOG_DIM)
+                        .and_then(|r| <&[f32; HOG_DIM]>::try_from(r).ok()),
+                ) else {
+                    *state = DONE;
+                    continue;
+                };
+                let next = if dot144(proj, row) <= node.threshold {
+                    node.left
+                } else {
+                    node.right
+                };
+                *state = if next < 0 {
+                    DONE | (-(next + 1)) as u32
+                } else {
+                    active = true;
+                    next as u32
+                };
+            }
+            if !active {
+                break;
+            }
+        }
+        for (state, off) in leaves.iter_mut().zip(&self.leaf_offsets) {
+            *state = off + (*state & !DONE);
         }
     }
 
@@ -312,35 +343,50 @@ pub fn sample_window(image: &GrayView<'_>, inv: [f32; 4], p: Point2, out: &mut [
             0.0
         }
     };
+    // Same expression order as `warp_bilinear` (`a·u − b·v + tx`, `b·u + a·v + ty`), so the pixels are
+    // bit-identical to a warped canvas; only the per-row products are hoisted.
+    let (wm1, hm1) = ((w - 1).max(0) as u64, (h - 1).max(0) as u64);
     for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
         let vf = (v0 + dv as i64) as f32;
+        let (bv, av) = (b * vf, a * vf);
         for (du, o) in row.iter_mut().enumerate() {
             let uf = (u0 + du as i64) as f32;
-            let sx = a * uf - b * vf + tx;
-            let sy = b * uf + a * vf + ty;
-            let (x0f, y0f) = (sx.floor(), sy.floor());
+            let sx = a * uf - bv + tx;
+            let sy = b * uf + av + ty;
+            let (x0f, y0f) = (fast_floor(sx), fast_floor(sy));
             let (fx, fy) = (sx - x0f, sy - y0f);
             let (x0, y0) = (x0f as i64, y0f as i64);
-            let (p00, p01, p10, p11) = if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+            let inside = (x0 as u64) < wm1 && (y0 as u64) < hm1;
+            let quad = if inside {
                 let i = y0 as usize * stride + x0 as usize;
-                match (data.get(i..i + 2), data.get(i + stride..i + stride + 2)) {
-                    (Some(t), Some(bm)) => (
-                        f32::from(t[0]),
-                        f32::from(t[1]),
-                        f32::from(bm[0]),
-                        f32::from(bm[1]),
-                    ),
-                    _ => (0.0, 0.0, 0.0, 0.0),
-                }
+                data.get(i..i + stride + 2).map(|q| {
+                    (
+                        f32::from(q[0]),
+                        f32::from(q[1]),
+                        f32::from(q[stride]),
+                        f32::from(q[stride + 1]),
+                    )
+                })
             } else {
-                (tap(x0, y0), tap(x0 + 1, y0), tap(x0, y0 + 1), tap(x0 + 1, y0 + 1))
+                None
             };
+            let (p00, p01, p10, p11) =
+                quad.unwrap_or_else(|| (tap(x0, y0), tap(x0 + 1, y0), tap(x0, y0 + 1), tap(x0 + 1, y0 + 1)));
             let top = p00 * (1.0 - fx) + p01 * fx;
             let bot = p10 * (1.0 - fx) + p11 * fx;
             let val = top * (1.0 - fy) + bot * fy;
-            *o = (val + 0.5).floor().clamp(0.0, 255.0) as u8;
+            // val ≥ 0: truncation is the floor, and `as u8` saturates at 255 (NaN → 0).
+            *o = (val + 0.5) as u8;
         }
     }
+}
+
+/// `floor` without a libm call (baseline x86-64 has no rounding instruction): exact for |x| < 2³¹;
+/// beyond, the taps are outside any image either way.
+#[inline(always)]
+fn fast_floor(x: f32) -> f32 {
+    let t = (x as i32) as f32;
+    if t > x { t - 1.0 } else { t }
 }
 
 /// Normalised-frame features of one stage: fits `norm_from_image` (current shape → `dest`), writes the
