@@ -11,7 +11,8 @@
 //! 3. After every input, drain [`DynamicBatcher::poll_dropped`] (answer those
 //!    frames with `Dropped{reason}`), then, if the engine is idle, call
 //!    [`DynamicBatcher::poll_batch`] and hand the batch to the engine.
-//! 4. Re-arm the timer with [`DynamicBatcher::poll_timeout`].
+//! 4. Re-arm the timer with [`DynamicBatcher::poll_timeout`] when the engine
+//!    is idle, or [`DynamicBatcher::next_expiry`] while it is busy.
 //!
 //! # Policy
 //!
@@ -262,6 +263,17 @@ impl<T> DynamicBatcher<T> {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         }
+    }
+
+    /// The earliest deadline of a queued frame. While the engine is busy a
+    /// driver cannot act on the flush time, so it arms its timer with this
+    /// instead of [`Self::poll_timeout`] (an already-passed flush time would
+    /// otherwise wake it in a loop).
+    pub fn next_expiry(&self) -> Option<Instant> {
+        self.queues
+            .values()
+            .flat_map(|q| q.iter().map(|i| i.expires))
+            .min()
     }
 
     /// Forgets a client that went away; its queued frames are discarded

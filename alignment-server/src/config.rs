@@ -177,6 +177,9 @@ pub struct EngineConfig {
     /// Use the CUDA execution provider (needs the `cuda` build feature) [default: false].
     #[arg(long, num_args = 0..=1, default_missing_value = "true")]
     pub cuda: Option<bool>,
+    /// Let ONNX Runtime's intra-op threads spin between ops [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub spin: Option<bool>,
 }
 
 /// `[internal]`: the metrics/health listener.
@@ -293,7 +296,7 @@ impl BatchConfig {
 }
 impl EngineConfig {
     fn merge(self, lo: Self) -> Self {
-        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda)
+        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda, spin)
     }
 }
 impl InternalConfig {
@@ -468,6 +471,7 @@ impl ServerConfig {
                 intra_threads,
                 max_batch,
                 cuda: self.engine.cuda.unwrap_or(false),
+                spin: self.engine.spin.unwrap_or(false),
             },
             metrics_listen: self.internal.metrics_listen,
         })

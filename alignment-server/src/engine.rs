@@ -414,6 +414,10 @@ pub struct OnnxOptions {
     pub max_batch: usize,
     /// Register the CUDA execution provider (needs the `cuda` feature).
     pub cuda: bool,
+    /// Let ONNX Runtime's intra-op threads spin between ops. Off by default:
+    /// the engine shares the cores with the QUIC driver, and spinning threads
+    /// starve it (and each other) on a small or loaded machine.
+    pub spin: bool,
 }
 
 /// The DAN model in ONNX Runtime: one session, reused for every batch.
@@ -430,8 +434,9 @@ pub struct OnnxEngine {
 static ENVIRONMENT: std::sync::Mutex<Option<ort::environment::Environment>> = std::sync::Mutex::new(None);
 
 /// Loads the ONNX Runtime library (once per process; later calls reuse the
-/// first library) and returns the shared environment.
-fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
+/// first library) and returns the shared environment. ONNX Runtime allows one
+/// environment per process; the client's face detector shares this one.
+pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
     if !dylib.is_file() {
         return Err(EngineError::RuntimeMissing {
             path: dylib.to_path_buf(),
@@ -485,6 +490,8 @@ impl OnnxEngine {
             .with_intra_threads(opts.intra_threads.max(1))
             .map_err(ort::Error::from)?
             .with_inter_threads(1)
+            .map_err(ort::Error::from)?
+            .with_intra_op_spinning(opts.spin)
             .map_err(ort::Error::from)?;
         if opts.cuda {
             builder = with_cuda(builder)?;
@@ -785,6 +792,7 @@ mod tests {
             intra_threads: 1,
             max_batch: 1,
             cuda: false,
+            spin: false,
         };
         let e = OnnxEngine::load(&opts).unwrap_err().to_string();
         assert!(e.contains("model file not found: /nonexistent/dan.onnx"), "{e}");

@@ -12,6 +12,7 @@ async fn main() -> anyhow::Result<()> {
     };
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::new(log.filter_directive()))
+        .with_writer(std::io::stderr)
         .init();
     let server = Server::bind(settings)
         .await

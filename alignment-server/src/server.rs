@@ -978,7 +978,14 @@ async fn scheduler_loop(
         if (batcher.is_draining() || !inputs_open) && !busy && batcher.is_empty() {
             break;
         }
-        let timeout = batcher.poll_timeout().map(tokio::time::Instant::from_std);
+        // While the engine is busy only expiries can be acted on; arming the
+        // (already passed) flush time would spin this loop.
+        let timeout = if busy {
+            batcher.next_expiry()
+        } else {
+            batcher.poll_timeout()
+        }
+        .map(tokio::time::Instant::from_std);
         tokio::select! {
             msg = rx.recv(), if inputs_open => match msg {
                 Some(SchedMsg::Submit(p)) => batcher.push(p, now()),
@@ -1083,6 +1090,88 @@ fn engine_loop(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    use crate::batcher::BatcherConfig;
+    use crate::engine::FakeEngine;
+
+    fn submit(client: ClientId, seed: u8, at: Instant) -> (SchedMsg, oneshot::Receiver<FrameOutcome>) {
+        let (tx, rx) = oneshot::channel();
+        let msg = SchedMsg::Submit(Pending {
+            client,
+            frame_id: 1,
+            arrived: at,
+            expires: at + Duration::from_secs(1),
+            payload: FrameJob {
+                pixels: Bytes::from(vec![seed; 112 * 112]),
+                reply: tx,
+            },
+        });
+        (msg, rx)
+    }
+
+    /// The driver around the batcher and the engine thread, with the fake
+    /// engine and tokio's paused clock: no sockets, no sleeps.
+    #[tokio::test(start_paused = true)]
+    async fn scheduler_flushes_a_partial_batch_at_max_wait_and_drains_on_stop() {
+        let metrics = Arc::new(Metrics::new(4));
+        let (job_tx, job_rx) = std::sync::mpsc::sync_channel(1);
+        let (done_tx, done_rx) = mpsc::unbounded_channel();
+        let engine_metrics = Arc::clone(&metrics);
+        let engine = std::thread::spawn(move || {
+            engine_loop(Box::new(FakeEngine::new(4)), &job_rx, &done_tx, &engine_metrics);
+        });
+        let (tx, rx) = mpsc::channel(16);
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let batcher = DynamicBatcher::new(BatcherConfig {
+            max_batch: 4,
+            max_wait: Duration::from_millis(5),
+            per_client_queue: 1,
+            max_queued: 100,
+        });
+        let sched = tokio::spawn(scheduler_loop(
+            batcher,
+            rx,
+            job_tx,
+            done_rx,
+            stop_rx,
+            Arc::clone(&metrics),
+        ));
+
+        let t0 = tokio::time::Instant::now().into_std();
+        let mut replies = Vec::new();
+        for client in 0..3_u8 {
+            let (msg, reply) = submit(u64::from(client), client * 50, t0);
+            tx.send(msg).await.unwrap();
+            replies.push(reply);
+        }
+        for (client, reply) in replies.into_iter().enumerate() {
+            match reply.await.unwrap() {
+                FrameOutcome::Landmarks {
+                    face_prob, queue_us, ..
+                } => {
+                    assert!((face_prob - (client as f32 * 50.0) / 255.0).abs() < 1e-6);
+                    assert_eq!(queue_us, 5_000, "a batch of 3 was flushed at t0 + max_wait");
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(metrics.batch_size.count(), 1);
+        assert_eq!(metrics.batch_size.sum(), 3);
+
+        // A frame still waiting for a fuller batch when shutdown starts is
+        // answered ShuttingDown, and the scheduler stops.
+        let (msg, reply) = submit(9, 1, tokio::time::Instant::now().into_std());
+        tx.send(msg).await.unwrap();
+        tokio::task::yield_now().await;
+        stop_tx.send(true).unwrap();
+        assert!(matches!(
+            reply.await.unwrap(),
+            FrameOutcome::Dropped(DropReason::ShuttingDown)
+        ));
+        sched.await.unwrap();
+        engine.join().unwrap();
+        assert_eq!(metrics.drops_for(DropReason::ShuttingDown), 1);
+    }
 
     #[test]
     fn token_comparison() {

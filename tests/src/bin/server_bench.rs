@@ -46,6 +46,9 @@ struct Cli {
     /// Intra-op threads (server and raw baseline).
     #[arg(long, global = true, default_value_t = 2)]
     threads: usize,
+    /// ONNX Runtime intra-op spinning (server and raw baseline).
+    #[arg(long, global = true)]
+    spin: bool,
     /// Append one JSON line per result here.
     #[arg(long, global = true, default_value = "target/bench/server.jsonl")]
     out: PathBuf,
@@ -87,6 +90,9 @@ enum Cmd {
         seconds: f64,
         #[arg(long, value_enum, default_value = "datagram")]
         reply: Reply,
+        /// Frames each client keeps outstanding.
+        #[arg(long, default_value_t = 1)]
+        in_flight: usize,
     },
     /// Latency at a fixed frame rate per client.
     Latency {
@@ -143,6 +149,7 @@ fn raw_ort(cli: &Cli, batch: usize, seconds: f64) -> anyhow::Result<(f64, f64)> 
         intra_threads: cli.threads,
         max_batch: batch,
         cuda: false,
+        spin: cli.spin,
     })?;
     let mut tensor = BatchTensor::new(batch, 112 * 112);
     for i in 0..batch {
@@ -177,6 +184,7 @@ impl ServerChild {
             .arg("--ort-dylib")
             .arg(dylib(cli))
             .args(["--intra-threads", &cli.threads.to_string()])
+            .args(["--spin", if cli.spin { "true" } else { "false" }])
             .args(["--metrics-listen", "127.0.0.1:0"])
             .args(extra)
             .stdout(Stdio::piped())
@@ -186,7 +194,14 @@ impl ServerChild {
             .with_context(|| format!("starting {} (build it with --release)", cli.server_bin.display()))?;
         let stdout = child.stdout.take().ok_or_else(|| anyhow!("no stdout"))?;
         let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line)?;
+        let mut reader = BufReader::new(stdout);
+        while !line.starts_with("holoface-server on") {
+            line.clear();
+            if reader.read_line(&mut line)? == 0 {
+                let _ = child.kill();
+                bail!("the server exited before printing its address");
+            }
+        }
         // "holoface-server on ADDR certificate-sha256 FP metrics ADDR"
         let words: Vec<&str> = line.split_whitespace().collect();
         let (Some(addr), Some(fp), Some(m)) = (words.get(2), words.get(4), words.get(6)) else {
@@ -270,8 +285,10 @@ async fn throughput(
     clients: usize,
     seconds: f64,
     reply: Reply,
+    in_flight: usize,
 ) -> anyhow::Result<()> {
-    let (raw, raw_ms) = raw_ort(cli, batch, seconds)?;
+    // Raw ORT before and after the server run (background load drifts).
+    let (raw_before, raw_ms) = raw_ort(cli, batch, seconds)?;
     let server = ServerChild::start(
         cli,
         &[
@@ -287,7 +304,7 @@ async fn throughput(
     )?;
     let mut conns = Vec::new();
     for _ in 0..clients {
-        conns.push(connect(&server, 2).await?);
+        conns.push(connect(&server, u16::try_from(in_flight).unwrap_or(1)).await?);
     }
     // Warm-up, then the measured window.
     let start_at = Instant::now() + Duration::from_secs(3);
@@ -297,13 +314,17 @@ async fn throughput(
     for c in conns {
         tasks.push(tokio::spawn(saturate(
             c,
-            2,
+            in_flight,
             start_at,
             until,
             Arc::clone(&measured),
         )));
     }
     tokio::time::sleep_until(tokio::time::Instant::from_std(start_at)).await;
+    let infer_before = server
+        .metric("holoface_inference_seconds_sum")
+        .await
+        .unwrap_or(0.0);
     let before = server.metric("holoface_batch_size_count").await.unwrap_or(0.0);
     let frames_before = server
         .metric("holoface_frames_aligned_total")
@@ -320,14 +341,24 @@ async fn throughput(
     }
     let got = measured.load(Ordering::Relaxed) as f64 / seconds;
     let mean_batch = (frames_after - frames_before) / (after - before).max(1.0);
+    let infer_after = server
+        .metric("holoface_inference_seconds_sum")
+        .await
+        .unwrap_or(0.0);
+    let engine_busy = (infer_after - infer_before) / seconds;
+    let server_ms_per_batch = (infer_after - infer_before) * 1e3 / (after - before).max(1.0);
     server.stop();
+    let (raw_after, _) = raw_ort(cli, batch, seconds)?;
+    let raw = f64::midpoint(raw_before, raw_after);
     record(
         cli,
         &serde_json::json!({
-            "bench": "throughput", "batch": batch, "threads": cli.threads, "clients": clients,
+            "bench": "throughput", "batch": batch, "threads": cli.threads, "spin": cli.spin, "clients": clients, "in_flight": in_flight,
             "reply": reply.as_str(), "seconds": seconds,
-            "raw_ort_img_s": raw, "raw_ort_ms_per_batch": raw_ms,
+            "raw_ort_img_s": raw, "raw_ort_before_img_s": raw_before, "raw_ort_after_img_s": raw_after,
+            "raw_ort_ms_per_batch": raw_ms,
             "server_img_s": got, "ratio": got / raw, "server_mean_batch": mean_batch,
+            "server_engine_busy_fraction": engine_busy, "server_ms_per_batch": server_ms_per_batch,
         }),
     )
 }
@@ -418,7 +449,7 @@ async fn latency(
     record(
         cli,
         &serde_json::json!({
-            "bench": "latency", "clients": clients, "fps": fps, "batch": batch, "threads": cli.threads,
+            "bench": "latency", "spin": cli.spin, "clients": clients, "fps": fps, "batch": batch, "threads": cli.threads,
             "reply": reply.as_str(), "seconds": seconds, "deadline_ms": deadline_ms,
             "sent": sent, "aligned": all.len(), "skipped_ticks": skipped, "drops": drops,
             "p50_ms": ms(0.5), "p99_ms": ms(0.99), "p999_ms": ms(0.999), "max_ms": all.max() as f64 / 1e3,
@@ -493,7 +524,7 @@ async fn main() -> anyhow::Result<()> {
                 let (img_s, ms) = raw_ort(&cli, b, *seconds)?;
                 record(
                     &cli,
-                    &serde_json::json!({"bench": "raw_ort", "batch": b, "threads": cli.threads,
+                    &serde_json::json!({"bench": "raw_ort", "batch": b, "threads": cli.threads, "spin": cli.spin,
                         "img_s": img_s, "ms_per_batch": ms}),
                 )?;
             }
@@ -504,7 +535,8 @@ async fn main() -> anyhow::Result<()> {
             clients,
             seconds,
             reply,
-        } => throughput(&cli, *batch, *clients, *seconds, *reply).await,
+            in_flight,
+        } => throughput(&cli, *batch, *clients, *seconds, *reply, *in_flight).await,
         Cmd::Latency {
             clients,
             fps,
