@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod eval;
 pub mod record;
+pub mod simulate;
 pub mod track;
 pub mod train_krfws;
 
@@ -26,6 +27,8 @@ pub enum Command {
     Eval(eval::Args),
     /// Write a recorded stream (`.hfrec`) from an image folder or another recording.
     Record(record::Args),
+    /// Synthetic headset sequences from CANDIDE-3: fit recovery, prediction and motion-compensation numbers.
+    Simulate(simulate::Args),
     /// Track faces over an image folder or a recorded stream; one JSON line per frame.
     Track(track::Args),
     /// Train the KRFWS local aligner and evaluate it on the validation split.
@@ -38,6 +41,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(args),
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
+        Command::Simulate(args) => simulate::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
     }
 }

@@ -1,0 +1,310 @@
+//! `holoface simulate`: synthetic headset sequences generated from the CANDIDE-3 model itself, with known
+//! head and headset poses, to measure the geometric parts of the tracker without images:
+//!
+//! * the fit's pose and weight recovery on noiseless and noisy projections;
+//! * the render-time position error with and without Kalman prediction at a capture-to-display delay;
+//! * the tracking initialisation error with and without headset-motion compensation (how far the initial
+//!   shape is from the truth, in inter-ocular units; an aligner's capture range is a fraction of that).
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args as ClapArgs;
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, Intrinsics, Wfm, fit, project_landmarks};
+use holoface_models::geometry::Point2;
+use holoface_models::kalman::{KalmanParams, PositionPredictor};
+use holoface_models::math3::{Mat3, Pose, Quat, Vec3};
+use holoface_models::pose::{compensate_headset_motion, world_pose};
+use serde_json::json;
+
+/// Arguments of `holoface simulate`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// CANDIDE-3 model (`.wfm`).
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+    /// Sequence length in seconds.
+    #[arg(long, default_value_t = 20.0)]
+    pub seconds: f64,
+    /// Frame rate.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Landmark noise (pixels, standard deviation) for the noisy runs.
+    #[arg(long, default_value_t = 1.0)]
+    pub noise_px: f64,
+    /// Capture-to-display delay the prediction must cover (milliseconds).
+    #[arg(long, default_value_t = 120.0)]
+    pub delay_ms: f64,
+    /// Headset yaw amplitude (degrees): how far the wearer turns their head.
+    #[arg(long, default_value_t = 20.0)]
+    pub headset_yaw_deg: f64,
+    /// Seed of the landmark noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// JSON report.
+    #[arg(long, default_value = "runs/simulate.json")]
+    pub out: PathBuf,
+}
+
+/// A small deterministic Gaussian source (xorshift + Box–Muller); results depend only on the seed.
+struct Noise(u64);
+
+impl Noise {
+    fn uniform(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        ((self.0 >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    }
+    fn gauss(&mut self) -> f64 {
+        let (u, v) = (self.uniform(), self.uniform());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+const K: Intrinsics = Intrinsics {
+    fx: 600.0,
+    fy: 600.0,
+    cx: 320.0,
+    cy: 240.0,
+};
+
+/// Ground truth of one frame.
+struct Truth {
+    t: f64,
+    head_world: Pose,
+    camera: Pose,
+    weights: [f64; 5],
+}
+
+fn truth_at(t: f64, headset_yaw: f64) -> Truth {
+    use std::f64::consts::TAU;
+    let s = |f: f64, ph: f64| (TAU * f * t + ph).sin();
+    let head_world = Pose {
+        rotation: Mat3::rot_y(30f64.to_radians() * s(0.23, 0.0))
+            * Mat3::rot_x(10f64.to_radians() * s(0.31, 1.0))
+            * Mat3::rot_z(6f64.to_radians() * s(0.17, 2.0)),
+        translation: Vec3::new(0.12 * s(0.2, 0.3), 0.05 * s(0.27, 0.7), 0.9 + 0.15 * s(0.13, 1.3)),
+    };
+    // The wearer looks around (yaw) and sways a little.
+    let camera = Pose {
+        rotation: Mat3::rot_y(headset_yaw * s(0.35, 0.5)) * Mat3::rot_x(4f64.to_radians() * s(0.5, 0.2)),
+        translation: Vec3::new(0.02 * s(0.6, 0.0), 0.01 * s(0.8, 0.4), 0.0),
+    };
+    let w = |f: f64, ph: f64| (0.3 + 0.3 * s(f, ph)).max(0.0);
+    Truth {
+        t,
+        head_world,
+        camera,
+        weights: [w(0.4, 0.0), w(0.3, 1.0), -0.2 * s(0.25, 0.5), 0.0, 0.0],
+    }
+}
+
+fn head_in_camera(tr: &Truth) -> FitResult {
+    let p = tr.camera.inverse().after(&tr.head_world);
+    FitResult {
+        rotation: Quat::from_mat3(&p.rotation),
+        translation: p.translation,
+        weights: tr.weights,
+        rmse_px: 0.0,
+        iterations: 0,
+        converged: true,
+    }
+}
+
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+fn percentile(v: &[f64], p: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s.get(((s.len() as f64 - 1.0) * p).round() as usize)
+        .copied()
+        .unwrap_or(f64::NAN)
+}
+
+/// Runs `holoface simulate`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let text = std::fs::read(&args.candide).with_context(|| format!("reading {}", args.candide.display()))?;
+    let model = FaceModel::from_wfm(&Wfm::parse(&String::from_utf8_lossy(&text))?)?;
+    let n = (args.seconds * args.fps).round() as usize;
+    let dt = 1.0 / args.fps;
+    let yaw = args.headset_yaw_deg.to_radians();
+    let truths: Vec<Truth> = (0..n).map(|i| truth_at(i as f64 * dt, yaw)).collect();
+    let mut noise = Noise(args.seed.max(1));
+
+    let mut report = serde_json::Map::new();
+    let mut lines = Vec::new();
+    // (c) fit recovery, noiseless and noisy, warm-started frame to frame as in tracking.
+    for sigma in [0.0, args.noise_px] {
+        let (mut rot, mut trans, mut werr, mut rmse) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut prev: Option<FitResult> = None;
+        for tr in &truths {
+            let gt = head_in_camera(tr);
+            let mut lm = [Point2::default(); 68];
+            if !project_landmarks(&model, &K, &gt, &mut lm) {
+                continue;
+            }
+            for p in lm.iter_mut() {
+                p.x += (sigma * noise.gauss()) as f32;
+                p.y += (sigma * noise.gauss()) as f32;
+            }
+            let opts = if prev.is_some() {
+                FitOptions {
+                    max_iterations: 3,
+                    ..FitOptions::default()
+                }
+            } else {
+                FitOptions::default()
+            };
+            let f = fit(&model, &K, &lm, prev.as_ref(), &opts)?;
+            rot.push(f.rotation.angle_to(gt.rotation).to_degrees());
+            trans.push((f.translation - gt.translation).norm() * 1e3);
+            werr.push(
+                f.weights
+                    .iter()
+                    .zip(&gt.weights)
+                    .map(|(a, b)| (a - b).abs())
+                    .sum::<f64>()
+                    / 5.0,
+            );
+            rmse.push(f.rmse_px);
+            prev = Some(f);
+        }
+        let key = if sigma == 0.0 {
+            "fit_noiseless".to_owned()
+        } else {
+            format!("fit_noise_{sigma}px")
+        };
+        lines.push(format!(
+            "{key:<22} rotation err mean {:.3} deg (p99 {:.3}), translation err mean {:.2} mm (p99 {:.2}), weight err mean {:.3}",
+            mean(&rot),
+            percentile(&rot, 0.99),
+            mean(&trans),
+            percentile(&trans, 0.99),
+            mean(&werr)
+        ));
+        report.insert(
+            key,
+            json!({"frames": rot.len(), "rotation_deg_mean": mean(&rot), "rotation_deg_p99": percentile(&rot, 0.99),
+                   "translation_mm_mean": mean(&trans), "translation_mm_p99": percentile(&trans, 0.99),
+                   "weight_abs_err_mean": mean(&werr), "rmse_px_mean": mean(&rmse)}),
+        );
+    }
+
+    // (b) render-time position error: the content is drawn `delay` after capture, at the head's true position
+    // then; without prediction the last measurement is shown, with prediction the Kalman look-ahead.
+    let delay = args.delay_ms / 1e3;
+    let (mut err_none, mut err_kalman) = (Vec::new(), Vec::new());
+    let mut predictor: Option<PositionPredictor> = None;
+    let mut prev: Option<FitResult> = None;
+    for tr in &truths {
+        let gt = head_in_camera(tr);
+        let mut lm = [Point2::default(); 68];
+        if !project_landmarks(&model, &K, &gt, &mut lm) {
+            continue;
+        }
+        for p in lm.iter_mut() {
+            p.x += (args.noise_px * noise.gauss()) as f32;
+            p.y += (args.noise_px * noise.gauss()) as f32;
+        }
+        let f = fit(
+            &model,
+            &K,
+            &lm,
+            prev.as_ref(),
+            &FitOptions {
+                max_iterations: 3,
+                ..FitOptions::default()
+            },
+        )?;
+        prev = Some(f);
+        let measured = world_pose(&f, &tr.camera).position;
+        let pr = predictor.get_or_insert_with(|| PositionPredictor::new(measured, KalmanParams::default()));
+        pr.step(dt, measured);
+        let future = truth_at(tr.t + delay, yaw).head_world.translation;
+        if tr.t > 1.0 {
+            err_none.push((measured - future).norm() * 1e3);
+            err_kalman.push((pr.predict(delay) - future).norm() * 1e3);
+        }
+    }
+    lines.push(format!(
+        "render error at {:.0} ms  no prediction mean {:.1} mm (p99 {:.1}); Kalman mean {:.1} mm (p99 {:.1})",
+        args.delay_ms,
+        mean(&err_none),
+        percentile(&err_none, 0.99),
+        mean(&err_kalman),
+        percentile(&err_kalman, 0.99)
+    ));
+    report.insert(
+        "render_error".into(),
+        json!({"delay_ms": args.delay_ms, "no_prediction_mm_mean": mean(&err_none), "no_prediction_mm_p99": percentile(&err_none, 0.99),
+               "kalman_mm_mean": mean(&err_kalman), "kalman_mm_p99": percentile(&err_kalman, 0.99)}),
+    );
+
+    // (a) tracking initialisation: last frame's landmarks as they are, or moved with the headset.
+    let (mut init_plain, mut init_comp) = (Vec::new(), Vec::new());
+    for pair in truths.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        let (ga, gb) = (head_in_camera(a), head_in_camera(b));
+        let (mut la, mut lb) = ([Point2::default(); 68], [Point2::default(); 68]);
+        if !project_landmarks(&model, &K, &ga, &mut la) || !project_landmarks(&model, &K, &gb, &mut lb) {
+            continue;
+        }
+        let iod = f64::from(lb[36].dist(lb[45]));
+        let err = |init: &[Point2; 68]| {
+            holoface_models::candide::CORRESPONDENCES
+                .iter()
+                .map(|&(i, _)| f64::from(init[i].dist(lb[i])))
+                .sum::<f64>()
+                / holoface_models::candide::CORRESPONDENCES.len() as f64
+                / iod
+        };
+        let mut comp = la;
+        compensate_headset_motion(
+            &la,
+            &K,
+            &a.camera,
+            &K,
+            &b.camera,
+            ga.translation.norm(),
+            &mut comp,
+        );
+        init_plain.push(err(&la));
+        init_comp.push(err(&comp));
+    }
+    let over = |v: &[f64], t: f64| v.iter().filter(|&&e| e > t).count() as f64 / v.len().max(1) as f64;
+    lines.push(format!(
+        "init error (IOD units)  plain mean {:.3} p99 {:.3}, >0.25: {:.1}%; compensated mean {:.3} p99 {:.3}, >0.25: {:.1}%",
+        mean(&init_plain),
+        percentile(&init_plain, 0.99),
+        100.0 * over(&init_plain, 0.25),
+        mean(&init_comp),
+        percentile(&init_comp, 0.99),
+        100.0 * over(&init_comp, 0.25)
+    ));
+    report.insert(
+        "tracking_init".into(),
+        json!({"plain_mean": mean(&init_plain), "plain_p99": percentile(&init_plain, 0.99), "plain_over_0_25": over(&init_plain, 0.25),
+               "compensated_mean": mean(&init_comp), "compensated_p99": percentile(&init_comp, 0.99),
+               "compensated_over_0_25": over(&init_comp, 0.25)}),
+    );
+    for l in &lines {
+        println!("{l}");
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&args.out, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    Ok(())
+}
