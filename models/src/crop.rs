@@ -132,41 +132,6 @@ pub fn warp_bilinear(
     Ok(())
 }
 
-/// Nearest-neighbour warp (HoloFace's client sampling), kept for comparison benches.
-pub fn warp_nearest(
-    src: &GrayView<'_>,
-    dst_from_src: &Similarity2,
-    width: usize,
-    height: usize,
-    dst: &mut [u8],
-) -> Result<(), CropError> {
-    if dst.len() != width * height {
-        return Err(CropError::BadBuffer {
-            width,
-            height,
-            actual: dst.len(),
-        });
-    }
-    let inv = dst_from_src
-        .inverse()
-        .ok_or(CropError::SingularTransform(*dst_from_src))?;
-    let (a, b, tx, ty) = (inv.a as f32, inv.b as f32, inv.tx as f32, inv.ty as f32);
-    for (v, row) in dst.chunks_exact_mut(width).enumerate() {
-        let vf = v as f32;
-        for (u, out) in row.iter_mut().enumerate() {
-            let uf = u as f32;
-            let x = (a * uf - b * vf + tx + 0.5).floor();
-            let y = (b * uf + a * vf + ty + 0.5).floor();
-            *out = if x >= 0.0 && y >= 0.0 {
-                src.get(x as usize, y as usize).unwrap_or(0)
-            } else {
-                0
-            };
-        }
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
