@@ -144,6 +144,10 @@ pub struct LimitsConfig {
     /// Bound on graceful shutdown, ms [default: 5000].
     #[arg(long)]
     pub shutdown_timeout_ms: Option<u64>,
+    /// Frames per second one client may send (1 s burst); above it the
+    /// client is closed with Overloaded; 0 = unlimited [default: 240].
+    #[arg(long)]
+    pub max_frame_rate: Option<u32>,
 }
 
 /// `[batch]`: the dynamic batcher.
@@ -285,7 +289,8 @@ impl LimitsConfig {
             max_clients,
             max_in_flight,
             max_frame_age_ms,
-            shutdown_timeout_ms
+            shutdown_timeout_ms,
+            max_frame_rate
         )
     }
 }
@@ -459,6 +464,7 @@ impl ServerConfig {
                 self.limits.max_frame_age_ms.unwrap_or(100).max(1),
             )),
             shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
+            max_frame_rate: self.limits.max_frame_rate.unwrap_or(240),
             batch: BatcherConfig {
                 max_batch,
                 max_wait: Duration::from_micros(self.batch.max_wait_us.unwrap_or(2_000)),
@@ -522,6 +528,8 @@ pub struct Settings {
     pub max_frame_age: Duration,
     /// Bound on graceful shutdown.
     pub shutdown_timeout: Duration,
+    /// Frames per second per client (token bucket, 1 s burst); 0 = unlimited.
+    pub max_frame_rate: u32,
     /// Batcher limits.
     pub batch: BatcherConfig,
     /// ONNX Runtime engine options.
