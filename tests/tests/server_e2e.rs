@@ -242,6 +242,21 @@ async fn garbage_datagram_is_closed_malformed() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn duplicate_frame_id_is_a_protocol_violation() {
+    misbehaviour_next_to_good_client(
+        "duplicate frame id",
+        CloseCode::ProtocolViolation,
+        |bad| async move {
+            let f = frame(5, 0, DEADLINE_MS);
+            let _ = bad.send_frame(&f).await;
+            let _ = bad.send_frame(&f).await;
+            bad.close_code().await
+        },
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn second_hello_is_a_protocol_violation() {
     misbehaviour_next_to_good_client(
         "second hello",
