@@ -73,6 +73,10 @@ pub struct Args {
     /// Perturbed fits per validation face for the detector's AUC and threshold.
     #[arg(long, default_value_t = 16)]
     pub val_fits: usize,
+    /// Skip training: evaluate the model already at `--out` on the validation split (same fits and
+    /// threshold rule); writes `<out>.eval.json` and leaves the model file untouched.
+    #[arg(long)]
+    pub evaluate: bool,
     /// Train on the first N training faces only (smoke runs).
     #[arg(long)]
     pub limit: Option<usize>,
@@ -319,7 +323,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let bar = Bar::new();
     let t0 = Instant::now();
-    let (mut model, report) = train::train(&train_faces, &cfg, &bar)?;
+    let (mut model, report) = if args.evaluate {
+        let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
+        let model = Krfws::from_bytes(&bytes).with_context(|| format!("loading {}", args.out.display()))?;
+        (model, train::TrainReport::default())
+    } else {
+        train::train(&train_faces, &cfg, &bar)?
+    };
     let training_seconds = t0.elapsed().as_secs_f64();
     model.round_to_storage();
 
@@ -361,7 +371,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    std::fs::write(&args.out, &bytes).with_context(|| format!("writing {}", args.out.display()))?;
+    if !args.evaluate {
+        std::fs::write(&args.out, &bytes).with_context(|| format!("writing {}", args.out.display()))?;
+    }
     let rep = Report {
         model: args.out.display().to_string(),
         model_bytes: bytes.len(),
@@ -400,7 +412,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         detector_val_fits: fits.len(),
         detector_val_failures: labels.iter().filter(|l| **l).count(),
     };
-    let json_path = args.out.with_extension("json");
+    let json_path = args
+        .out
+        .with_extension(if args.evaluate { "eval.json" } else { "json" });
     std::fs::write(&json_path, serde_json::to_string_pretty(&rep)? + "\n")
         .with_context(|| format!("writing {}", json_path.display()))?;
     println!(
