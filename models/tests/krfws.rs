@@ -278,3 +278,46 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn training_is_deterministic_whatever_the_thread_count() {
+    let mut rng = Rng::new(99);
+    let faces: Vec<TrainFace> = (0..12).map(|_| synthetic_face(&mut rng)).collect();
+    let cfg = TrainConfig {
+        trees: 2,
+        depth: 2,
+        perturbations: 3,
+        failure_fits: 4,
+        ..small_config()
+    };
+    let (a, _) = train::train(
+        &faces,
+        &TrainConfig {
+            threads: 1,
+            ..cfg.clone()
+        },
+        &NoProgress,
+    )
+    .unwrap();
+    let (b, _) = train::train(
+        &faces,
+        &TrainConfig {
+            threads: 3,
+            ..cfg.clone()
+        },
+        &NoProgress,
+    )
+    .unwrap();
+    assert_eq!(a.to_bytes(), b.to_bytes());
+    let (c, _) = train::train(
+        &faces,
+        &TrainConfig {
+            seed: 6,
+            threads: 2,
+            ..cfg
+        },
+        &NoProgress,
+    )
+    .unwrap();
+    assert_ne!(a.to_bytes(), c.to_bytes());
+}
