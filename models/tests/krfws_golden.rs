@@ -1,0 +1,66 @@
+//! Golden test of the committed KRFWS model: it loads, round-trips, and reproduces the validation
+//! NME49 recorded in `models/assets/krfws.json` (ground-truth-box init, 101 faces of the fixed split).
+//!
+//! Data comes from `$HOLOFACE_DATA` (default `../shared/data` beside the checkout); without it only the
+//! load and round-trip checks run.
+#![allow(clippy::unwrap_used)]
+
+use std::path::PathBuf;
+
+use holoface_models::geometry::{Point2, Rect};
+use holoface_models::image::GrayImage;
+use holoface_models::krfws::train::nme49_inner;
+use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
+use holoface_models::shape::parse_pts68;
+
+/// Mean validation NME49 from the GT box, as written by `holoface train-krfws` into `krfws.json`.
+const VAL_NME49_GT_BOX: f64 = 0.052_141_471_704_727_87;
+/// Decoding and the pipeline are deterministic; allow only float noise.
+const NME_TOL: f64 = 1e-6;
+
+fn model() -> Krfws {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/krfws.bin");
+    Krfws::from_bytes(&std::fs::read(path).unwrap()).unwrap()
+}
+
+#[test]
+fn committed_model_loads_and_round_trips() {
+    let m = model();
+    assert_eq!(m.stages().len(), 3);
+    assert!(m.threshold().is_finite());
+    assert_eq!(Krfws::from_bytes(&m.to_bytes()).unwrap(), m);
+}
+
+#[test]
+fn committed_model_reproduces_its_validation_nme() {
+    let root = std::env::var_os("HOLOFACE_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
+        .join("faces68/train");
+    if !root.is_dir() {
+        eprintln!("{} missing: skipping the golden NME check", root.display());
+        return;
+    }
+    let m = model();
+    let mut scratch = KrfwsScratch::new();
+    let mut out = [Point2::default(); N_POINTS];
+    let names: Vec<&str> = include_str!("../splits/val.txt")
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .collect();
+    let mut sum = 0.0;
+    for name in &names {
+        let img = image::open(root.join(format!("{name}.jpg"))).unwrap().to_luma8();
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let img = GrayImage::from_vec(img.into_raw(), w, h).unwrap();
+        let gt = parse_pts68(&std::fs::read_to_string(root.join(format!("{name}.pts"))).unwrap()).unwrap();
+        let init = m.init_from_box(&Rect::bounding(&gt).unwrap());
+        let score = m.align(&img.view(), &init, &mut scratch, &mut out);
+        assert!(score.is_finite());
+        sum += nme49_inner(&out, &gt);
+    }
+    let mean = sum / names.len() as f64;
+    assert_eq!(names.len(), 101);
+    assert!((mean - VAL_NME49_GT_BOX).abs() < NME_TOL, "mean NME49 {mean}");
+}
