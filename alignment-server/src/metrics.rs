@@ -104,6 +104,10 @@ pub struct Metrics {
     pub inference_us: Histogram,
     /// Inference calls that failed.
     pub inference_errors: AtomicU64,
+    /// Clients' QUIC round-trip time, sampled every few seconds, microseconds.
+    pub client_rtt_us: Histogram,
+    /// Packets the server sent to clients that QUIC declared lost.
+    pub client_lost_packets: AtomicU64,
     /// The engine is loaded and the endpoint accepts clients.
     pub ready: AtomicBool,
     /// Shutdown has started.
@@ -132,6 +136,8 @@ impl Metrics {
             queue_wait_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_errors: AtomicU64::new(0),
+            client_rtt_us: Histogram::new(LATENCY_BOUNDS_US),
+            client_lost_packets: AtomicU64::new(0),
             ready: AtomicBool::new(false),
             draining: AtomicBool::new(false),
         }
@@ -260,6 +266,18 @@ impl Metrics {
             "holoface_inference_errors_total",
             "Inference calls that failed.",
             load(&self.inference_errors),
+        );
+        counter(
+            &mut out,
+            "holoface_client_lost_packets_total",
+            "Packets to clients that QUIC declared lost.",
+            load(&self.client_lost_packets),
+        );
+        self.client_rtt_us.render(
+            &mut out,
+            "holoface_client_rtt_seconds",
+            "Client QUIC round-trip time, sampled per connection every few seconds.",
+            1e6,
         );
         self.batch_size.render(
             &mut out,

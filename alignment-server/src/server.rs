@@ -618,6 +618,9 @@ async fn reply_writer(conn: Connection, mut rx: mpsc::Receiver<Bytes>) {
     }
 }
 
+/// How often each connection's RTT and loss are sampled into the metrics.
+const STATS_PERIOD: Duration = Duration::from_secs(5);
+
 /// A draining connection stops accepting frame streams after this long without one.
 const DRAIN_QUIET: Duration = Duration::from_millis(100);
 
@@ -709,12 +712,24 @@ async fn session(conn: &Connection, client: ClientId, shared: &Arc<Shared>) -> S
 
     // 3. Frames until the client leaves, misbehaves, or the server stops.
     let mut rate = RateLimit::new(settings.max_frame_rate, Instant::now());
+    let mut stats_tick = tokio::time::interval(STATS_PERIOD);
+    let mut lost_reported = 0_u64;
     let mut frames: JoinSet<Result<(), Fault>> = JoinSet::new();
     let mut ctl_buf = BytesMut::new();
     let mut ctl_open = true;
     let end = loop {
         tokio::select! {
             () = internal::stopped(&mut stop) => break SessionEnd::Shutdown,
+            _ = stats_tick.tick() => {
+                let path = conn.stats().path;
+                shared.metrics.client_rtt_us.observe_duration(path.rtt);
+                let lost = path.lost_packets;
+                shared
+                    .metrics
+                    .client_lost_packets
+                    .fetch_add(lost.saturating_sub(lost_reported), Ordering::Relaxed);
+                lost_reported = lost;
+            },
             stream = conn.accept_uni() => match stream {
                 Ok(recv) => {
                     if !rate.take(Instant::now()) {

@@ -428,9 +428,15 @@ async fn metrics_and_health_are_served_on_loopback() {
         "holoface_frames_aligned_total 1",
         "holoface_batch_size_count 1",
         "holoface_inference_seconds_count 1",
+        "holoface_client_lost_packets_total ",
     ] {
         assert!(m.contains(needle), "missing {needle} in\n{m}");
     }
+    assert!(
+        m.contains("holoface_client_rtt_seconds_count")
+            && !m.contains("holoface_client_rtt_seconds_count 0\n"),
+        "client RTT sampled:\n{m}"
+    );
     server.shutdown().await.unwrap();
 }
 
