@@ -55,7 +55,7 @@ pub enum ServerError {
     #[error(transparent)]
     Tls(#[from] TlsError),
     /// The engine could not be loaded.
-    #[error("inference engine: {0}")]
+    #[error(transparent)]
     Engine(#[from] EngineError),
     /// An I/O operation failed.
     #[error("{context}: {source}")]
@@ -339,7 +339,7 @@ impl Server {
         info!(
             addr = %endpoint.local_addr().map_err(io_err("reading the local address"))?,
             %fingerprint,
-            "alignment server ready (certificate SHA-256 fingerprint above: pin it in clients)"
+            "alignment server ready; clients pin this certificate SHA-256 fingerprint"
         );
 
         let mut conns = JoinSet::new();

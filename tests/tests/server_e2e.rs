@@ -467,5 +467,5 @@ async fn non_onnx_model_file_is_rejected() {
     s.engine.model = path.clone();
     let err = RunningServer::start(s).await.unwrap_err().to_string();
     let _ = std::fs::remove_file(&path);
-    assert!(err.contains("inference engine"), "{err}");
+    assert!(err.contains("ONNX Runtime"), "{err}");
 }
