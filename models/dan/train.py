@@ -142,6 +142,8 @@ def main() -> None:
     ap.add_argument("--precision", choices=["bf16", "fp32"], default="bf16", help="bf16 autocast (CPU AMX) or fp32")
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the full-width recipe on a GPU)")
     ap.add_argument("--write-mean-shape", action="store_true", help=f"(re)write {MEAN_SHAPE_FILE}")
+    ap.add_argument("--resume-from", help="slim checkpoint (weights, step, RNG state; no optimiser state) to continue "
+                    "from when <out>/last.pt does not exist, e.g. the committed models/dan/checkpoints/*.pt")
     args = ap.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -165,14 +167,18 @@ def main() -> None:
     last = os.path.join(args.out, "last.pt")
     step, best = 0, math.inf
     rng = np.random.default_rng(args.seed)
-    if os.path.exists(last):
-        ck = torch.load(last, weights_only=False)
+    resume = last if os.path.exists(last) else args.resume_from
+    if resume:
+        ck = torch.load(resume, weights_only=False)
+        if ck.get("width", args.width) != args.width:
+            raise SystemExit(f"{resume} is width {ck['width']}, not {args.width}")
         net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["opt"])
+        if "opt" in ck:
+            opt.load_state_dict(ck["opt"])
         step, best = ck["step"], ck["best"]
         rng.bit_generator.state = ck["rng"]
         torch.set_rng_state(ck["torch_rng"])
-        print(f"resumed from {last} at step {step}", file=sys.stderr)
+        print(f"resumed from {resume} at step {step}", file=sys.stderr)
     else:
         torch.manual_seed(args.seed)
         # Per-pixel normalisation over the training distribution (positives and negatives alike).
@@ -209,7 +215,7 @@ def main() -> None:
         opt.step()
         step += 1
         seen += args.batch
-        run_loss.append((float(l_lm), float(l_face)))
+        run_loss.append((l_lm.item(), l_face.item()))
         bar.update(1)
         if step % args.eval_every == 0 or step == args.steps:
             m = evaluate(net, val, channels_last)
