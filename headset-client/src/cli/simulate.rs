@@ -116,6 +116,19 @@ fn head_in_camera(tr: &Truth) -> FitResult {
     }
 }
 
+/// The model's landmarks for a head pose, with Gaussian pixel noise; `None` when behind the camera.
+fn noisy_landmarks(model: &FaceModel, gt: &FitResult, sigma: f64, noise: &mut Noise) -> Option<[Point2; 68]> {
+    let mut lm = [Point2::default(); 68];
+    if !project_landmarks(model, &K, gt, &mut lm) {
+        return None;
+    }
+    for p in lm.iter_mut() {
+        p.x += (sigma * noise.gauss()) as f32;
+        p.y += (sigma * noise.gauss()) as f32;
+    }
+    Some(lm)
+}
+
 fn mean(v: &[f64]) -> f64 {
     if v.is_empty() {
         f64::NAN
@@ -150,14 +163,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut prev: Option<FitResult> = None;
         for tr in &truths {
             let gt = head_in_camera(tr);
-            let mut lm = [Point2::default(); 68];
-            if !project_landmarks(&model, &K, &gt, &mut lm) {
+            let Some(lm) = noisy_landmarks(&model, &gt, sigma, &mut noise) else {
                 continue;
-            }
-            for p in lm.iter_mut() {
-                p.x += (sigma * noise.gauss()) as f32;
-                p.y += (sigma * noise.gauss()) as f32;
-            }
+            };
             let opts = if prev.is_some() {
                 FitOptions {
                     max_iterations: 3,
@@ -209,14 +217,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut prev: Option<FitResult> = None;
     for tr in &truths {
         let gt = head_in_camera(tr);
-        let mut lm = [Point2::default(); 68];
-        if !project_landmarks(&model, &K, &gt, &mut lm) {
+        let Some(lm) = noisy_landmarks(&model, &gt, args.noise_px, &mut noise) else {
             continue;
-        }
-        for p in lm.iter_mut() {
-            p.x += (args.noise_px * noise.gauss()) as f32;
-            p.y += (args.noise_px * noise.gauss()) as f32;
-        }
+        };
         let f = fit(
             &model,
             &K,
