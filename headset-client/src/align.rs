@@ -30,6 +30,18 @@ pub enum Confidence {
     PredictedError(f32),
 }
 
+/// Which aligner produced an alignment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AnsweredBy {
+    /// DAN in this process (evaluation, `holoface track --aligner dan`).
+    LocalDan,
+    /// DAN on the alignment server, over QUIC.
+    RemoteDan,
+    /// KRFWS on the headset.
+    Krfws,
+}
+
 /// Result of one alignment, in image pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Alignment {
@@ -41,6 +53,8 @@ pub struct Alignment {
     pub confidence: Confidence,
     /// Whether the confidence passes the aligner's threshold (a face is tracked).
     pub accepted: bool,
+    /// Which aligner answered.
+    pub answered_by: AnsweredBy,
 }
 
 /// Errors of an aligner.
@@ -162,6 +176,7 @@ pub fn landmarks_from_crop(
         set: LandmarkSet::Ibug68,
         confidence: Confidence::FaceProbability(face_prob),
         accepted: face_prob >= threshold,
+        answered_by: AnsweredBy::LocalDan,
     })
 }
 
@@ -201,6 +216,7 @@ impl Aligner for KrfwsAligner {
             set: LandmarkSet::Inner51,
             confidence: Confidence::PredictedError(score),
             accepted: score < self.model.threshold(),
+            answered_by: AnsweredBy::Krfws,
         })
     }
 }

@@ -6,6 +6,7 @@ pub mod align;
 pub mod cli;
 pub mod data;
 pub mod detect;
+pub mod link;
 pub mod plot;
 pub mod runtime;
 pub mod session;

@@ -116,6 +116,8 @@ pub struct FaceUpdate {
     pub attributes: Attributes,
     /// Where the frame's initial shape came from.
     pub init: InitSource,
+    /// Which aligner answered this frame.
+    pub answered_by: crate::align::AnsweredBy,
 }
 
 /// The answer for one frame: a face, or an explicit absence with the reason.
@@ -304,6 +306,7 @@ impl TrackerSession {
             display,
             attributes,
             init: source,
+            answered_by: a.answered_by,
         })
     }
 }
@@ -400,6 +403,7 @@ mod tests {
             set: LandmarkSet::Ibug68,
             confidence: Confidence::FaceProbability(if accepted { 0.9 } else { 0.01 }),
             accepted,
+            answered_by: crate::align::AnsweredBy::RemoteDan,
         };
         // Frame 1: detection.
         let f1 = frame(0);

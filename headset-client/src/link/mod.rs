@@ -1,0 +1,396 @@
+//! The remote link: crops to the alignment server over QUIC, with local fallback.
+//!
+//! * [`session`]: one connection (handshake, frame streams, replies), async; shared with the load tester.
+//! * [`RemoteLink`]: owns a background thread with a single-threaded tokio runtime that keeps a
+//!   connection up (reconnecting with exponential backoff) and gives the frame loop a blocking API:
+//!   [`RemoteLink::send`] and [`RemoteLink::wait_reply`] with a deadline.
+//! * [`policy`]: the IO-free fallback state machine (misses, hold-off, hysteresis).
+//! * [`LinkedAligner`]: an [`crate::align::Aligner`] that asks the server first and answers the **same
+//!   frame** with the local aligner when the reply misses its deadline or the link is down.
+//! * [`codec`]: raw / PNG / JPEG crops.
+
+mod aligner;
+pub mod codec;
+pub mod policy;
+pub mod relay;
+pub mod session;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError, mpsc};
+use std::time::{Duration, Instant};
+
+use holoface_protocol::{CloseCode, FrameReply, FrameRequest, ServerWelcome};
+use tokio::sync::{mpsc as tmpsc, oneshot};
+
+pub use aligner::{FrameReport, LinkOptions, LinkedAligner};
+pub use codec::CropCodec;
+pub use policy::{FallbackPolicy, Mode, PolicyConfig, Route};
+pub use session::{ConnectConfig, SessionError};
+
+/// Reconnection backoff: `initial`, doubling up to `max`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Backoff {
+    /// First retry delay.
+    pub initial: Duration,
+    /// Largest retry delay.
+    pub max: Duration,
+}
+
+impl Default for Backoff {
+    fn default() -> Self {
+        Self {
+            initial: Duration::from_millis(100),
+            max: Duration::from_secs(2),
+        }
+    }
+}
+
+/// State of the link as the frame loop sees it.
+#[derive(Clone, Debug)]
+pub enum LinkStatus {
+    /// Connecting or waiting to retry; the last failure, if any.
+    Connecting {
+        /// Why the previous attempt or connection ended.
+        last_error: Option<String>,
+    },
+    /// Handshake done; frames may be sent.
+    Up(Arc<ServerWelcome>),
+    /// The link thread has stopped (shut down, or the UDP socket could not be created).
+    Stopped(String),
+}
+
+impl LinkStatus {
+    /// The welcome when the link is up.
+    pub fn welcome(&self) -> Option<&Arc<ServerWelcome>> {
+        match self {
+            Self::Up(w) => Some(w),
+            _ => None,
+        }
+    }
+}
+
+/// Something the link thread observed.
+#[derive(Debug)]
+pub enum LinkEvent {
+    /// A reply and when it arrived.
+    Reply(FrameReply, Instant),
+    /// The connection ended (a reconnect follows).
+    Down(Instant, String),
+}
+
+/// Why [`RemoteLink::wait_reply`] returned without the reply.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WaitError {
+    /// The deadline passed.
+    #[error("deadline missed")]
+    Deadline,
+    /// The connection went down while waiting.
+    #[error("link down: {0}")]
+    Down(String),
+    /// The link thread is gone.
+    #[error("link stopped")]
+    Stopped,
+}
+
+/// Counters of a link (monotonic).
+#[derive(Debug, Default)]
+pub struct LinkCounters {
+    /// Frames handed to the link.
+    pub frames_sent: AtomicU64,
+    /// HoloFace message bytes sent (frame requests only).
+    pub payload_bytes: AtomicU64,
+    /// UDP bytes sent over all connections (QUIC and TLS overhead included).
+    pub udp_tx_bytes: AtomicU64,
+    /// UDP bytes received over all connections.
+    pub udp_rx_bytes: AtomicU64,
+    /// Successful handshakes.
+    pub connects: AtomicU64,
+    /// Failed connection attempts.
+    pub connect_failures: AtomicU64,
+}
+
+struct Shared {
+    status: Mutex<LinkStatus>,
+    counters: LinkCounters,
+    current: Mutex<Option<quinn::Connection>>,
+}
+
+impl Shared {
+    fn set(&self, s: LinkStatus) {
+        *self.status.lock().unwrap_or_else(PoisonError::into_inner) = s;
+    }
+}
+
+/// A connection to the alignment server kept up by a background thread.
+///
+/// Thread-safety: the handle is `Send` and used from one frame loop; the background thread is private.
+/// Dropping the handle closes the connection (`NoError`) and joins the thread.
+pub struct RemoteLink {
+    frames: tmpsc::UnboundedSender<FrameRequest>,
+    events: mpsc::Receiver<LinkEvent>,
+    shared: Arc<Shared>,
+    shutdown: Option<oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for RemoteLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RemoteLink")
+            .field("status", &self.status())
+            .finish_non_exhaustive()
+    }
+}
+
+impl RemoteLink {
+    /// Starts the link thread; it connects in the background (check [`Self::status`]).
+    pub fn start(cfg: ConnectConfig, backoff: Backoff) -> std::io::Result<Self> {
+        let (frames, frames_rx) = tmpsc::unbounded_channel();
+        let (events_tx, events) = mpsc::channel();
+        let (shutdown, shutdown_rx) = oneshot::channel();
+        let shared = Arc::new(Shared {
+            status: Mutex::new(LinkStatus::Connecting { last_error: None }),
+            counters: LinkCounters::default(),
+            current: Mutex::new(None),
+        });
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        let thread_shared = Arc::clone(&shared);
+        let thread = std::thread::Builder::new()
+            .name("holoface-link".into())
+            .spawn(move || {
+                let end = runtime.block_on(supervise(
+                    cfg,
+                    backoff,
+                    frames_rx,
+                    events_tx,
+                    &thread_shared,
+                    shutdown_rx,
+                ));
+                thread_shared.set(LinkStatus::Stopped(end));
+            })?;
+        Ok(Self {
+            frames,
+            events,
+            shared,
+            shutdown: Some(shutdown),
+            thread: Some(thread),
+        })
+    }
+
+    /// The current status.
+    pub fn status(&self) -> LinkStatus {
+        self.shared
+            .status
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Counters since start.
+    pub fn counters(&self) -> &LinkCounters {
+        &self.shared.counters
+    }
+
+    /// UDP bytes (sent, received) over all connections so far, the live one included.
+    pub fn udp_bytes(&self) -> (u64, u64) {
+        let c = &self.shared.counters;
+        let (mut tx, mut rx) = (
+            c.udp_tx_bytes.load(Ordering::Relaxed),
+            c.udp_rx_bytes.load(Ordering::Relaxed),
+        );
+        if let Some(conn) = self
+            .shared
+            .current
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .as_ref()
+        {
+            let s = conn.stats();
+            tx += s.udp_tx.bytes;
+            rx += s.udp_rx.bytes;
+        }
+        (tx, rx)
+    }
+
+    /// Queues a frame for sending (never blocks). Frames queued while the link is down are discarded.
+    pub fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
+        self.frames.send(req).map_err(|_| WaitError::Stopped)
+    }
+
+    /// Waits until `deadline` for the reply to `frame_id`; every other event is passed to `other`.
+    pub fn wait_reply(
+        &self,
+        frame_id: u64,
+        deadline: Instant,
+        mut other: impl FnMut(LinkEvent),
+    ) -> Result<(FrameReply, Instant), WaitError> {
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.events.recv_timeout(left) {
+                Ok(LinkEvent::Reply(r, at)) if r.frame_id == frame_id => return Ok((r, at)),
+                Ok(LinkEvent::Down(at, why)) => {
+                    other(LinkEvent::Down(at, why.clone()));
+                    return Err(WaitError::Down(why));
+                }
+                Ok(ev) => other(ev),
+                Err(mpsc::RecvTimeoutError::Timeout) => return Err(WaitError::Deadline),
+                Err(mpsc::RecvTimeoutError::Disconnected) => return Err(WaitError::Stopped),
+            }
+        }
+    }
+
+    /// Events that arrived since the last call (non-blocking).
+    pub fn drain(&self, mut each: impl FnMut(LinkEvent)) {
+        while let Ok(ev) = self.events.try_recv() {
+            each(ev);
+        }
+    }
+}
+
+impl Drop for RemoteLink {
+    fn drop(&mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The link thread: connect, serve, reconnect with backoff, until shut down. Returns why it stopped.
+async fn supervise(
+    cfg: ConnectConfig,
+    backoff: Backoff,
+    mut frames: tmpsc::UnboundedReceiver<FrameRequest>,
+    events: mpsc::Sender<LinkEvent>,
+    shared: &Shared,
+    mut shutdown: oneshot::Receiver<()>,
+) -> String {
+    let endpoint = match session::client_endpoint(&cfg) {
+        Ok(e) => e,
+        Err(e) => return format!("cannot open the client endpoint: {e}"),
+    };
+    let mut delay = backoff.initial;
+    let stopped = loop {
+        let attempt = tokio::select! {
+            _ = &mut shutdown => break "shut down".to_owned(),
+            r = session::connect(&endpoint, &cfg) => r,
+        };
+        let why = match attempt {
+            Ok(s) => {
+                delay = backoff.initial;
+                shared.counters.connects.fetch_add(1, Ordering::Relaxed);
+                let (conn, welcome, control, replies) = s.split();
+                tracing::info!(server = %cfg.server, model = %welcome.model_version, encoding = ?welcome.encoding, "link up");
+                // Frames queued while down are stale.
+                while frames.try_recv().is_ok() {}
+                *shared.current.lock().unwrap_or_else(PoisonError::into_inner) = Some(conn.clone());
+                shared.set(LinkStatus::Up(Arc::new(welcome)));
+                let end = serve(
+                    &conn,
+                    control,
+                    replies,
+                    &mut frames,
+                    &events,
+                    shared,
+                    &mut shutdown,
+                )
+                .await;
+                shared
+                    .current
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .take();
+                let stats = conn.stats();
+                shared
+                    .counters
+                    .udp_tx_bytes
+                    .fetch_add(stats.udp_tx.bytes, Ordering::Relaxed);
+                shared
+                    .counters
+                    .udp_rx_bytes
+                    .fetch_add(stats.udp_rx.bytes, Ordering::Relaxed);
+                match end {
+                    None => {
+                        conn.close(CloseCode::NoError.as_u32().into(), b"client shutting down");
+                        break "shut down".to_owned();
+                    }
+                    Some(why) => {
+                        tracing::warn!(%why, "link down");
+                        let _ = events.send(LinkEvent::Down(Instant::now(), why.clone()));
+                        why
+                    }
+                }
+            }
+            Err(e) => {
+                shared.counters.connect_failures.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(error = %e, retry_in = ?delay, "connect failed");
+                e.to_string()
+            }
+        };
+        shared.set(LinkStatus::Connecting {
+            last_error: Some(why),
+        });
+        tokio::select! {
+            _ = &mut shutdown => break "shut down".to_owned(),
+            () = tokio::time::sleep(delay) => {}
+        }
+        delay = (delay * 2).min(backoff.max);
+        while frames.try_recv().is_ok() {}
+    };
+    // Let the close frame go out.
+    let _ = tokio::time::timeout(Duration::from_millis(200), endpoint.wait_idle()).await;
+    stopped
+}
+
+/// Serves one connection. `None` = shut down by us; `Some(reason)` = the connection ended.
+async fn serve(
+    conn: &quinn::Connection,
+    mut control: session::Control,
+    mut replies: session::ReplyReader,
+    frames: &mut tmpsc::UnboundedReceiver<FrameRequest>,
+    events: &mpsc::Sender<LinkEvent>,
+    shared: &Shared,
+    shutdown: &mut oneshot::Receiver<()>,
+) -> Option<String> {
+    let reader_events = events.clone();
+    let mut reader = tokio::spawn(async move {
+        loop {
+            match replies.next().await {
+                Ok(r) => {
+                    if reader_events.send(LinkEvent::Reply(r, Instant::now())).is_err() {
+                        return "frame loop gone".to_owned();
+                    }
+                }
+                Err(e) => return e.to_string(),
+            }
+        }
+    });
+    let end = loop {
+        tokio::select! {
+            _ = &mut *shutdown => break None,
+            f = frames.recv() => match f {
+                Some(req) => {
+                    let conn = conn.clone();
+                    shared.counters.frames_sent.fetch_add(1, Ordering::Relaxed);
+                    // One task per frame: a slow stream never holds up the next frame.
+                    let len = holoface_protocol::Message::FrameRequest(req.clone()).encoded_len();
+                    shared.counters.payload_bytes.fetch_add(len as u64, Ordering::Relaxed);
+                    tokio::spawn(async move {
+                        if let Err(e) = session::send_frame(&conn, &req).await {
+                            tracing::debug!(frame = req.frame_id, error = %e, "send failed");
+                        }
+                    });
+                }
+                None => break None,
+            },
+            r = &mut reader => break Some(r.unwrap_or_else(|e| format!("reply reader failed: {e}"))),
+            c = control.next() => if let Err(e) = c { break Some(e.to_string()) },
+            e = conn.closed() => break Some(SessionError::from(e).to_string()),
+        }
+    };
+    reader.abort();
+    end
+}
