@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+.PHONY: all sample setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
 
 all: test
 
@@ -64,13 +64,30 @@ $(BLAZEFACE):
 	rm -rf $(BLAZEFACE_DIR)/tmp
 
 detector: $(BLAZEFACE)
-setup: venv ort detector
+
+# Demo sample: NASA's public-domain photograph of astronaut Eileen Collins as shipped inside the pinned
+# scikit-image wheel (skimage/data/astronaut.png); the extracted file's sha256 is pinned.
+SKIMAGE_VERSION := 0.26.0
+SAMPLE_SHA256 := 88431cd9653ccd539741b555fb0a46b61558b301d4110412b5bc28b5e3ea6cb5
+SAMPLE := .cache/samples/astronaut.png
+export HOLOFACE_SAMPLE := $(abspath $(SAMPLE))
+$(SAMPLE): $(VENV)/.eval-installed
+	mkdir -p .cache/samples/wheel
+	$(PY) -m pip download --disable-pip-version-check -q --no-deps --only-binary=:all: \
+	  scikit-image==$(SKIMAGE_VERSION) -d .cache/samples/wheel
+	$(PY) -c 'import sys, zipfile, glob; z = zipfile.ZipFile(glob.glob(".cache/samples/wheel/scikit_image-*.whl")[0]); open(sys.argv[1], "wb").write(z.read("skimage/data/astronaut.png"))' $@.tmp
+	echo "$(SAMPLE_SHA256)  $@.tmp" | sha256sum -c --quiet
+	mv $@.tmp $@
+	rm -rf .cache/samples/wheel
+
+sample: $(SAMPLE)
+setup: venv ort detector sample
 
 ## ---- main job -----------------------------------------------------------------------------------
-# Until the loopback demo lands: the full single-image pipeline (detect, place, align) on the validation split.
+# Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
 demo: setup
 	$(CARGO) build --release -p holoface-client
-	./target/release/holoface eval --split validation --init detector --aligner dan --out runs/eval.json --plot runs/ced.png
+	./target/release/holoface demo
 
 ## ---- tests --------------------------------------------------------------------------------------
 golden: venv

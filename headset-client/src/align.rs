@@ -100,6 +100,8 @@ pub struct DanAligner<E> {
     crop: Crop112,
     batch: BatchTensor,
     out: Vec<LandmarkOut>,
+    wire: Option<crate::link::CropCodec>,
+    wire_bytes: (u64, u64),
 }
 
 impl<E: InferenceEngine> DanAligner<E> {
@@ -121,6 +123,8 @@ impl<E: InferenceEngine> DanAligner<E> {
             crop: Crop112::default(),
             batch: BatchTensor::new(1, 112 * 112),
             out: vec![LandmarkOut::default()],
+            wire: None,
+            wire_bytes: (0, 0),
         })
     }
 
@@ -133,6 +137,17 @@ impl<E: InferenceEngine> DanAligner<E> {
     pub fn set_threshold(&mut self, t: f32) {
         self.threshold = t;
     }
+
+    /// Passes every crop through `codec` (encode, then decode as the server does) before inference, to
+    /// measure the accuracy cost of a wire encoding in-process; `None` (the default) feeds the crop as is.
+    pub fn set_wire_codec(&mut self, codec: Option<crate::link::CropCodec>) {
+        self.wire = codec;
+    }
+
+    /// Mean size of the frame requests the wire codec produced (bytes), if any crop went through it.
+    pub fn mean_request_bytes(&self) -> Option<f64> {
+        (self.wire_bytes.1 > 0).then(|| self.wire_bytes.0 as f64 / self.wire_bytes.1 as f64)
+    }
 }
 
 impl<E: InferenceEngine> Aligner for DanAligner<E> {
@@ -144,7 +159,23 @@ impl<E: InferenceEngine> Aligner for DanAligner<E> {
         let sim = crop_from_image(init, &self.canonical)?;
         crop_bilinear(image, &sim, &mut self.crop)?;
         self.batch.clear();
-        self.batch.push(self.crop.as_slice())?;
+        match self.wire {
+            None => self.batch.push(self.crop.as_slice())?,
+            Some(codec) => {
+                let bad = |e: image::ImageError| AlignError::BadOutput(format!("crop codec {codec}: {e}"));
+                let crop = codec.encode(self.crop.as_slice(), 112, 112).map_err(bad)?;
+                let req = holoface_protocol::FrameRequest {
+                    frame_id: 0,
+                    captured_at_us: 0,
+                    deadline_ms: 0,
+                    crop,
+                };
+                let decoded = crate::link::CropCodec::decode(&req.crop).map_err(bad)?;
+                self.wire_bytes.0 += holoface_protocol::Message::FrameRequest(req).encoded_len() as u64;
+                self.wire_bytes.1 += 1;
+                self.batch.push(&decoded)?;
+            }
+        }
         self.engine.infer(&self.batch, &mut self.out)?;
         let out = self
             .out

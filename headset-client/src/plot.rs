@@ -1,5 +1,5 @@
-//! Self-contained PNG plots (no font files needed): cumulative error distribution curves with tick labels
-//! and a legend drawn in a built-in 3×5 pixel font.
+//! Self-contained PNG plots (no font files needed): cumulative error distribution curves, time series
+//! (load-test latency) and annotated frame strips, with text in a built-in 3×5 pixel font.
 
 /// One curve of a CED plot.
 #[derive(Debug, Clone)]
@@ -72,23 +72,65 @@ fn glyph(c: char) -> [u8; 5] {
     }
 }
 
-struct Canvas {
+/// An RGB drawing surface.
+#[derive(Debug, Clone)]
+pub struct Canvas {
+    w: usize,
+    h: usize,
     px: Vec<u8>,
 }
 
 impl Canvas {
-    fn new() -> Self {
+    /// A white `w` x `h` canvas.
+    pub fn new(w: usize, h: usize) -> Self {
         Self {
-            px: vec![255; W * H * 3],
+            w,
+            h,
+            px: vec![255; w * h * 3],
         }
     }
-    fn set(&mut self, x: i64, y: i64, c: [u8; 3]) {
-        if x >= 0 && y >= 0 && (x as usize) < W && (y as usize) < H {
-            let i = (y as usize * W + x as usize) * 3;
+    /// Sets one pixel (outside = ignored).
+    pub fn set(&mut self, x: i64, y: i64, c: [u8; 3]) {
+        if x >= 0 && y >= 0 && (x as usize) < self.w && (y as usize) < self.h {
+            let i = (y as usize * self.w + x as usize) * 3;
             self.px[i..i + 3].copy_from_slice(&c);
         }
     }
-    fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), c: [u8; 3], thick: i64) {
+    /// A filled square of side `2r+1` centred on (x, y).
+    pub fn dot(&mut self, x: f64, y: f64, r: i64, c: [u8; 3]) {
+        let (cx, cy) = (x.round() as i64, y.round() as i64);
+        for dy in -r..=r {
+            for dx in -r..=r {
+                self.set(cx + dx, cy + dy, c);
+            }
+        }
+    }
+    /// Copies gray pixels (`w` x `h`, row-major) to (x0, y0), keeping every `step`-th pixel.
+    pub fn blit_gray(&mut self, x0: i64, y0: i64, gray: &[u8], w: usize, h: usize, step: usize) {
+        let step = step.max(1);
+        for y in (0..h).step_by(step) {
+            for x in (0..w).step_by(step) {
+                let v = gray[y * w + x];
+                self.set(x0 + (x / step) as i64, y0 + (y / step) as i64, [v, v, v]);
+            }
+        }
+    }
+    /// Encodes as PNG.
+    pub fn to_png(&self) -> Vec<u8> {
+        let mut png = Vec::new();
+        let enc = image::codecs::png::PngEncoder::new(&mut png);
+        // Encoding an in-memory RGB buffer of the right size cannot fail; an empty Vec shows as a bad file.
+        let _ = image::ImageEncoder::write_image(
+            enc,
+            &self.px,
+            self.w as u32,
+            self.h as u32,
+            image::ExtendedColorType::Rgb8,
+        );
+        png
+    }
+    /// A line of thickness `thick`.
+    pub fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), c: [u8; 3], thick: i64) {
         let n = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
         for k in 0..=n {
             let t = k as f64 / n as f64;
@@ -103,7 +145,8 @@ impl Canvas {
             }
         }
     }
-    fn text(&mut self, x: i64, y: i64, s: &str, c: [u8; 3]) {
+    /// Text in the built-in font (2x scale, 8 px per character).
+    pub fn text(&mut self, x: i64, y: i64, s: &str, c: [u8; 3]) {
         let scale = 2;
         for (k, ch) in s.chars().enumerate() {
             let g = glyph(ch.to_ascii_lowercase());
@@ -129,7 +172,7 @@ impl Canvas {
 /// Renders the CED of each curve from 0 to `max_error` as a PNG: x = error (normalised), y = share of
 /// samples with error ≤ x. Samples without an answer count in the denominator, never in the curve.
 pub fn ced_plot_png(curves: &[Curve], max_error: f64) -> Vec<u8> {
-    let mut cv = Canvas::new();
+    let mut cv = Canvas::new(W, H);
     let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
     let to_px = |e: f64, f: f64| (LEFT as f64 + e / max_error * pw, TOP as f64 + (1.0 - f) * ph);
     let grey = [200, 200, 200];
@@ -179,11 +222,65 @@ pub fn ced_plot_png(curves: &[Curve], max_error: f64) -> Vec<u8> {
         );
         cv.text((LEFT + 48) as i64, ly, &curve.label, colour);
     }
-    let mut png = Vec::new();
-    let enc = image::codecs::png::PngEncoder::new(&mut png);
-    // Encoding an in-memory RGB buffer of the right size cannot fail; an empty Vec would show as a bad file.
-    let _ = image::ImageEncoder::write_image(enc, &cv.px, W as u32, H as u32, image::ExtendedColorType::Rgb8);
-    png
+    cv.to_png()
+}
+
+/// One series of a time plot.
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Legend label.
+    pub label: String,
+    /// (x, y) points in data units.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A line plot of `series` (x from 0 to the largest x, y from 0 to the largest y), with axis labels.
+pub fn series_plot_png(series: &[Series], x_label: &str, y_label: &str) -> Vec<u8> {
+    let mut cv = Canvas::new(W, H);
+    let x_max = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.0))
+        .fold(1e-9, f64::max);
+    let y_max = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.1))
+        .fold(1e-9, f64::max)
+        * 1.1;
+    let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
+    let to_px = |x: f64, y: f64| (LEFT as f64 + x / x_max * pw, TOP as f64 + (1.0 - y / y_max) * ph);
+    let (grey, black) = ([200, 200, 200], [0, 0, 0]);
+    for k in 0..=4 {
+        let y = y_max * k as f64 / 4.0;
+        cv.line(to_px(0.0, y), to_px(x_max, y), grey, 1);
+        cv.text(4, to_px(0.0, y).1 as i64 - 5, &format!("{y:.1}"), black);
+        let x = x_max * k as f64 / 4.0;
+        cv.line(to_px(x, 0.0), to_px(x, y_max), grey, 1);
+        cv.text(
+            to_px(x, 0.0).0 as i64 - 12,
+            (H - BOTTOM + 8) as i64,
+            &format!("{x:.0}"),
+            black,
+        );
+    }
+    cv.line(to_px(0.0, 0.0), to_px(x_max, 0.0), black, 1);
+    cv.line(to_px(0.0, 0.0), to_px(0.0, y_max), black, 1);
+    cv.text((W / 2 - 40) as i64, (H - 14) as i64, x_label, black);
+    cv.text(LEFT as i64 + 4, 4, y_label, black);
+    for (ci, s) in series.iter().enumerate() {
+        let colour = COLOURS[ci % COLOURS.len()];
+        for w in s.points.windows(2) {
+            cv.line(to_px(w[0].0, w[0].1), to_px(w[1].0, w[1].1), colour, 2);
+        }
+        let ly = TOP as i64 + 10 + 16 * ci as i64;
+        cv.line(
+            ((W - 200) as f64, ly as f64 + 4.0),
+            ((W - 180) as f64, ly as f64 + 4.0),
+            colour,
+            3,
+        );
+        cv.text((W - 172) as i64, ly, &s.label, colour);
+    }
+    cv.to_png()
 }
 
 #[cfg(test)]
@@ -206,5 +303,26 @@ mod tests {
         let x = (W - RIGHT - 2) as u32;
         let found = (y as u32 - 3..y as u32 + 3).any(|yy| img.get_pixel(x, yy).0 == COLOURS[0]);
         assert!(found);
+    }
+
+    #[test]
+    fn series_plot_draws_each_series() {
+        let png = series_plot_png(
+            &[
+                Series {
+                    label: "p50".into(),
+                    points: vec![(0.0, 1.0), (10.0, 1.0)],
+                },
+                Series {
+                    label: "p99".into(),
+                    points: vec![(0.0, 4.0), (10.0, 4.0)],
+                },
+            ],
+            "s",
+            "ms",
+        );
+        let img = image::load_from_memory(&png).unwrap().to_rgb8();
+        let count = |c: [u8; 3]| img.pixels().filter(|p| p.0 == c).count();
+        assert!(count(COLOURS[0]) > 500 && count(COLOURS[1]) > 500);
     }
 }

@@ -59,6 +59,12 @@ impl RuntimeArgs {
         Ok(DanAligner::new(engine)?)
     }
 
+    /// BlazeFace through ONNX Runtime (1 thread).
+    pub fn detector(&self) -> anyhow::Result<crate::detect::BlazeFace> {
+        crate::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
+            .with_context(|| format!("loading the face detector {}", self.detector.display()))
+    }
+
     /// KRFWS from its model file.
     pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
         let bytes = std::fs::read(&self.krfws_model)
@@ -67,4 +73,12 @@ impl RuntimeArgs {
             .with_context(|| format!("loading KRFWS model {}", self.krfws_model.display()))?;
         Ok(KrfwsAligner::new(model))
     }
+}
+
+/// Loads the CANDIDE-3 face model from a `.wfm` file.
+pub fn load_face_model(path: &std::path::Path) -> anyhow::Result<holoface_models::candide::FaceModel> {
+    let text = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let wfm = holoface_models::candide::Wfm::parse(&String::from_utf8_lossy(&text))
+        .with_context(|| format!("parsing {}", path.display()))?;
+    Ok(holoface_models::candide::FaceModel::from_wfm(&wfm)?)
 }

@@ -70,6 +70,10 @@ pub struct Args {
     /// CED plot (PNG).
     #[arg(long, default_value = "runs/ced.png")]
     pub plot: PathBuf,
+    /// Pass DAN's crops through this wire encoding first (`raw`, `png`, `jpeg`, `jpeg:Q`), as the server
+    /// would receive them; measures the accuracy cost of an encoding. Default: the crop as is.
+    #[arg(long)]
+    pub crop_encoding: Option<crate::link::CropCodec>,
 }
 
 #[derive(Debug, Serialize)]
@@ -109,6 +113,9 @@ struct AlignerReport {
     nme68: Option<SummaryJson>,
     nme49: SummaryJson,
     ms_per_face: f64,
+    /// The wire encoding DAN's crops went through, and the mean frame-request size it gave.
+    crop_encoding: Option<String>,
+    mean_request_bytes: Option<f64>,
     per_image: Vec<PerImage>,
 }
 
@@ -166,9 +173,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut reports = Vec::new();
     let mut curves = Vec::new();
     for which in &args.aligner {
-        let mut aligner: Box<dyn Aligner> = match which {
-            AlignerArg::Dan => Box::new(args.runtime.dan_aligner()?),
-            AlignerArg::Krfws => Box::new(args.runtime.krfws_aligner()?),
+        let mut dan = None;
+        let mut krfws = None;
+        let aligner: &mut dyn Aligner = match which {
+            AlignerArg::Dan => {
+                let d = dan.insert(args.runtime.dan_aligner()?);
+                d.set_wire_codec(args.crop_encoding);
+                d
+            }
+            AlignerArg::Krfws => krfws.insert(args.runtime.krfws_aligner()?),
         };
         let mut per_image = Vec::with_capacity(samples.len());
         let (mut e68, mut e49) = (Vec::new(), Vec::new());
@@ -245,6 +258,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             nme68: has68.then(|| summarise(&e68).into()),
             nme49: s49.into(),
             ms_per_face: ms,
+            crop_encoding: dan.as_ref().and(args.crop_encoding).map(|c| c.to_string()),
+            mean_request_bytes: dan.as_ref().and_then(|d| d.mean_request_bytes()),
             per_image,
         });
     }

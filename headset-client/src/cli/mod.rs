@@ -2,6 +2,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod demo;
 pub mod eval;
 pub mod record;
 pub mod simulate;
@@ -23,6 +24,8 @@ pub struct Cli {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// The main job: server + client on loopback over the bundled sample, link cut part-way.
+    Demo(demo::Args),
     /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
     Eval(eval::Args),
     /// Write a recorded stream (`.hfrec`) from an image folder or another recording.
@@ -38,6 +41,7 @@ pub enum Command {
 /// Runs the parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(args) => demo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),

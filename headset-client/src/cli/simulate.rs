@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
-use holoface_models::candide::{FaceModel, FitOptions, FitResult, Intrinsics, Wfm, fit, project_landmarks};
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, Intrinsics, fit, project_landmarks};
 use holoface_models::geometry::Point2;
 use holoface_models::kalman::{KalmanParams, PositionPredictor};
 use holoface_models::math3::{Mat3, Pose, Quat, Vec3};
@@ -147,8 +147,7 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 
 /// Runs `holoface simulate`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let text = std::fs::read(&args.candide).with_context(|| format!("reading {}", args.candide.display()))?;
-    let model = FaceModel::from_wfm(&Wfm::parse(&String::from_utf8_lossy(&text))?)?;
+    let model = crate::runtime::load_face_model(&args.candide)?;
     let n = (args.seconds * args.fps).round() as usize;
     let dt = 1.0 / args.fps;
     let yaw = args.headset_yaw_deg.to_radians();

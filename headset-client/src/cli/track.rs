@@ -6,12 +6,10 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
-use holoface_models::candide::{FaceModel, Wfm};
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::align::Aligner;
-use crate::detect::BlazeFace;
 use crate::runtime::RuntimeArgs;
 use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
 use crate::source::open_source;
@@ -60,11 +58,8 @@ pub struct Args {
 
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let text = std::fs::read(&args.candide).with_context(|| format!("reading {}", args.candide.display()))?;
-    let wfm = Wfm::parse(&String::from_utf8_lossy(&text))
-        .with_context(|| format!("parsing {}", args.candide.display()))?;
-    let model = FaceModel::from_wfm(&wfm)?;
-    let detector = BlazeFace::load(&args.runtime.detector_model(), &args.runtime.ort_dylib(), 1)?;
+    let model = crate::runtime::load_face_model(&args.candide)?;
+    let detector = args.runtime.detector()?;
     let mut aligner: Box<dyn Aligner> = match args.aligner {
         TrackAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
         TrackAligner::Dan => Box::new(args.runtime.dan_aligner()?),

@@ -27,7 +27,9 @@ pub struct LinkOptions {
 impl Default for LinkOptions {
     fn default() -> Self {
         Self {
-            deadline: Duration::from_millis(30),
+            // One frame interval at 30 fps: a missed frame is still answered (deadline + local aligner)
+            // well within two intervals.
+            deadline: Duration::from_millis(33),
             codec: CropCodec::default(),
             policy: PolicyConfig::default(),
         }
@@ -249,7 +251,11 @@ impl<L: Aligner> Aligner for LinkedAligner<L> {
                 None => self.local(image, init),
             },
             (Route::Local { probe: true }, Some(welcome)) => {
-                if let Some((_, id)) = self.send_crop(image, init, &welcome) {
+                // At most `max_in_flight` probes outstanding: a server slower than the frame rate would
+                // otherwise see each probe superseded by the next and never look healthy.
+                if self.probes.len() < usize::from(welcome.max_in_flight.max(1))
+                    && let Some((_, id)) = self.send_crop(image, init, &welcome)
+                {
                     self.probes.push_back((id, now));
                 }
                 self.local(image, init)

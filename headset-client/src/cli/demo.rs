@@ -1,0 +1,603 @@
+//! `holoface demo`: the alignment server and the headset client on loopback, over the bundled sample.
+//!
+//! The sample photograph hangs as a flat picture 60 cm in front of a headset that moves (known
+//! camera-to-world poses), so every frame is a known homography of the photo. The client tracks the face
+//! with remote DAN over QUIC (through a fault-injecting relay) and local KRFWS as fallback; part-way the
+//! relay cuts the link, later restores it. Reference landmarks: DAN run in-process on the still photo,
+//! moved into each frame by its homography (so "error" means drift from that reference, not from a human
+//! annotation). Prints a summary table, writes one JSON line per frame and a PNG strip of annotated frames.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::Args as ClapArgs;
+use holoface_models::candide::Intrinsics;
+use holoface_models::geometry::Point2;
+use holoface_models::image::GrayImage;
+use holoface_models::math3::{Mat3, Pose, Vec3};
+use holoface_models::metrics::{nme49, nme68};
+use holoface_models::shape::dan_mean_shape;
+use serde_json::json;
+
+use crate::align::{Aligner, AnsweredBy};
+use crate::detect::{FaceDetector, shape_from_detection};
+use crate::link::relay::UdpRelay;
+use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
+use crate::plot::Canvas;
+use crate::runtime::{RuntimeArgs, load_face_model};
+use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+
+/// Arguments of `holoface demo`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// The sample photograph (`make setup` extracts NASA's public-domain astronaut photo from the pinned
+    /// scikit-image wheel).
+    #[arg(long, env = "HOLOFACE_SAMPLE", default_value = ".cache/samples/astronaut.png")]
+    pub sample: PathBuf,
+    /// Frames to run.
+    #[arg(long, default_value_t = 360)]
+    pub frames: usize,
+    /// Camera frame rate (frames are paced in real time).
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// First frame of the link cut.
+    #[arg(long, default_value_t = 100)]
+    pub cut_at: usize,
+    /// Length of the link cut in frames (longer than the 3 s QUIC idle timeout shows a reconnect).
+    #[arg(long, default_value_t = 120)]
+    pub cut_frames: usize,
+    /// Per-frame deadline for the server's answer, milliseconds (one frame interval at 30 fps).
+    #[arg(long, default_value_t = 33)]
+    pub deadline_ms: u64,
+    /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
+    #[arg(long, default_value = "jpeg:75")]
+    pub crop_encoding: CropCodec,
+    /// ONNX Runtime threads of the in-process server.
+    #[arg(long, default_value_t = 1)]
+    pub server_threads: usize,
+    /// CANDIDE-3 model (`.wfm`).
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+    /// Output folder (frames.jsonl, strip.png, summary.json).
+    #[arg(long, default_value = "runs/demo")]
+    pub out: PathBuf,
+    /// Runtime assets.
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+const K: Intrinsics = Intrinsics {
+    fx: 500.0,
+    fy: 500.0,
+    cx: 320.0,
+    cy: 240.0,
+};
+const FRAME_W: usize = 640;
+const FRAME_H: usize = 480;
+const PHOTO_DISTANCE_M: f64 = 0.6;
+
+/// The photo as a plane in the world: photo pixel (u, v) ↦ `centre + scale·(u − u0, v − v0, 0)`.
+struct Scene {
+    photo: GrayImage,
+    reference: [Point2; 68],
+    u0: f64,
+    v0: f64,
+    scale: f64,
+}
+
+impl Scene {
+    /// Headset camera-to-world pose at time `t` (seconds): smooth head-like motion of a few degrees and
+    /// centimetres (OpenCV axes: x right, y down, z forward).
+    fn headset(t: f64) -> Pose {
+        let tau = std::f64::consts::TAU;
+        let yaw = 8f64.to_radians() * (tau * t / 4.0).sin();
+        let pitch = 5f64.to_radians() * (tau * t / 3.0 + 1.0).sin();
+        let roll = 4f64.to_radians() * (tau * t / 5.0).sin();
+        Pose {
+            rotation: Mat3::rot_y(yaw) * Mat3::rot_x(pitch) * Mat3::rot_z(roll),
+            translation: Vec3::new(
+                0.06 * (tau * t / 6.0).sin(),
+                0.04 * (tau * t / 4.5 + 0.5).sin(),
+                0.08 * (tau * t / 7.0).sin(),
+            ),
+        }
+    }
+
+    /// The homography image ← photo for a camera at `world_from_camera`.
+    fn homography(&self, world_from_camera: &Pose) -> [[f64; 3]; 3] {
+        let cw = world_from_camera.inverse();
+        let r = cw.rotation;
+        let m1 = r * Vec3::new(self.scale, 0.0, 0.0);
+        let m2 = r * Vec3::new(0.0, self.scale, 0.0);
+        let origin = Vec3::new(-self.scale * self.u0, -self.scale * self.v0, PHOTO_DISTANCE_M);
+        let m3 = r * origin + cw.translation;
+        let k = [[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]];
+        let m = [m1.to_array(), m2.to_array(), m3.to_array()]; // columns
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|l| k[i][l] * m[j][l]).sum()))
+    }
+
+    fn render(&self, h: &[[f64; 3]; 3], out: &mut GrayImage) -> anyhow::Result<()> {
+        let hi = invert3(h).context("degenerate camera pose")?;
+        let (pw, ph) = (self.photo.width(), self.photo.height());
+        let src = self.photo.as_bytes();
+        let dst = out.as_bytes_mut();
+        for y in 0..FRAME_H {
+            for x in 0..FRAME_W {
+                let (xf, yf) = (x as f64, y as f64);
+                let w = hi[2][0] * xf + hi[2][1] * yf + hi[2][2];
+                let u = (hi[0][0] * xf + hi[0][1] * yf + hi[0][2]) / w;
+                let v = (hi[1][0] * xf + hi[1][1] * yf + hi[1][2]) / w;
+                dst[y * FRAME_W + x] =
+                    if w > 0.0 && u >= 0.0 && v >= 0.0 && u < (pw - 1) as f64 && v < (ph - 1) as f64 {
+                        let (iu, iv) = (u as usize, v as usize);
+                        let (fu, fv) = (u - iu as f64, v - iv as f64);
+                        let p = |dx: usize, dy: usize| f64::from(src[(iv + dy) * pw + iu + dx]);
+                        let top = p(0, 0) * (1.0 - fu) + p(1, 0) * fu;
+                        let bottom = p(0, 1) * (1.0 - fu) + p(1, 1) * fu;
+                        (top * (1.0 - fv) + bottom * fv).round() as u8
+                    } else {
+                        40
+                    };
+            }
+        }
+        Ok(())
+    }
+}
+
+fn apply_h(h: &[[f64; 3]; 3], p: Point2) -> Point2 {
+    let (u, v) = (f64::from(p.x), f64::from(p.y));
+    let w = h[2][0] * u + h[2][1] * v + h[2][2];
+    Point2::new(
+        ((h[0][0] * u + h[0][1] * v + h[0][2]) / w) as f32,
+        ((h[1][0] * u + h[1][1] * v + h[1][2]) / w) as f32,
+    )
+}
+
+fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let cof = [
+        [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
+        [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
+        [c(0, 1, 1, 2), -c(0, 1, 0, 2), c(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * cof[0][0] + m[0][1] * cof[0][1] + m[0][2] * cof[0][2];
+    (det.abs() > 1e-12).then(|| std::array::from_fn(|i| std::array::from_fn(|j| cof[j][i] / det)))
+}
+
+/// Reference landmarks on the still: detection, then DAN three times, each from the previous answer.
+fn reference_landmarks(args: &Args, photo: &GrayImage) -> anyhow::Result<[Point2; 68]> {
+    let mut detector = args.runtime.detector()?;
+    let found = detector.detect(&photo.view())?;
+    let det = found
+        .first()
+        .with_context(|| format!("no face detected in the sample {}", args.sample.display()))?;
+    let mut shape = [Point2::default(); 68];
+    if !shape_from_detection(&dan_mean_shape(), det, &mut shape) {
+        bail!("the detection in {} is degenerate", args.sample.display());
+    }
+    let mut dan = args.runtime.dan_aligner()?;
+    for _ in 0..3 {
+        let a = dan.align(&photo.view(), &shape)?;
+        if !a.accepted {
+            bail!("DAN does not accept the face in {}", args.sample.display());
+        }
+        shape = a.landmarks;
+    }
+    Ok(shape)
+}
+
+fn load_scene(args: &Args) -> anyhow::Result<Scene> {
+    let photo = image::open(&args.sample)
+        .with_context(|| format!("reading the sample {} (run `make setup`)", args.sample.display()))?
+        .into_luma8();
+    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    let photo = GrayImage::from_vec(photo.into_raw(), w, h)?;
+    let reference = reference_landmarks(args, &photo)?;
+    let centre = |r: std::ops::Range<usize>| {
+        let n = r.len() as f64;
+        r.fold((0.0, 0.0), |(x, y), i| {
+            (
+                x + f64::from(reference[i].x) / n,
+                y + f64::from(reference[i].y) / n,
+            )
+        })
+    };
+    let (l, r) = (centre(36..42), centre(42..48));
+    let ipd_px = ((l.0 - r.0).powi(2) + (l.1 - r.1).powi(2)).sqrt();
+    let (u0, v0) = centre(0..68);
+    Ok(Scene {
+        photo,
+        reference,
+        u0,
+        v0,
+        // 63 mm between the eye centres: a life-size face.
+        scale: 0.063 / ipd_px,
+    })
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+enum Phase {
+    BeforeCut,
+    LinkCut,
+    AfterRestore,
+}
+
+struct Record {
+    phase: Phase,
+    answered_by: Option<AnsweredBy>,
+    latency_ms: f64,
+    nme49: Option<f64>,
+    sent_bytes: usize,
+}
+
+fn percentile(v: &mut [f64], p: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(((v.len() as f64 - 1.0) * p).round() as usize)
+        .copied()
+        .unwrap_or(f64::NAN)
+}
+
+/// Runs `holoface demo`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.frames == 0 || args.fps <= 0.0 {
+        bail!("--frames and --fps must be positive");
+    }
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    println!(
+        "preparing: reference landmarks on the still {}",
+        args.sample.display()
+    );
+    let scene = load_scene(&args)?;
+
+    // The server, in-process on loopback, behind a relay that can cut the link.
+    let token = format!("demo-{:016x}", {
+        use std::hash::{BuildHasher, Hasher};
+        std::collections::hash_map::RandomState::new()
+            .build_hasher()
+            .finish()
+    });
+    let mut settings = alignment_server::config::Settings::for_loopback(
+        &token,
+        args.runtime.dan_model.clone(),
+        args.runtime.ort_dylib(),
+    )?;
+    settings.engine.intra_threads = args.server_threads;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let server = rt.block_on(alignment_server::Server::bind(settings))?;
+    let (server_addr, fingerprint) = (server.local_addr()?, server.fingerprint());
+    let (stop_server, stopped) = tokio::sync::oneshot::channel::<()>();
+    let server_task = rt.spawn(server.run(async move {
+        let _ = stopped.await;
+    }));
+    let relay = rt.block_on(UdpRelay::start(server_addr))?;
+    println!(
+        "server on {server_addr} (certificate {fingerprint}), client via relay {}",
+        relay.addr()
+    );
+
+    let mut cfg = ConnectConfig::new(relay.addr(), fingerprint, token);
+    cfg.client_name = "holoface-demo".into();
+    cfg.encodings = vec![args.crop_encoding.encoding()];
+    let link = RemoteLink::start(cfg, Backoff::default())?;
+    let opts = LinkOptions {
+        deadline: Duration::from_millis(args.deadline_ms),
+        codec: args.crop_encoding,
+        ..LinkOptions::default()
+    };
+    let mut aligner = LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts);
+    let mut session = TrackerSession::new(
+        Box::new(args.runtime.detector()?),
+        load_face_model(&args.candide)?,
+        dan_mean_shape(),
+        SessionOptions::default(),
+    );
+
+    let log_path = args.out.join("frames.jsonl");
+    let mut log = std::io::BufWriter::new(
+        std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?,
+    );
+    let interval = Duration::from_secs_f64(1.0 / args.fps);
+    let cut_end = args.cut_at + args.cut_frames;
+    let strip_at = strip_frames(args.frames, args.cut_at, cut_end);
+    let mut strip = Vec::new();
+    let mut records = Vec::with_capacity(args.frames);
+    let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
+    let mut healthy_wire = None;
+    let start = Instant::now();
+    for i in 0..args.frames {
+        let t = i as f64 / args.fps;
+        let pose = Scene::headset(t);
+        let h = scene.homography(&pose);
+        scene.render(&h, &mut image)?;
+        let truth: [Point2; 68] = std::array::from_fn(|k| apply_h(&h, scene.reference[k]));
+        if i == args.cut_at {
+            // Wire cost while the link is healthy (during the cut, lost packets inflate it).
+            let sent = aligner
+                .link()
+                .counters()
+                .frames_sent
+                .load(std::sync::atomic::Ordering::Relaxed);
+            healthy_wire = Some((aligner.link().udp_bytes().0, sent));
+            relay.faults().set_cut(true);
+        } else if i == cut_end {
+            relay.faults().set_cut(false);
+        }
+        if let Some(wait) = (start + interval * i as u32).checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        let phase = match i {
+            _ if i < args.cut_at => Phase::BeforeCut,
+            _ if i < cut_end => Phase::LinkCut,
+            _ => Phase::AfterRestore,
+        };
+        let frame = Frame {
+            timestamp_us: (t * 1e6) as u64,
+            image: image.view(),
+            intrinsics: K,
+            world_from_camera: pose,
+        };
+        let t0 = Instant::now();
+        let alignment = match session.prepare(&frame)? {
+            Prepared::Align { init, .. } => Some(aligner.align(&frame.image, &init)?),
+            Prepared::NoFace => None,
+        };
+        let result = session.complete(&frame, alignment);
+        let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let report = aligner.last_report();
+        let (answered_by, landmarks) = match (&result, alignment) {
+            (_, Some(a)) => (Some(a.answered_by), Some(a.landmarks)),
+            _ => (None, None),
+        };
+        let n49 = landmarks.and_then(|l| nme49(&l, &truth));
+        let n68 = match answered_by {
+            Some(AnsweredBy::RemoteDan) => landmarks.and_then(|l| nme68(&l, &truth)),
+            _ => None,
+        };
+        records.push(Record {
+            phase,
+            answered_by,
+            latency_ms,
+            nme49: n49,
+            sent_bytes: report.sent_bytes,
+        });
+        let mut line = json!({
+            "frame": i,
+            "t_s": t,
+            "phase": phase,
+            "answered_by": answered_by,
+            "mode": report.mode,
+            "fell_back": report.fell_back,
+            "remote_rtt_ms": report.remote_rtt_us.map(|u| u as f64 / 1e3),
+            "latency_ms": latency_ms,
+            "sent_bytes": report.sent_bytes,
+            "nme49_vs_reference": n49,
+            "nme68_vs_reference": n68,
+        });
+        match &result {
+            FrameResult::Face(u) => {
+                line["face"] = json!(true);
+                line["world_position_m"] = json!(u.world.position.to_array());
+                line["display_position_m"] = json!(u.display.0.to_array());
+                line["weights"] = json!(u.fit.weights);
+                line["attributes"] = json!({
+                    "smile": u.attributes.smile,
+                    "brows_raised": u.attributes.brows_raised,
+                    "mouth_open": u.attributes.mouth_open,
+                });
+            }
+            FrameResult::NoFace(reason) => {
+                line["face"] = json!(false);
+                line["reason"] = json!(reason);
+            }
+        }
+        serde_json::to_writer(&mut log, &line)?;
+        log.write_all(b"\n")?;
+        if strip_at.contains(&i) {
+            strip.push((i, image.clone(), landmarks, answered_by, truth));
+        }
+    }
+    let wall = start.elapsed().as_secs_f64();
+    log.flush()?;
+    let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| {
+        let sent = aligner
+            .link()
+            .counters()
+            .frames_sent
+            .load(std::sync::atomic::Ordering::Relaxed);
+        (aligner.link().udp_bytes().0, sent)
+    });
+    let switches = aligner.policy().switches();
+    drop(aligner);
+    let _ = stop_server.send(());
+    match rt.block_on(server_task) {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => eprintln!("server stopped with an error: {e}"),
+        Err(e) => eprintln!("server task failed: {e}"),
+    }
+
+    let strip_path = args.out.join("strip.png");
+    std::fs::write(&strip_path, strip_png(&strip))
+        .with_context(|| format!("writing {}", strip_path.display()))?;
+    let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    let summary_path = args.out.join("summary.json");
+    std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
+        .with_context(|| format!("writing {}", summary_path.display()))?;
+    println!(
+        "wrote {}, {} and {}",
+        log_path.display(),
+        strip_path.display(),
+        summary_path.display()
+    );
+    let unanswered = records.iter().filter(|r| r.answered_by.is_none()).count();
+    if unanswered == records.len() {
+        bail!("no frame was aligned: the tracker never found the face");
+    }
+    Ok(())
+}
+
+/// Frames shown in the strip: before the cut, just after it, mid-cut, after the restore, late, last.
+fn strip_frames(n: usize, cut_at: usize, cut_end: usize) -> Vec<usize> {
+    let mut v = vec![
+        cut_at.saturating_sub(10),
+        cut_at + 2,
+        (cut_at + cut_end) / 2,
+        cut_end + 5,
+        (cut_end + n) / 2,
+        n - 1,
+    ];
+    v.retain(|&f| f < n);
+    v.dedup();
+    v
+}
+
+type StripFrame = (
+    usize,
+    GrayImage,
+    Option<[Point2; 68]>,
+    Option<AnsweredBy>,
+    [Point2; 68],
+);
+
+fn strip_png(frames: &[StripFrame]) -> Vec<u8> {
+    let (tw, th, band) = (FRAME_W / 2, FRAME_H / 2, 20);
+    let cols = 3;
+    let rows = frames.len().div_ceil(cols).max(1);
+    let mut cv = Canvas::new(cols * tw, rows * (th + band));
+    for (k, (i, img, landmarks, by, truth)) in frames.iter().enumerate() {
+        let (x0, y0) = ((k % cols * tw) as i64, (k / cols * (th + band)) as i64);
+        cv.blit_gray(x0, y0 + band as i64, img.as_bytes(), FRAME_W, FRAME_H, 2);
+        let (colour, label) = match by {
+            Some(AnsweredBy::RemoteDan) => ([44, 160, 44], "remote dan"),
+            Some(AnsweredBy::Krfws) => ([255, 127, 14], "local krfws"),
+            Some(AnsweredBy::LocalDan) => ([31, 119, 180], "local dan"),
+            None => ([214, 39, 40], "no face"),
+        };
+        cv.text(x0 + 4, y0 + 3, &format!("frame {i} {label}"), colour);
+        for p in truth {
+            cv.dot(
+                x0 as f64 + f64::from(p.x) / 2.0,
+                y0 as f64 + band as f64 + f64::from(p.y) / 2.0,
+                0,
+                [31, 119, 180],
+            );
+        }
+        for p in landmarks.iter().flatten() {
+            cv.dot(
+                x0 as f64 + f64::from(p.x) / 2.0,
+                y0 as f64 + band as f64 + f64::from(p.y) / 2.0,
+                1,
+                colour,
+            );
+        }
+    }
+    cv.to_png()
+}
+
+fn summarise(
+    args: &Args,
+    records: &[Record],
+    wall_s: f64,
+    udp_tx: u64,
+    remote_sent: u64,
+    switches: u32,
+) -> serde_json::Value {
+    println!();
+    println!(
+        "HoloFace demo: {} frames at {} fps, DAN on a loopback QUIC server (crops {}), KRFWS fallback; link cut for frames {}..{}",
+        records.len(),
+        args.fps,
+        args.crop_encoding,
+        args.cut_at,
+        args.cut_at + args.cut_frames
+    );
+    println!(
+        "{:<14} {:>6} {:>7} {:>6} {:>8} {:>7} {:>7} {:>7} {:>12}",
+        "phase", "frames", "remote", "local", "no face", "p50 ms", "p99 ms", "max ms", "NME49 vs ref"
+    );
+    let mut phases = Vec::new();
+    let groups: [(&str, Option<Phase>); 4] = [
+        ("before cut", Some(Phase::BeforeCut)),
+        ("link cut", Some(Phase::LinkCut)),
+        ("after restore", Some(Phase::AfterRestore)),
+        ("all", None),
+    ];
+    for (name, phase) in groups {
+        let sel: Vec<&Record> = records
+            .iter()
+            .filter(|r| phase.is_none_or(|p| r.phase == p))
+            .collect();
+        if sel.is_empty() {
+            continue;
+        }
+        let remote = sel
+            .iter()
+            .filter(|r| r.answered_by == Some(AnsweredBy::RemoteDan))
+            .count();
+        let local = sel
+            .iter()
+            .filter(|r| r.answered_by == Some(AnsweredBy::Krfws))
+            .count();
+        let none = sel.iter().filter(|r| r.answered_by.is_none()).count();
+        let mut lat: Vec<f64> = sel.iter().map(|r| r.latency_ms).collect();
+        let (p50, p99, max) = (
+            percentile(&mut lat, 0.5),
+            percentile(&mut lat, 0.99),
+            percentile(&mut lat, 1.0),
+        );
+        let errs: Vec<f64> = sel.iter().filter_map(|r| r.nme49).collect();
+        let nme = errs.iter().sum::<f64>() / errs.len().max(1) as f64;
+        println!(
+            "{name:<14} {:>6} {:>7} {:>6} {:>8} {p50:>7.1} {p99:>7.1} {max:>7.1} {:>11.2}%",
+            sel.len(),
+            remote,
+            local,
+            none,
+            100.0 * nme
+        );
+        phases.push(json!({
+            "phase": name, "frames": sel.len(), "remote": remote, "local": local, "no_face": none,
+            "latency_ms": {"p50": p50, "p99": p99, "max": max}, "nme49_vs_reference": nme,
+        }));
+    }
+    let sent: Vec<usize> = records.iter().map(|r| r.sent_bytes).filter(|&b| b > 0).collect();
+    let payload = sent.iter().sum::<usize>() as f64 / sent.len().max(1) as f64;
+    let udp_per_frame = udp_tx as f64 / remote_sent.max(1) as f64;
+    let first_local = records
+        .iter()
+        .position(|r| r.phase == Phase::LinkCut && r.answered_by == Some(AnsweredBy::Krfws));
+    let back = records
+        .iter()
+        .position(|r| r.phase == Phase::AfterRestore && r.answered_by == Some(AnsweredBy::RemoteDan));
+    let cut_end = args.cut_at + args.cut_frames;
+    println!(
+        "wire: {payload:.0} B per crop message; before the cut {udp_per_frame:.0} UDP B per frame sent incl. QUIC, TLS and handshake ({remote_sent} frames); \
+         {:.1} fps achieved; {switches} switches remote<->local",
+        records.len() as f64 / wall_s
+    );
+    match (first_local, back) {
+        (Some(f), Some(b)) => println!(
+            "fallback: local answers from frame {f} ({} after the cut); back to remote at frame {b} ({:.2} s after the restore)",
+            f - args.cut_at,
+            (b - cut_end) as f64 / args.fps
+        ),
+        _ => println!("fallback: first local frame {first_local:?}, back to remote at {back:?}"),
+    }
+    json!({
+        "frames": records.len(), "fps": args.fps, "achieved_fps": records.len() as f64 / wall_s,
+        "crop_encoding": args.crop_encoding.to_string(), "deadline_ms": args.deadline_ms,
+        "cut": {"from": args.cut_at, "to": cut_end},
+        "phases": phases,
+        "payload_bytes_per_crop": payload, "udp_tx_bytes_per_sent_frame": udp_per_frame,
+        "switches": switches, "first_local_frame": first_local, "back_to_remote_frame": back,
+    })
+}
