@@ -35,6 +35,74 @@ pub struct Args {
     /// Frame storage.
     #[arg(long, value_enum, default_value = "png")]
     pub encoding: FrameEncoding,
+    /// Record the crops the client would send instead of full frames, in this wire encoding (`raw`, `png`,
+    /// `jpeg:Q`): the tracker runs locally (detector, KRFWS) and each frame's 112x112 crop is stored with
+    /// its crop-to-image similarity. Frames without a face are skipped. The load tester replays these.
+    #[arg(long)]
+    pub crops: Option<crate::link::CropCodec>,
+    /// CANDIDE-3 model (`.wfm`), for the tracker of `--crops`.
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+    /// Runtime assets (for `--crops`).
+    #[command(flatten)]
+    pub runtime: crate::runtime::RuntimeArgs,
+}
+
+/// Cuts the client's crop of each frame by running the tracker locally.
+struct CropCutter {
+    codec: crate::link::CropCodec,
+    session: crate::session::TrackerSession,
+    local: crate::align::KrfwsAligner,
+    mean: [holoface_models::geometry::Point2; 68],
+    crop: holoface_models::crop::Crop112,
+}
+
+impl CropCutter {
+    fn new(codec: crate::link::CropCodec, args: &Args) -> anyhow::Result<Self> {
+        let mean = holoface_models::shape::dan_mean_shape();
+        Ok(Self {
+            codec,
+            session: crate::session::TrackerSession::new(
+                Box::new(args.runtime.detector()?),
+                crate::runtime::load_face_model(&args.candide)?,
+                mean,
+                crate::session::SessionOptions::default(),
+            ),
+            local: args.runtime.krfws_aligner()?,
+            mean,
+            crop: holoface_models::crop::Crop112::default(),
+        })
+    }
+
+    /// The crop payload of `f`, or `None` when no face is tracked.
+    fn cut(&mut self, f: &crate::source::SourceFrame) -> anyhow::Result<Option<FramePayload>> {
+        use crate::align::Aligner;
+        use crate::session::{Frame, Prepared};
+        let frame = Frame {
+            timestamp_us: f.timestamp_us,
+            image: f.image.view(),
+            intrinsics: f.intrinsics,
+            world_from_camera: f.world_from_camera,
+        };
+        let Prepared::Align { init, .. } = self.session.prepare(&frame)? else {
+            self.session.complete(&frame, None);
+            return Ok(None);
+        };
+        let sim = crate::align::crop_from_image(&init, &self.mean)?;
+        holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
+        let back = sim.inverse().context("degenerate crop similarity")?;
+        let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;
+        let a = self.local.align(&frame.image, &init)?;
+        self.session.complete(&frame, Some(a));
+        Ok(Some(FramePayload::Crop {
+            image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],
+            crop,
+        }))
+    }
 }
 
 /// Runs `holoface record`.
@@ -67,9 +135,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let file =
         std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut writer = RecordingWriter::new(std::io::BufWriter::new(file), &header)?;
+    let mut cutter = args.crops.map(|c| CropCutter::new(c, &args)).transpose()?;
     let mut frame = Some(first);
     let mut count = 0usize;
     while let Some(f) = frame {
+        if let Some(cutter) = cutter.as_mut() {
+            if let Some(payload) = cutter.cut(&f).with_context(|| format!("frame {}", f.index))? {
+                writer
+                    .write_record(&FrameRecord {
+                        timestamp_us: f.timestamp_us,
+                        camera_to_world: f.world_from_camera.to_row_major_4x4(),
+                        payload,
+                        ground_truth: None,
+                        face_present: Some(true),
+                    })
+                    .with_context(|| format!("writing frame {}", f.index))?;
+                count += 1;
+            }
+            frame = source.next_frame()?;
+            continue;
+        }
         let (w, h) = (f.image.width() as u32, f.image.height() as u32);
         let (encoding, data) = match args.encoding {
             FrameEncoding::Raw => (CropEncoding::Raw, f.image.as_bytes().to_vec()),

@@ -1,0 +1,216 @@
+//! The load tester against a real in-process server: measures capacity, then offers twice that and checks
+//! the server degrades the way it promises (bounded queues: stale frames dropped, answered latency
+//! bounded, throughput kept), and that SLO flags and bad input give the documented exit codes.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use holoface_client::link::CropCodec;
+use holoface_protocol::recording::{
+    CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
+};
+
+fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// A one-second stream of 30 JPEG crops cut from the demo sample (a real face photo).
+fn recording(dir: &Path) -> PathBuf {
+    let sample = std::env::var_os("HOLOFACE_SAMPLE")
+        .map_or_else(|| workspace().join(".cache/samples/astronaut.png"), PathBuf::from);
+    let photo = image::open(&sample)
+        .unwrap_or_else(|e| panic!("demo sample {} ({e}); run `make setup`", sample.display()))
+        .into_luma8();
+    let path = dir.join("crops.hfrec");
+    let header = RecordingHeader {
+        intrinsics: CameraIntrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 256.0,
+            cy: 256.0,
+            width: 512,
+            height: 512,
+        },
+        source: "load-tester test".into(),
+        created_unix_ms: 0,
+    };
+    let mut w = RecordingWriter::new(std::fs::File::create(&path).unwrap(), &header).unwrap();
+    for k in 0..30u32 {
+        // The face region, shifted a little per frame.
+        let crop = image::imageops::crop_imm(&photo, 150 + k, 60 + k / 2, 180, 180).to_image();
+        let crop = image::imageops::resize(&crop, 112, 112, image::imageops::FilterType::Triangle);
+        let wire = CropCodec::Jpeg { quality: 75 }
+            .encode(crop.as_raw(), 112, 112)
+            .unwrap();
+        w.write_record(&FrameRecord {
+            timestamp_us: u64::from(k) * 33_333,
+            camera_to_world: [
+                1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+            ],
+            payload: FramePayload::Crop {
+                image_from_crop: [1.6, 0.0, 150.0, 60.0],
+                crop: wire,
+            },
+            ground_truth: None,
+            face_present: Some(true),
+        })
+        .unwrap();
+    }
+    w.finish().unwrap();
+    path
+}
+
+fn load(dir: &Path, rec: &Path, tag: &str, extra: &[&str]) -> (Option<i32>, serde_json::Value) {
+    let out = dir.join(format!("{tag}.json"));
+    let status = Command::new(env!("CARGO_BIN_EXE_holoface-load"))
+        .current_dir(workspace())
+        .args([
+            "--spawn-server",
+            "--server-threads",
+            "1",
+            "--warmup-s",
+            "1",
+            "--interval-s",
+            "1",
+        ])
+        .arg("--recording")
+        .arg(rec)
+        .arg("--out")
+        .arg(&out)
+        .arg("--plot")
+        .arg(dir.join(format!("{tag}.png")))
+        .args(extra)
+        .status()
+        .unwrap();
+    let report =
+        std::fs::read_to_string(&out).map_or(serde_json::Value::Null, |t| serde_json::from_str(&t).unwrap());
+    (status.code(), report)
+}
+
+#[test]
+fn twice_the_capacity_drops_stale_frames_and_keeps_latency_and_throughput_bounded() {
+    let dir = std::env::temp_dir().join(format!("holoface-load-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rec = recording(&dir);
+    // Capacity: two headsets sending far more than one ONNX Runtime thread can align.
+    let (code, cap) = load(
+        &dir,
+        &rec,
+        "capacity",
+        &["--clients", "2", "--fps", "200", "--duration-s", "3"],
+    );
+    assert_eq!(code, Some(0));
+    let capacity = cap["totals"]["throughput_per_s"].as_f64().unwrap();
+    assert!(capacity > 5.0, "capacity {capacity}/s");
+
+    // Twice the capacity from four headsets.
+    let fps = format!("{:.1}", 2.0 * capacity / 4.0);
+    let (code, over) = load(
+        &dir,
+        &rec,
+        "overload",
+        &[
+            "--clients",
+            "4",
+            "--fps",
+            &fps,
+            "--duration-s",
+            "4",
+            "--deadline-ms",
+            "100",
+            "--max-p99-ms",
+            "400",
+        ],
+    );
+    let t = &over["totals"];
+    assert_eq!(code, Some(0), "{t}");
+    let dropped: u64 = t["dropped"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    let sent = t["sent"].as_u64().unwrap();
+    assert!(
+        dropped > sent / 5,
+        "about half the frames must be shed as stale: {t}"
+    );
+    assert!(
+        t["throughput_per_s"].as_f64().unwrap() > 0.6 * capacity,
+        "throughput collapsed: {t}"
+    );
+    assert!(
+        t["unanswered"].as_u64().unwrap() <= sent / 50,
+        "frames vanished without a reply: {t}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn slo_breach_exits_3_and_bad_input_exits_1_with_a_message() {
+    let dir = std::env::temp_dir().join(format!("holoface-load-slo-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rec = recording(&dir);
+    let (code, report) = load(
+        &dir,
+        &rec,
+        "slo",
+        &[
+            "--clients",
+            "1",
+            "--fps",
+            "10",
+            "--duration-s",
+            "2",
+            "--max-p99-ms",
+            "0.001",
+        ],
+    );
+    assert_eq!(code, Some(3));
+    assert!(
+        report["slo"]["broken"][0].as_str().unwrap().contains("p99"),
+        "{report}"
+    );
+
+    let garbage = dir.join("garbage.hfrec");
+    std::fs::write(&garbage, b"not a recording").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_holoface-load"))
+        .args(["--spawn-server", "--duration-s", "1", "--recording"])
+        .arg(&garbage)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("garbage.hfrec"), "{err}");
+
+    // Results that cannot be written are an error, not a silent success.
+    let out = Command::new(env!("CARGO_BIN_EXE_holoface-load"))
+        .current_dir(workspace())
+        .args([
+            "--spawn-server",
+            "--server-threads",
+            "1",
+            "--clients",
+            "1",
+            "--fps",
+            "5",
+            "--duration-s",
+            "1",
+        ])
+        .args([
+            "--warmup-s",
+            "0.5",
+            "--interval-s",
+            "1",
+            "--out",
+            "/proc/holoface.json",
+            "--recording",
+        ])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/proc/holoface.json"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
