@@ -108,6 +108,8 @@ pub struct Metrics {
     pub client_rtt_us: Histogram,
     /// Packets the server sent to clients that QUIC declared lost.
     pub client_lost_packets: AtomicU64,
+    /// Frames waiting in the batcher (the autoscaling signal).
+    pub queued_frames: AtomicI64,
     /// The engine is loaded and the endpoint accepts clients.
     pub ready: AtomicBool,
     /// Shutdown has started.
@@ -124,6 +126,7 @@ impl Metrics {
         bounds.push(max_batch as u64);
         Self {
             connected_clients: AtomicI64::new(0),
+            queued_frames: AtomicI64::new(0),
             connections_total: AtomicU64::new(0),
             auth_bad_version: AtomicU64::new(0),
             auth_unauthorized: AtomicU64::new(0),
@@ -195,6 +198,12 @@ impl Metrics {
             "holoface_connected_clients",
             "Clients currently connected.",
             self.connected_clients.load(Ordering::Relaxed),
+        );
+        gauge(
+            &mut out,
+            "holoface_queued_frames",
+            "Frames waiting in the batcher for inference (scale out when it stays above zero).",
+            self.queued_frames.load(Ordering::Relaxed),
         );
         gauge(
             &mut out,

@@ -170,6 +170,33 @@ pub async fn run(config: ServerConfig, shutdown: impl Future<Output = ()>) -> Re
     Server::bind(config.resolve()?).await?.run(shutdown).await
 }
 
+/// Tells systemd (`Type=notify` units) that the server is ready: `READY=1` on `$NOTIFY_SOCKET`, if set.
+/// Without systemd this does nothing; a failure is logged, never fatal.
+fn notify_systemd_ready() {
+    if let Some(path) = std::env::var_os("NOTIFY_SOCKET") {
+        notify_ready_at(&path);
+    }
+}
+
+/// Sends `READY=1` to the notify socket at `path` (`@name` = abstract namespace).
+fn notify_ready_at(path: &std::ffi::OsStr) {
+    let sent = std::os::unix::net::UnixDatagram::unbound().and_then(|sock| {
+        let bytes = std::os::unix::ffi::OsStrExt::as_bytes(path);
+        match bytes.strip_prefix(b"@") {
+            // Abstract socket namespace (Linux).
+            Some(name) => {
+                use std::os::linux::net::SocketAddrExt;
+                let addr = std::os::unix::net::SocketAddr::from_abstract_name(name)?;
+                sock.send_to_addr(b"READY=1", &addr)
+            }
+            None => sock.send_to(b"READY=1", path),
+        }
+    });
+    if let Err(e) = sent {
+        warn!(error = %e, "could not notify systemd of readiness");
+    }
+}
+
 /// Resolves on SIGINT (Ctrl-C) or SIGTERM: the production shutdown trigger.
 pub async fn shutdown_signal() {
     #[cfg(unix)]
@@ -336,6 +363,7 @@ impl Server {
             next_client: AtomicU64::new(1),
         });
         metrics.ready.store(true, Ordering::Relaxed);
+        notify_systemd_ready();
         info!(
             addr = %endpoint.local_addr().map_err(io_err("reading the local address"))?,
             %fingerprint,
@@ -1020,7 +1048,11 @@ async fn scheduler_loop(
             metrics.count_drop(d.reason);
             let _ = d.item.payload.reply.send(FrameOutcome::Dropped(d.reason));
         }
-        if !busy && let Some(batch) = batcher.poll_batch(now()) {
+        let batch = if busy { None } else { batcher.poll_batch(now()) };
+        metrics
+            .queued_frames
+            .store(batcher.len() as i64, Ordering::Relaxed);
+        if let Some(batch) = batch {
             for item in &batch.items {
                 metrics
                     .queue_wait_us
@@ -1301,5 +1333,25 @@ mod tests {
             data: Bytes::from_static(b"not a jpeg"),
         };
         assert!(crop_pixels(&garbage, 4).is_none());
+    }
+}
+
+#[cfg(test)]
+mod notify_tests {
+    use super::notify_ready_at;
+
+    #[test]
+    fn readiness_goes_to_the_notify_socket() {
+        let dir = std::env::temp_dir().join(format!("holoface-notify-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("notify.sock");
+        let sock = std::os::unix::net::UnixDatagram::bind(&path).unwrap();
+        notify_ready_at(path.as_os_str());
+        let mut buf = [0u8; 32];
+        sock.set_read_timeout(Some(std::time::Duration::from_secs(1)))
+            .unwrap();
+        let n = sock.recv(&mut buf).unwrap();
+        assert_eq!(&buf[..n], b"READY=1");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
