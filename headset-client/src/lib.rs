@@ -11,3 +11,4 @@ pub mod plot;
 pub mod runtime;
 pub mod session;
 pub mod source;
+pub mod tracker;

@@ -1,0 +1,93 @@
+// HoloFace P/Invoke binding for Unity (C#). Mirrors ffi/include/holoface.h; see ffi/unity/README.md.
+// Sample code: compiled and run by no test here (no Unity or .NET on the build machine).
+using System;
+using System.Runtime.InteropServices;
+
+namespace HoloFace
+{
+    public enum HfStatus { Ok = 0, NullPointer = 1, InvalidHandle = 2, InvalidArgument = 3, AssetError = 4, ProcessingError = 5, Panic = 6 }
+    public enum HfAnsweredBy { None = 0, RemoteDan = 1, Krfws = 2, LocalDan = 3 }
+
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfOptions
+    {
+        public uint mode;                 // 0 = images, 1 = video
+        public IntPtr ortDylib, detectorModel, krfwsModel, candide, server, serverFingerprint, token; // UTF-8, or IntPtr.Zero
+        public uint deadlineMs;
+        public float lookaheadMs;
+        public byte motionCompensation;
+    }
+
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfCamera { public double fx, fy, cx, cy; }
+
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfResult
+    {
+        public byte hasFace;
+        public HfAnsweredBy answeredBy;
+        public uint noFaceReason;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 136)] public float[] landmarksPx;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 3)] public double[] cameraTranslationM;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 4)] public double[] cameraRotationWxyz;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 3)] public double[] worldPositionM;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 4)] public double[] worldRotationWxyz;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 3)] public double[] predictedPositionM;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 3)] public double[] displayPositionM;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 4)] public double[] displayRotationWxyz;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 5)] public double[] weights;
+        public byte smile, browsRaised, mouthOpen;
+    }
+
+    public static class Native
+    {
+        const string Lib = "holoface"; // libholoface.so / holoface.dll in Assets/Plugins
+
+        [DllImport(Lib)] public static extern HfStatus hf_options_default(out HfOptions options);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_new(ref HfOptions options, out IntPtr tracker);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_process(IntPtr tracker, byte[] pixels, uint width, uint height,
+            uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, out HfResult result);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
+        [DllImport(Lib)] static extern IntPtr hf_last_error();
+
+        public static string LastError() => Marshal.PtrToStringUTF8(hf_last_error());
+    }
+
+    /// <summary>One tracker; call Process from one thread (Unity's main thread or a worker), Dispose when done.</summary>
+    public sealed class FaceTracker : IDisposable
+    {
+        IntPtr handle;
+
+        public FaceTracker(string server = null, string fingerprint = null, string token = null)
+        {
+            Native.hf_options_default(out var o);
+            var strings = new[] { server, fingerprint, token };
+            var ptrs = new IntPtr[3];
+            try
+            {
+                for (int i = 0; i < 3; i++) ptrs[i] = strings[i] == null ? IntPtr.Zero : Marshal.StringToCoTaskMemUTF8(strings[i]);
+                o.server = ptrs[0]; o.serverFingerprint = ptrs[1]; o.token = ptrs[2];
+                var s = Native.hf_tracker_new(ref o, out handle);
+                if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            }
+            finally
+            {
+                foreach (var p in ptrs) if (p != IntPtr.Zero) Marshal.FreeCoTaskMem(p);
+            }
+        }
+
+        /// <param name="worldFromCamera">Row-major 4x4 camera-to-world matrix (e.g. from the headset's locatable camera).</param>
+        public HfResult Process(byte[] gray, int width, int height, ulong timestampUs, HfCamera camera, float[] worldFromCamera)
+        {
+            var s = Native.hf_tracker_process(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
+                worldFromCamera, out var r);
+            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            return r;
+        }
+
+        public void Dispose()
+        {
+            if (handle != IntPtr.Zero) { Native.hf_tracker_free(handle); handle = IntPtr.Zero; }
+        }
+    }
+}

@@ -1,0 +1,387 @@
+//! The embedding API: one [`FaceTracker`], an options struct with defaults, three running modes and one
+//! [`FaceResult`] per frame.
+//!
+//! ```no_run
+//! use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
+//! use holoface_client::session::Frame;
+//! use holoface_models::candide::Intrinsics;
+//! use holoface_models::image::GrayView;
+//! use holoface_models::math3::Pose;
+//!
+//! # fn main() -> Result<(), holoface_client::tracker::TrackerError> {
+//! let mut tracker = FaceTracker::new(TrackerOptions { mode: RunningMode::Video, ..TrackerOptions::default() })?;
+//! let pixels = vec![0u8; 640 * 480];
+//! let frame = Frame {
+//!     timestamp_us: 0,
+//!     image: GrayView::new(&pixels, 640, 480, 640).expect("640x480"),
+//!     intrinsics: Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 },
+//!     world_from_camera: Pose::IDENTITY,
+//! };
+//! let result = tracker.process(&frame)?;
+//! if let Some(face) = result.face() {
+//!     println!("head at {:?} m in the world", face.world.position.to_array());
+//! }
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! **Coordinate frames.** Landmarks are in image pixels (origin top-left, x right, y down). `fit` is the head
+//! in the *camera* frame (OpenCV axes: x right, y down, z forward; metres). `world`, `predicted_position` and
+//! `display` are in the *world* frame of the `world_from_camera` poses the caller supplies.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use alignment_server::Fingerprint;
+use holoface_models::shape::dan_mean_shape;
+
+use crate::align::{AlignError, Aligner, AnsweredBy};
+use crate::detect::DetectError;
+use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
+use crate::session::{FaceUpdate, Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+
+/// How frames relate to each other.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RunningMode {
+    /// Independent still images: every frame is detected afresh, no temporal filtering.
+    Image,
+    /// Frames of one video in order (timestamps must increase): detect once, then track.
+    #[default]
+    Video,
+    /// A live camera: like `Video`, but frames are pushed to [`LiveTracker`] and processed on its thread;
+    /// a frame that arrives while one is being processed replaces the waiting one (newest wins).
+    LiveStream,
+}
+
+/// Where the runtime assets are; the defaults follow the same environment variables as the CLI.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct AssetPaths {
+    /// ONNX Runtime shared library (`ORT_DYLIB_PATH`).
+    pub ort_dylib: PathBuf,
+    /// BlazeFace model (`HOLOFACE_DETECTOR_MODEL`).
+    pub detector: PathBuf,
+    /// KRFWS model (`HOLOFACE_KRFWS_MODEL`).
+    pub krfws: PathBuf,
+    /// CANDIDE-3 `.wfm` (`HOLOFACE_CANDIDE`).
+    pub candide: PathBuf,
+}
+
+impl Default for AssetPaths {
+    fn default() -> Self {
+        let env = |k: &str, d: &str| {
+            std::env::var_os(k)
+                .filter(|v| !v.is_empty())
+                .map_or_else(|| d.into(), PathBuf::from)
+        };
+        Self {
+            ort_dylib: env("ORT_DYLIB_PATH", ".cache/onnxruntime/libonnxruntime.so.1.31.1"),
+            detector: env(
+                "HOLOFACE_DETECTOR_MODEL",
+                ".cache/blazeface/face_detection_front_128x128.onnx",
+            ),
+            krfws: env("HOLOFACE_KRFWS_MODEL", "models/assets/krfws.bin"),
+            candide: env("HOLOFACE_CANDIDE", "../shared/data/candide3/candide3.wfm"),
+        }
+    }
+}
+
+/// Which aligner answers.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum AlignerChoice {
+    /// KRFWS on this device only.
+    #[default]
+    Local,
+    /// DAN on an alignment server, KRFWS when the server misses the deadline or the link is down.
+    Remote {
+        /// Server UDP address.
+        server: SocketAddr,
+        /// Pinned SHA-256 of the server certificate.
+        fingerprint: Fingerprint,
+        /// Access token.
+        token: String,
+        /// Per-frame deadline.
+        deadline: Duration,
+        /// Crop encoding on the wire.
+        codec: CropCodec,
+    },
+}
+
+/// Everything a [`FaceTracker`] needs; `Default` is local tracking of a video.
+#[derive(Clone, Debug, Default)]
+pub struct TrackerOptions {
+    /// Running mode.
+    pub mode: RunningMode,
+    /// Asset paths.
+    pub assets: AssetPaths,
+    /// Aligner.
+    pub aligner: AlignerChoice,
+    /// Tracker settings (fit, Kalman, look-ahead, attributes, motion compensation).
+    pub session: SessionOptions,
+}
+
+/// Errors of the embedding API.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum TrackerError {
+    /// An asset could not be loaded (path and cause in the message).
+    #[error("{0:#}")]
+    Assets(anyhow::Error),
+    /// The link thread could not start.
+    #[error("starting the link: {0}")]
+    Link(#[from] std::io::Error),
+    /// Face detection failed.
+    #[error(transparent)]
+    Detect(#[from] DetectError),
+    /// Alignment failed.
+    #[error(transparent)]
+    Align(#[from] AlignError),
+    /// A frame's timestamp is not after the previous one (video and live modes).
+    #[error("frame timestamp {got} µs is not after the previous {previous} µs")]
+    Timestamp {
+        /// The previous timestamp.
+        previous: u64,
+        /// This frame's.
+        got: u64,
+    },
+}
+
+/// Time spent per step of one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Timings {
+    /// Detection or motion-compensated initialisation.
+    pub prepare: Duration,
+    /// The aligner (remote round trip or local).
+    pub align: Duration,
+    /// Verification, CANDIDE fit, world pose, filters, attributes.
+    pub complete: Duration,
+}
+
+/// The answer for one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceResult {
+    /// The frame's timestamp.
+    pub timestamp_us: u64,
+    /// A face, or "no face" with the reason.
+    pub outcome: FrameResult,
+    /// Which aligner answered (`None` when nothing was aligned).
+    pub answered_by: Option<AnsweredBy>,
+    /// Time per step.
+    pub timings: Timings,
+}
+
+impl FaceResult {
+    /// The tracked face, if any.
+    pub fn face(&self) -> Option<&FaceUpdate> {
+        match &self.outcome {
+            FrameResult::Face(u) => Some(u),
+            FrameResult::NoFace(_) => None,
+        }
+    }
+}
+
+/// Detects, aligns, fits and filters faces frame by frame (see the module docs).
+pub struct FaceTracker {
+    mode: RunningMode,
+    session: TrackerSession,
+    aligner: Box<dyn Aligner + Send>,
+    last_timestamp: Option<u64>,
+}
+
+impl std::fmt::Debug for FaceTracker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FaceTracker")
+            .field("mode", &self.mode)
+            .finish_non_exhaustive()
+    }
+}
+
+impl FaceTracker {
+    /// Loads the assets and, for [`AlignerChoice::Remote`], starts connecting in the background.
+    pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
+        let a = &opts.assets;
+        let detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
+        let model = crate::runtime::load_face_model(&a.candide).map_err(TrackerError::Assets)?;
+        let krfws = std::fs::read(&a.krfws)
+            .map_err(anyhow::Error::from)
+            .and_then(|b| Ok(holoface_models::krfws::Krfws::from_bytes(&b)?))
+            .map_err(|e| {
+                TrackerError::Assets(e.context(format!("loading KRFWS model {}", a.krfws.display())))
+            })?;
+        let local = crate::align::KrfwsAligner::new(krfws);
+        let aligner: Box<dyn Aligner + Send> = match &opts.aligner {
+            AlignerChoice::Local => Box::new(local),
+            AlignerChoice::Remote {
+                server,
+                fingerprint,
+                token,
+                deadline,
+                codec,
+            } => {
+                let mut cfg = ConnectConfig::new(*server, *fingerprint, token.clone());
+                cfg.encodings = vec![codec.encoding()];
+                let link = RemoteLink::start(cfg, Backoff::default())?;
+                let link_opts = LinkOptions {
+                    deadline: *deadline,
+                    codec: *codec,
+                    ..LinkOptions::default()
+                };
+                Box::new(LinkedAligner::new(link, local, link_opts))
+            }
+        };
+        let session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts.session);
+        Ok(Self {
+            mode: opts.mode,
+            session,
+            aligner,
+            last_timestamp: None,
+        })
+    }
+
+    /// Processes one frame. In `Image` mode every frame starts from a detection.
+    pub fn process(&mut self, frame: &Frame<'_>) -> Result<FaceResult, TrackerError> {
+        if self.mode == RunningMode::Image {
+            self.session.reset();
+        } else {
+            if let Some(previous) = self.last_timestamp.filter(|&p| frame.timestamp_us <= p) {
+                return Err(TrackerError::Timestamp {
+                    previous,
+                    got: frame.timestamp_us,
+                });
+            }
+            self.last_timestamp = Some(frame.timestamp_us);
+        }
+        let t0 = Instant::now();
+        let prepared = self.session.prepare(frame)?;
+        let t1 = Instant::now();
+        let alignment = match prepared {
+            Prepared::Align { init, .. } => Some(self.aligner.align(&frame.image, &init)?),
+            Prepared::NoFace => None,
+        };
+        let t2 = Instant::now();
+        let outcome = self.session.complete(frame, alignment);
+        Ok(FaceResult {
+            timestamp_us: frame.timestamp_us,
+            outcome,
+            answered_by: alignment.map(|a| a.answered_by),
+            timings: Timings {
+                prepare: t1 - t0,
+                align: t2 - t1,
+                complete: t2.elapsed(),
+            },
+        })
+    }
+}
+
+/// An owned frame for [`LiveTracker::push`].
+#[derive(Clone, Debug)]
+pub struct OwnedFrame {
+    /// Capture time, µs.
+    pub timestamp_us: u64,
+    /// Gray pixels.
+    pub image: holoface_models::image::GrayImage,
+    /// Camera intrinsics.
+    pub intrinsics: holoface_models::candide::Intrinsics,
+    /// Camera-to-world pose.
+    pub world_from_camera: holoface_models::math3::Pose,
+}
+
+struct LiveSlot {
+    frame: Option<OwnedFrame>,
+    closed: bool,
+    replaced: u64,
+}
+
+/// Live-stream mode: frames are processed on a worker thread and results delivered to a callback.
+pub struct LiveTracker {
+    slot: Arc<(Mutex<LiveSlot>, Condvar)>,
+    worker: Option<std::thread::JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for LiveTracker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LiveTracker").finish_non_exhaustive()
+    }
+}
+
+impl LiveTracker {
+    /// Starts the worker; `on_result` receives every processed frame's result (or error) on that thread.
+    pub fn start(
+        opts: TrackerOptions,
+        mut on_result: impl FnMut(Result<FaceResult, TrackerError>) + Send + 'static,
+    ) -> Result<Self, TrackerError> {
+        let mut tracker = FaceTracker::new(TrackerOptions {
+            mode: RunningMode::LiveStream,
+            ..opts
+        })?;
+        let slot = Arc::new((
+            Mutex::new(LiveSlot {
+                frame: None,
+                closed: false,
+                replaced: 0,
+            }),
+            Condvar::new(),
+        ));
+        let worker_slot = Arc::clone(&slot);
+        let worker = std::thread::Builder::new()
+            .name("holoface-live".into())
+            .spawn(move || {
+                let (lock, cv) = &*worker_slot;
+                loop {
+                    let frame = {
+                        let mut s = lock.lock().unwrap_or_else(PoisonError::into_inner);
+                        while s.frame.is_none() && !s.closed {
+                            s = cv.wait(s).unwrap_or_else(PoisonError::into_inner);
+                        }
+                        match s.frame.take() {
+                            Some(f) => f,
+                            None => return,
+                        }
+                    };
+                    let view = Frame {
+                        timestamp_us: frame.timestamp_us,
+                        image: frame.image.view(),
+                        intrinsics: frame.intrinsics,
+                        world_from_camera: frame.world_from_camera,
+                    };
+                    on_result(tracker.process(&view));
+                }
+            })?;
+        Ok(Self {
+            slot,
+            worker: Some(worker),
+        })
+    }
+
+    /// Hands a frame to the worker without waiting; a frame still waiting is replaced (newest wins).
+    pub fn push(&self, frame: OwnedFrame) {
+        let (lock, cv) = &*self.slot;
+        let mut s = lock.lock().unwrap_or_else(PoisonError::into_inner);
+        if s.frame.replace(frame).is_some() {
+            s.replaced += 1;
+        }
+        cv.notify_one();
+    }
+
+    /// Frames replaced before the worker got to them.
+    pub fn replaced(&self) -> u64 {
+        self.slot
+            .0
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .replaced
+    }
+}
+
+impl Drop for LiveTracker {
+    /// Processes the frame still waiting, then stops the worker.
+    fn drop(&mut self) {
+        let (lock, cv) = &*self.slot;
+        lock.lock().unwrap_or_else(PoisonError::into_inner).closed = true;
+        cv.notify_one();
+        if let Some(w) = self.worker.take() {
+            let _ = w.join();
+        }
+    }
+}
