@@ -407,15 +407,20 @@ fn run(args: Args) -> anyhow::Result<bool> {
     let (mut rss_start, mut rss_end) = (None, None);
     let interval = Duration::from_secs_f64(args.interval_s);
     let mut next = t0 + interval;
+    let warm_at = t0 + warmup;
+    let mut warmed = false;
     while next <= end + interval / 2 {
+        // The totals cover exactly [t0 + warm-up, end), whatever the report interval.
+        if !warmed && warm_at < next {
+            std::thread::sleep(warm_at.saturating_duration_since(Instant::now()));
+            stats.lock().unwrap_or_else(PoisonError::into_inner).measuring = true;
+            rss_start = rss();
+            warmed = true;
+        }
         std::thread::sleep(next.saturating_duration_since(Instant::now()));
         let now_rss = rss();
         rss_end = now_rss;
         let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
-        if !s.measuring && Instant::now() >= t0 + warmup {
-            s.measuring = true;
-            rss_start = now_rss;
-        }
         let secs = interval.as_secs_f64();
         let ms = |q: f64, h: &Histogram<u64>| h.value_at_quantile(q) as f64 / 1e3;
         let drops: u64 = s.window.dropped.values().sum();

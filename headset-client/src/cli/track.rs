@@ -21,6 +21,9 @@ pub enum TrackAligner {
     Krfws,
     /// DAN in-process through ONNX Runtime.
     Dan,
+    /// DAN on an alignment server over QUIC (`--server`, `--fingerprint`, `--token`), KRFWS on the same
+    /// frame when the server misses the deadline or the link is down.
+    Remote,
 }
 
 /// Arguments of `holoface track`.
@@ -51,9 +54,48 @@ pub struct Args {
     /// JSON-lines output, one line per frame.
     #[arg(long, default_value = "runs/track.jsonl")]
     pub out: PathBuf,
+    /// Alignment server for `--aligner remote`.
+    #[arg(long)]
+    pub server: Option<std::net::SocketAddr>,
+    /// SHA-256 fingerprint of the server's certificate (printed by the server at start).
+    #[arg(long)]
+    pub fingerprint: Option<String>,
+    /// Access token for the server.
+    #[arg(long, env = "HOLOFACE_TOKEN", default_value = "")]
+    pub token: String,
+    /// Per-frame deadline for the server's answer, milliseconds.
+    #[arg(long, default_value_t = 33)]
+    pub deadline_ms: u64,
+    /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
+    #[arg(long, default_value = "jpeg:75")]
+    pub crop_encoding: crate::link::CropCodec,
     /// Runtime assets.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
+}
+
+fn remote_aligner(args: &Args) -> anyhow::Result<Box<dyn Aligner>> {
+    use crate::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, RemoteLink};
+    let server = args.server.context("--aligner remote needs --server ADDR")?;
+    let fingerprint = args
+        .fingerprint
+        .as_deref()
+        .context("--aligner remote needs --fingerprint (the server prints it at start)")?
+        .parse()
+        .map_err(|e| anyhow::anyhow!("--fingerprint: {e}"))?;
+    let mut cfg = ConnectConfig::new(server, fingerprint, args.token.clone());
+    cfg.encodings = vec![args.crop_encoding.encoding()];
+    let link = RemoteLink::start(cfg, Backoff::default())?;
+    let opts = LinkOptions {
+        deadline: std::time::Duration::from_millis(args.deadline_ms),
+        codec: args.crop_encoding,
+        ..LinkOptions::default()
+    };
+    Ok(Box::new(LinkedAligner::new(
+        link,
+        args.runtime.krfws_aligner()?,
+        opts,
+    )))
 }
 
 /// Runs `holoface track`.
@@ -63,6 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut aligner: Box<dyn Aligner> = match args.aligner {
         TrackAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
         TrackAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+        TrackAligner::Remote => remote_aligner(&args)?,
     };
     let opts = SessionOptions {
         motion_compensation: !args.no_motion_compensation,
@@ -114,7 +157,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "frame": sf.index,
                     "timestamp_us": sf.timestamp_us,
                     "face": true,
-                    "aligner": aligner.name(),
+                    "aligner": u.answered_by,
                     "init": u.init,
                     "confidence": u.confidence,
                     "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
