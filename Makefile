@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all sample setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+.PHONY: all c-example sample setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
 
 all: test
 
@@ -32,6 +32,10 @@ $(VENV)/.train-installed: models/dan/requirements.txt $(VENV)/.eval-installed
 
 $(VENV)/.peer-installed: models/dan/requirements-peer.txt $(VENV)/.eval-installed
 	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements-peer.txt
+	touch $@
+
+$(VENV)/.deploy-installed: deploy/requirements-validate.txt $(VENV)/.eval-installed
+	$(PY) -m pip install --disable-pip-version-check -q -r deploy/requirements-validate.txt
 	touch $@
 
 venv: $(VENV)/.eval-installed
@@ -108,10 +112,28 @@ unit: setup golden
 	$(CARGO) nextest run --locked --workspace --profile ci
 	$(CARGO) test --locked --workspace --doc -q
 
+# Deployment files (deploy/): schemas, cross-file consistency, lint; offline with pinned validators.
+.PHONY: deploy-check
+deploy-check: $(VENV)/.deploy-installed
+	PY=$(PY) bash deploy/validate.sh
+
 fuzz-build:
 	cd fuzz && RUSTC_BOOTSTRAP=1 $(CARGO) check --locked -q --bins
 
-test: check deps-check unit fuzz-build
+# The C API: build the cdylib (test profile: reuses the test build), compile the C example against the
+# generated header with warnings as errors, and track the bundled sample with it.
+SAMPLE_PGM := .cache/samples/astronaut.pgm
+$(SAMPLE_PGM): $(SAMPLE)
+	$(PY) -c 'import sys; from PIL import Image; Image.open(sys.argv[1]).convert("L").save(sys.argv[2])' $< $@
+
+c-example: setup $(SAMPLE_PGM)
+	$(CARGO) build --locked --profile test -p holoface-ffi
+	mkdir -p target/c-example
+	$${CC:-cc} -std=c11 -O2 -Wall -Wextra -Werror -I ffi/include ffi/examples/track.c \
+	  -L target/debug -lholoface -Wl,-rpath,$(abspath target/debug) -o target/c-example/track
+	target/c-example/track $(SAMPLE_PGM)
+
+test: deploy-check check deps-check unit c-example fuzz-build
 
 ## ---- fuzzing, benchmarks, training --------------------------------------------------------------
 FUZZ_SECONDS ?= 60
