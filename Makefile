@@ -132,6 +132,7 @@ c-example: setup $(SAMPLE_PGM)
 	$${CC:-cc} -std=c11 -O2 -Wall -Wextra -Werror -I ffi/include ffi/examples/track.c \
 	  -L target/debug -lholoface -Wl,-rpath,$(abspath target/debug) -o target/c-example/track
 	target/c-example/track $(SAMPLE_PGM)
+	$(CARGO) run --locked --profile test -q -p holoface-client --example embed -- $(SAMPLE)
 
 test: deploy-check check deps-check unit c-example fuzz-build
 

@@ -1,0 +1,80 @@
+//! Embedding the client: find a face in a still image (image mode), then track it over 30 frames (video
+//! mode), printing the head pose.
+//!
+//! ```sh
+//! make setup   # ONNX Runtime, BlazeFace, the sample photo; the env vars below come from the Makefile
+//! cargo run --release -p holoface-client --example embed -- .cache/samples/astronaut.png
+//! ```
+//! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
+//! `HOLOFACE_CANDIDE` (defaults: the paths `make setup` uses).
+
+use holoface_client::session::Frame;
+use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
+use holoface_models::candide::Intrinsics;
+use holoface_models::image::GrayImage;
+use holoface_models::math3::Pose;
+
+fn main() -> anyhow::Result<()> {
+    let path = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| ".cache/samples/astronaut.png".into());
+    let photo = image::open(&path)?.into_luma8();
+    let (w, h) = (photo.width() as usize, photo.height() as usize);
+    let image = GrayImage::from_vec(photo.into_raw(), w, h)?;
+    let camera = Intrinsics {
+        fx: 500.0,
+        fy: 500.0,
+        cx: w as f64 / 2.0,
+        cy: h as f64 / 2.0,
+    };
+
+    // Image mode: every call detects afresh.
+    let mut still = FaceTracker::new(TrackerOptions {
+        mode: RunningMode::Image,
+        ..TrackerOptions::default()
+    })?;
+    let frame = Frame {
+        timestamp_us: 0,
+        image: image.view(),
+        intrinsics: camera,
+        world_from_camera: Pose::IDENTITY,
+    };
+    let r = still.process(&frame)?;
+    let face = r
+        .face()
+        .ok_or_else(|| anyhow::anyhow!("no face in {path}: {:?}", r.outcome))?;
+    println!(
+        "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
+        face.fit.translation.to_array(),
+        face.fit.weights[0],
+        r.answered_by
+    );
+
+    // Video mode: detect once, then track frame to frame (a still headset here: identity camera-to-world,
+    // so world and camera frames coincide; pass the headset's real pose per frame in an app).
+    let mut video = FaceTracker::new(TrackerOptions::default())?;
+    let mut faces = 0;
+    for i in 0..30u32 {
+        let frame = Frame {
+            timestamp_us: u64::from(i) * 33_333,
+            image: image.view(),
+            intrinsics: camera,
+            world_from_camera: Pose::IDENTITY,
+        };
+        let r = video.process(&frame)?;
+        if let Some(f) = r.face() {
+            faces += 1;
+            if i % 10 == 0 {
+                println!(
+                    "video frame {i:2}: world {:.3?} m, display {:.3?} m, {:.2} ms total",
+                    f.world.position.to_array(),
+                    f.display.0.to_array(),
+                    (r.timings.prepare + r.timings.align + r.timings.complete).as_secs_f64() * 1e3
+                );
+            }
+        }
+    }
+    println!("{faces} of 30 video frames with a face");
+    anyhow::ensure!(faces >= 25, "the face was lost");
+    Ok(())
+}
