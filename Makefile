@@ -153,7 +153,7 @@ compare: setup venv-peer
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 train-dan: venv-train
-	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 7000 --threads 1 \
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 6500 --threads 1 \
 	  --resume-from models/dan/checkpoints/dan-w0.5-last.pt
 
 export-dan: venv-train
