@@ -24,7 +24,7 @@ use alignment_server::{Fingerprint, Server, pinned_client_config};
 use bytes::{Bytes, BytesMut};
 use holoface_protocol::{
     ClientHello, CloseCode, Crop, CropEncoding, DecodeError, FrameReply, FrameRequest, Message,
-    PROTOCOL_VERSION, ReplyChannel, ServerWelcome, decode_framed, encode_framed,
+    PROTOCOL_VERSION, ReplyChannel, ServerWelcome, encode_framed,
 };
 use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream};
 use tokio::sync::oneshot;
@@ -66,6 +66,9 @@ pub enum ClientError {
     /// The server sent an unexpected message or ended a stream early.
     #[error("protocol: {0}")]
     Protocol(String),
+    /// Reading a framed message failed (the client library's reader).
+    #[error(transparent)]
+    Session(#[from] holoface_client::link::session::SessionError),
 }
 
 /// The workspace root (parent of this crate).
@@ -239,15 +242,8 @@ pub fn frame(frame_id: u64, seed: u8, deadline_ms: u16) -> FrameRequest {
     }
 }
 
-/// The application close code a connection ended with, if any.
-pub fn app_close_code(err: &ConnectionError) -> Option<CloseCode> {
-    match err {
-        ConnectionError::ApplicationClosed(close) => u32::try_from(close.error_code.into_inner())
-            .ok()
-            .and_then(CloseCode::from_u32),
-        _ => None,
-    }
-}
+/// The application close code a connection ended with, if any (the client's own helper).
+pub use holoface_client::link::session::app_close_code;
 
 /// Sends one frame on its own stream of `conn` (usable from a task that
 /// does not own the [`TestClient`]).
@@ -289,15 +285,7 @@ pub async fn write_framed(send: &mut SendStream, msg: &Message) -> Result<(), Cl
 }
 
 async fn read_framed(recv: &mut RecvStream, buf: &mut BytesMut) -> Result<Message, ClientError> {
-    loop {
-        if let Some(m) = decode_framed(buf)? {
-            return Ok(m);
-        }
-        match recv.read_chunk(64 * 1024, true).await? {
-            Some(chunk) => buf.extend_from_slice(&chunk.bytes),
-            None => return Err(ClientError::Protocol("stream ended".into())),
-        }
-    }
+    Ok(holoface_client::link::session::read_framed(recv, buf).await?)
 }
 
 impl TestClient {

@@ -283,7 +283,8 @@ impl ReplyReader {
     }
 }
 
-async fn read_framed(recv: &mut RecvStream, buf: &mut BytesMut) -> Result<Message, SessionError> {
+/// Reads the next length-framed message from `recv`, buffering partial input in `buf`.
+pub async fn read_framed(recv: &mut RecvStream, buf: &mut BytesMut) -> Result<Message, SessionError> {
     loop {
         if let Some(m) = decode_framed(buf)? {
             return Ok(m);
