@@ -20,6 +20,7 @@
 pub mod format;
 pub mod train;
 
+use crate::crop::BilinearSampler;
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH, PATCH_PIXELS, hog_patch, round_coord};
 use crate::image::GrayView;
@@ -325,68 +326,15 @@ pub(crate) fn dot144(a: &[f32], b: &[f32; HOG_DIM]) -> f32 {
     (acc[0] + acc[4]) + (acc[1] + acc[5]) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
-/// Samples the 16×16 window at the rounded normalised-frame point `p` from `image` through
-/// `image_from_norm` (f32 coefficients `a, b, tx, ty`), bilinear, zero fill, rounded half up: the same
-/// arithmetic as `crop::warp_bilinear`.
+/// Samples the 16×16 window at the rounded normalised-frame point `p` from the image through the
+/// sampler (`image_from_norm`): exactly the pixels `crop::warp_bilinear` would write into an unbounded
+/// normalised-frame canvas, without warping the whole window.
 #[inline]
-pub fn sample_window(image: &GrayView<'_>, inv: [f32; 4], p: Point2, out: &mut [u8; PATCH_PIXELS]) {
-    let [a, b, tx, ty] = inv;
+pub fn sample_window(sampler: &BilinearSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
     let (u0, v0) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
-    let (w, h) = (image.width() as i64, image.height() as i64);
-    let stride = image.stride();
-    let data = image.data();
-    let tap = |x: i64, y: i64| -> f32 {
-        if x >= 0 && x < w && y >= 0 && y < h {
-            data.get(y as usize * stride + x as usize)
-                .map_or(0.0, |&p| f32::from(p))
-        } else {
-            0.0
-        }
-    };
-    // Same expression order as `warp_bilinear` (`a·u − b·v + tx`, `b·u + a·v + ty`), so the pixels are
-    // bit-identical to a warped canvas; only the per-row products are hoisted.
-    let (wm1, hm1) = ((w - 1).max(0) as u64, (h - 1).max(0) as u64);
     for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
-        let vf = (v0 + dv as i64) as f32;
-        let (bv, av) = (b * vf, a * vf);
-        for (du, o) in row.iter_mut().enumerate() {
-            let uf = (u0 + du as i64) as f32;
-            let sx = a * uf - bv + tx;
-            let sy = b * uf + av + ty;
-            let (x0f, y0f) = (fast_floor(sx), fast_floor(sy));
-            let (fx, fy) = (sx - x0f, sy - y0f);
-            let (x0, y0) = (x0f as i64, y0f as i64);
-            let inside = (x0 as u64) < wm1 && (y0 as u64) < hm1;
-            let quad = if inside {
-                let i = y0 as usize * stride + x0 as usize;
-                data.get(i..i + stride + 2).map(|q| {
-                    (
-                        f32::from(q[0]),
-                        f32::from(q[1]),
-                        f32::from(q[stride]),
-                        f32::from(q[stride + 1]),
-                    )
-                })
-            } else {
-                None
-            };
-            let (p00, p01, p10, p11) =
-                quad.unwrap_or_else(|| (tap(x0, y0), tap(x0 + 1, y0), tap(x0, y0 + 1), tap(x0 + 1, y0 + 1)));
-            let top = p00 * (1.0 - fx) + p01 * fx;
-            let bot = p10 * (1.0 - fx) + p11 * fx;
-            let val = top * (1.0 - fy) + bot * fy;
-            // val ≥ 0: truncation is the floor, and `as u8` saturates at 255 (NaN → 0).
-            *o = (val + 0.5) as u8;
-        }
+        sampler.row(u0, v0 + dv as i64, row);
     }
-}
-
-/// `floor` without a libm call (baseline x86-64 has no rounding instruction): exact for |x| < 2³¹;
-/// beyond, the taps are outside any image either way.
-#[inline(always)]
-fn fast_floor(x: f32) -> f32 {
-    let t = (x as i32) as f32;
-    if t > x { t - 1.0 } else { t }
 }
 
 /// Normalised-frame features of one stage: fits `norm_from_image` (current shape → `dest`), writes the
@@ -407,8 +355,9 @@ pub fn stage_features(
         return None;
     }
     t.apply_all(shape, norm);
+    let sampler = BilinearSampler::new(image, inv32);
     for (p, row) in norm.iter().zip(hog.chunks_exact_mut(HOG_DIM)) {
-        sample_window(image, inv32, *p, patch);
+        sample_window(&sampler, *p, patch);
         if let Ok(r) = <&mut [f32; HOG_DIM]>::try_from(row) {
             hog_patch(patch, r);
         }
@@ -554,7 +503,7 @@ mod tests {
         let inv = t.inverse().unwrap().to_f32_array();
         let mut win = [0u8; PATCH_PIXELS];
         let p = Point2::new(20.3, 30.6);
-        sample_window(&v, inv, p, &mut win);
+        sample_window(&BilinearSampler::new(&v, inv), p, &mut win);
         for dv in 0..16 {
             for du in 0..16 {
                 let (x, y) = (20 - 8 + du, 31 - 8 + dv);
