@@ -193,6 +193,11 @@ impl TrackerSession {
         }
     }
 
+    /// The CANDIDE-3 model the session fits.
+    pub fn face_model(&self) -> &FaceModel {
+        &self.model
+    }
+
     /// Whether a face is currently tracked.
     pub fn is_tracking(&self) -> bool {
         self.track.is_some()

@@ -1,4 +1,4 @@
-//! Frame sources: image sequences and recorded streams. Each frame carries a timestamp, intrinsics and a
+//! Frame sources: image sequences, MP4/H.264 videos (`video.rs`) and recorded streams. Each frame carries a timestamp, intrinsics and a
 //! camera-to-world pose (identity when the source does not know it).
 //!
 //! This module and `data.rs` are the only places the client reads frames from files.
@@ -191,13 +191,46 @@ impl FrameSource for RecordedStream {
     }
 }
 
-/// Opens a folder as an image sequence or a file as a recorded stream.
-pub fn open_source(path: &Path, fps: f64) -> anyhow::Result<Box<dyn FrameSource>> {
-    if path.is_dir() {
-        Ok(Box::new(ImageSequence::open(path, fps, None)?))
+/// Whether `path` looks like an MP4/QuickTime file: by extension, else by the `ftyp` box at offset 4.
+fn is_mp4(path: &Path) -> bool {
+    let by_ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["mp4", "m4v", "mov"].contains(&e.to_ascii_lowercase().as_str()));
+    by_ext || {
+        use std::io::Read;
+        let mut head = [0u8; 8];
+        File::open(path)
+            .and_then(|mut f| f.read_exact(&mut head))
+            .is_ok_and(|()| &head[4..8] == b"ftyp")
+    }
+}
+
+/// Opens a frame source: a folder of images, an MP4/H.264 video, or a recorded stream (`.hfrec`); with a
+/// pose sidecar (see [`crate::poses`]) the frames take their camera-to-world poses from it.
+pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Result<Box<dyn FrameSource>> {
+    let inner: Box<dyn FrameSource> = if path.is_dir() {
+        Box::new(ImageSequence::open(path, fps, None)?)
     } else if path.is_file() {
-        Ok(Box::new(RecordedStream::open(path)?))
+        if is_mp4(path) {
+            Box::new(crate::video::Mp4Source::open(path, None)?)
+        } else {
+            Box::new(RecordedStream::open(path)?)
+        }
     } else {
         bail!("frame source {} does not exist", path.display())
+    };
+    Ok(match poses {
+        Some(p) => Box::new(crate::poses::WithPoses::new(
+            inner,
+            crate::poses::PoseSidecar::load(p)?,
+        )),
+        None => inner,
+    })
+}
+
+impl FrameSource for Box<dyn FrameSource> {
+    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+        (**self).next_frame()
     }
 }

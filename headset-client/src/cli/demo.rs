@@ -26,6 +26,7 @@ use crate::detect::{FaceDetector, shape_from_detection};
 use crate::link::relay::UdpRelay;
 use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
 use crate::plot::Canvas;
+use crate::render::PlanarScene;
 use crate::runtime::{RuntimeArgs, load_face_model};
 use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
 
@@ -82,92 +83,29 @@ const FRAME_W: usize = 640;
 const FRAME_H: usize = 480;
 const PHOTO_DISTANCE_M: f64 = 0.6;
 
-/// The photo as a plane in the world: photo pixel (u, v) ↦ `centre + scale·(u − u0, v − v0, 0)`.
-struct Scene {
-    photo: GrayImage,
-    reference: [Point2; 68],
-    u0: f64,
-    v0: f64,
-    scale: f64,
-}
-
-impl Scene {
-    /// Headset camera-to-world pose at time `t` (seconds): smooth head-like motion of a few degrees and
-    /// centimetres (OpenCV axes: x right, y down, z forward).
-    fn headset(t: f64) -> Pose {
-        let tau = std::f64::consts::TAU;
-        let yaw = 8f64.to_radians() * (tau * t / 4.0).sin();
-        let pitch = 5f64.to_radians() * (tau * t / 3.0 + 1.0).sin();
-        let roll = 4f64.to_radians() * (tau * t / 5.0).sin();
-        Pose {
-            rotation: Mat3::rot_y(yaw) * Mat3::rot_x(pitch) * Mat3::rot_z(roll),
-            translation: Vec3::new(
-                0.06 * (tau * t / 6.0).sin(),
-                0.04 * (tau * t / 4.5 + 0.5).sin(),
-                0.08 * (tau * t / 7.0).sin(),
-            ),
-        }
-    }
-
-    /// The homography image ← photo for a camera at `world_from_camera`.
-    fn homography(&self, world_from_camera: &Pose) -> [[f64; 3]; 3] {
-        let cw = world_from_camera.inverse();
-        let r = cw.rotation;
-        let m1 = r * Vec3::new(self.scale, 0.0, 0.0);
-        let m2 = r * Vec3::new(0.0, self.scale, 0.0);
-        let origin = Vec3::new(-self.scale * self.u0, -self.scale * self.v0, PHOTO_DISTANCE_M);
-        let m3 = r * origin + cw.translation;
-        let k = [[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]];
-        let m = [m1.to_array(), m2.to_array(), m3.to_array()]; // columns
-        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|l| k[i][l] * m[j][l]).sum()))
-    }
-
-    fn render(&self, h: &[[f64; 3]; 3], out: &mut GrayImage) -> anyhow::Result<()> {
-        let hi = invert3(h).context("degenerate camera pose")?;
-        let (pw, ph) = (self.photo.width(), self.photo.height());
-        let src = self.photo.as_bytes();
-        let dst = out.as_bytes_mut();
-        for y in 0..FRAME_H {
-            for x in 0..FRAME_W {
-                let (xf, yf) = (x as f64, y as f64);
-                let w = hi[2][0] * xf + hi[2][1] * yf + hi[2][2];
-                let u = (hi[0][0] * xf + hi[0][1] * yf + hi[0][2]) / w;
-                let v = (hi[1][0] * xf + hi[1][1] * yf + hi[1][2]) / w;
-                dst[y * FRAME_W + x] =
-                    if w > 0.0 && u >= 0.0 && v >= 0.0 && u < (pw - 1) as f64 && v < (ph - 1) as f64 {
-                        let (iu, iv) = (u as usize, v as usize);
-                        let (fu, fv) = (u - iu as f64, v - iv as f64);
-                        let p = |dx: usize, dy: usize| f64::from(src[(iv + dy) * pw + iu + dx]);
-                        let top = p(0, 0) * (1.0 - fu) + p(1, 0) * fu;
-                        let bottom = p(0, 1) * (1.0 - fu) + p(1, 1) * fu;
-                        (top * (1.0 - fv) + bottom * fv).round() as u8
-                    } else {
-                        40
-                    };
-            }
-        }
-        Ok(())
+/// The photo hangs 60 cm in front of the headset's starting position.
+fn photo_pose() -> Pose {
+    Pose {
+        rotation: Mat3::IDENTITY,
+        translation: Vec3::new(0.0, 0.0, PHOTO_DISTANCE_M),
     }
 }
 
-fn apply_h(h: &[[f64; 3]; 3], p: Point2) -> Point2 {
-    let (u, v) = (f64::from(p.x), f64::from(p.y));
-    let w = h[2][0] * u + h[2][1] * v + h[2][2];
-    Point2::new(
-        ((h[0][0] * u + h[0][1] * v + h[0][2]) / w) as f32,
-        ((h[1][0] * u + h[1][1] * v + h[1][2]) / w) as f32,
-    )
-}
-
-fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
-    let c = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
-    let cof = [
-        [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
-        [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
-        [c(0, 1, 1, 2), -c(0, 1, 0, 2), c(0, 1, 0, 1)],
-    ];
-    let det = m[0][0] * cof[0][0] + m[0][1] * cof[0][1] + m[0][2] * cof[0][2];
-    (det.abs() > 1e-12).then(|| std::array::from_fn(|i| std::array::from_fn(|j| cof[j][i] / det)))
+/// Headset camera-to-world pose at time `t` (seconds): smooth head-like motion of a few degrees and
+/// centimetres (OpenCV axes: x right, y down, z forward).
+fn headset(t: f64) -> Pose {
+    let tau = std::f64::consts::TAU;
+    let yaw = 8f64.to_radians() * (tau * t / 4.0).sin();
+    let pitch = 5f64.to_radians() * (tau * t / 3.0 + 1.0).sin();
+    let roll = 4f64.to_radians() * (tau * t / 5.0).sin();
+    Pose {
+        rotation: Mat3::rot_y(yaw) * Mat3::rot_x(pitch) * Mat3::rot_z(roll),
+        translation: Vec3::new(
+            0.06 * (tau * t / 6.0).sin(),
+            0.04 * (tau * t / 4.5 + 0.5).sin(),
+            0.08 * (tau * t / 7.0).sin(),
+        ),
+    }
 }
 
 /// Reference landmarks on the still: detection, then DAN three times, each from the previous answer.
@@ -192,33 +130,14 @@ fn reference_landmarks(args: &Args, photo: &GrayImage) -> anyhow::Result<[Point2
     Ok(shape)
 }
 
-fn load_scene(args: &Args) -> anyhow::Result<Scene> {
+fn load_scene(args: &Args) -> anyhow::Result<PlanarScene> {
     let photo = image::open(&args.sample)
         .with_context(|| format!("reading the sample {} (run `make setup`)", args.sample.display()))?
         .into_luma8();
     let (w, h) = (photo.width() as usize, photo.height() as usize);
     let photo = GrayImage::from_vec(photo.into_raw(), w, h)?;
     let reference = reference_landmarks(args, &photo)?;
-    let centre = |r: std::ops::Range<usize>| {
-        let n = r.len() as f64;
-        r.fold((0.0, 0.0), |(x, y), i| {
-            (
-                x + f64::from(reference[i].x) / n,
-                y + f64::from(reference[i].y) / n,
-            )
-        })
-    };
-    let (l, r) = (centre(36..42), centre(42..48));
-    let ipd_px = ((l.0 - r.0).powi(2) + (l.1 - r.1).powi(2)).sqrt();
-    let (u0, v0) = centre(0..68);
-    Ok(Scene {
-        photo,
-        reference,
-        u0,
-        v0,
-        // 63 mm between the eye centres: a life-size face.
-        scale: 0.063 / ipd_px,
-    })
+    PlanarScene::life_size(photo, reference)
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -316,10 +235,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let start = Instant::now();
     for i in 0..args.frames {
         let t = i as f64 / args.fps;
-        let pose = Scene::headset(t);
-        let h = scene.homography(&pose);
-        scene.render(&h, &mut image)?;
-        let truth: [Point2; 68] = std::array::from_fn(|k| apply_h(&h, scene.reference[k]));
+        let pose = headset(t);
+        let h = scene.homography(&K, &pose, &photo_pose());
+        scene.render(&h, &mut image, 40)?;
+        let truth = scene.landmarks_in(&h);
         if i == args.cut_at {
             // Wire cost while the link is healthy (during the cut, lost packets inflate it).
             let sent = aligner
@@ -476,12 +395,7 @@ fn strip_png(frames: &[StripFrame]) -> Vec<u8> {
     for (k, (i, img, landmarks, by, truth)) in frames.iter().enumerate() {
         let (x0, y0) = ((k % cols * tw) as i64, (k / cols * (th + band)) as i64);
         cv.blit_gray(x0, y0 + band as i64, img.as_bytes(), FRAME_W, FRAME_H, 2);
-        let (colour, label) = match by {
-            Some(AnsweredBy::RemoteDan) => ([44, 160, 44], "remote dan"),
-            Some(AnsweredBy::Krfws) => ([255, 127, 14], "local krfws"),
-            Some(AnsweredBy::LocalDan) => ([31, 119, 180], "local dan"),
-            None => ([214, 39, 40], "no face"),
-        };
+        let (colour, label) = crate::annotate::aligner_style(*by);
         cv.text(x0 + 4, y0 + 3, &format!("frame {i} {label}"), colour);
         for p in truth {
             cv.dot(

@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod demo;
 pub mod eval;
+pub mod losses;
 pub mod record;
 pub mod simulate;
 pub mod track;
@@ -32,8 +33,11 @@ pub enum Command {
     Record(record::Args),
     /// Synthetic headset sequences from CANDIDE-3: fit recovery, prediction and motion-compensation numbers.
     Simulate(simulate::Args),
-    /// Track faces over an image folder or a recorded stream; one JSON line per frame.
+    /// Track faces over an image folder, an MP4 video or a recorded stream; one JSON line per frame.
     Track(track::Args),
+    /// Tracking losses with and without headset-motion compensation, on rendered sequences of the
+    /// validation faces with a real aligner.
+    TrackingLosses(losses::Args),
     /// Train the KRFWS local aligner and evaluate it on the validation split.
     TrainKrfws(train_krfws::Args),
 }
@@ -46,6 +50,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::TrackingLosses(args) => losses::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
     }
 }

@@ -26,6 +26,10 @@ pub struct Args {
     /// A folder of PNG/JPEG frames or an existing recording.
     #[arg(long)]
     pub source: PathBuf,
+    /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per
+    /// frame for a video or image folder.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
     /// Frame rate of an image folder.
     #[arg(long, default_value_t = 30.0)]
     pub fps: f64,
@@ -107,7 +111,7 @@ impl CropCutter {
 
 /// Runs `holoface record`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut source = open_source(&args.source, args.fps)?;
+    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
     let Some(first) = source.next_frame()? else {
         bail!("{} holds no frames", args.source.display())
     };

@@ -29,9 +29,13 @@ pub enum TrackAligner {
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// A folder of PNG/JPEG frames (name order) or a recorded stream (`.hfrec`).
+    /// A folder of PNG/JPEG frames (name order), an MP4/H.264 video, or a recorded stream (`.hfrec`).
     #[arg(long)]
     pub source: PathBuf,
+    /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per
+    /// frame for a video or image folder.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
     /// Frame rate of an image folder.
     #[arg(long, default_value_t = 30.0)]
     pub fps: f64,
@@ -51,6 +55,10 @@ pub struct Args {
     /// Prediction horizon in milliseconds.
     #[arg(long, default_value_t = 120.0)]
     pub lookahead_ms: f64,
+    /// Also write each frame as an annotated PNG (landmarks, fitted CANDIDE-3 mesh, pose axes, aligner)
+    /// into this folder (`frame_000000.png`, ...).
+    #[arg(long)]
+    pub annotate: Option<PathBuf>,
     /// JSON-lines output, one line per frame.
     #[arg(long, default_value = "runs/track.jsonl")]
     pub out: PathBuf,
@@ -113,13 +121,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..SessionOptions::default()
     };
     let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);
-    let mut source = open_source(&args.source, args.fps)?;
+    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let file =
         std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut out = std::io::BufWriter::new(file);
+    if let Some(dir) = &args.annotate {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     let (mut frames, mut faces) = (0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = Frame {
@@ -145,6 +156,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let t_complete = t2.elapsed();
         frames += 1;
+        if let Some(dir) = &args.annotate {
+            let path = dir.join(format!("frame_{:06}.png", sf.index));
+            let png =
+                crate::annotate::annotate(&sf.image, sf.index, &result, session.face_model(), &sf.intrinsics)
+                    .to_png();
+            std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
+        }
         let timings = json!({
             "prepare_ms": t_prepare.as_secs_f64() * 1e3,
             "align_ms": t_align.as_secs_f64() * 1e3,

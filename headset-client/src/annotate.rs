@@ -1,0 +1,109 @@
+//! Annotated frames: the tracker's answer drawn over the camera image (landmarks, the fitted CANDIDE-3
+//! mesh, the head's pose axes, who answered). `holoface track --annotate DIR` writes one PNG per frame.
+
+use holoface_models::candide::{FaceModel, Intrinsics};
+use holoface_models::image::GrayImage;
+use holoface_models::math3::Vec3;
+
+use crate::align::AnsweredBy;
+use crate::plot::Canvas;
+use crate::session::FrameResult;
+
+/// Length of the drawn pose axes, metres.
+const AXIS_M: f64 = 0.05;
+
+/// Colour and label of the aligner that answered (`None`: no face).
+pub fn aligner_style(by: Option<AnsweredBy>) -> ([u8; 3], &'static str) {
+    match by {
+        Some(AnsweredBy::RemoteDan) => ([44, 160, 44], "remote dan"),
+        Some(AnsweredBy::Krfws) => ([255, 127, 14], "local krfws"),
+        Some(AnsweredBy::LocalDan) => ([31, 119, 180], "local dan"),
+        None => ([214, 39, 40], "no face"),
+    }
+}
+
+/// Draws frame `index` and its result.
+pub fn annotate(
+    image: &GrayImage,
+    index: usize,
+    result: &FrameResult,
+    model: &FaceModel,
+    k: &Intrinsics,
+) -> Canvas {
+    let (w, h) = (image.width(), image.height());
+    let mut cv = Canvas::new(w, h);
+    cv.blit_gray(0, 0, image.as_bytes(), w, h, 1);
+    match result {
+        FrameResult::Face(u) => {
+            let (colour, label) = aligner_style(Some(u.answered_by));
+            // Mesh: every triangle edge whose ends are in front of the camera.
+            let verts: Vec<_> = model
+                .mesh_in_camera(&u.fit)
+                .into_iter()
+                .map(|p| k.project(p))
+                .collect();
+            for tri in &model.faces {
+                for (a, b) in [(tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])] {
+                    if let (Some(Some(p)), Some(Some(q))) = (verts.get(a), verts.get(b)) {
+                        cv.line(
+                            (f64::from(p.x), f64::from(p.y)),
+                            (f64::from(q.x), f64::from(q.y)),
+                            [200, 190, 90],
+                            1,
+                        );
+                    }
+                }
+            }
+            let first = match u.landmark_set {
+                crate::align::LandmarkSet::Ibug68 => 0,
+                crate::align::LandmarkSet::Inner51 => 17,
+            };
+            for p in &u.landmarks[first..] {
+                cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);
+            }
+            // Pose axes from the head origin: x red, y green, z blue.
+            let r = u.fit.rotation.to_mat3();
+            let o = u.fit.translation;
+            if let Some(po) = k.project(o) {
+                let axes = [
+                    (Vec3::new(AXIS_M, 0.0, 0.0), [230, 30, 30]),
+                    (Vec3::new(0.0, AXIS_M, 0.0), [30, 200, 30]),
+                    (Vec3::new(0.0, 0.0, AXIS_M), [40, 80, 255]),
+                ];
+                for (axis, c) in axes {
+                    if let Some(pa) = k.project(o + r * axis) {
+                        cv.line(
+                            (f64::from(po.x), f64::from(po.y)),
+                            (f64::from(pa.x), f64::from(pa.y)),
+                            c,
+                            3,
+                        );
+                    }
+                }
+            }
+            let t = u.world.position;
+            cv.text(
+                6,
+                6,
+                &format!("frame {index} {label} z {:.2} m", u.fit.translation.z),
+                colour,
+            );
+            cv.text(
+                6,
+                22,
+                &format!("world {:+.2} {:+.2} {:+.2}", t.x, t.y, t.z),
+                colour,
+            );
+        }
+        FrameResult::NoFace(reason) => {
+            let (colour, _) = aligner_style(None);
+            let why = serde_json::to_value(reason)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_owned))
+                .unwrap_or_default()
+                .replace('_', " ");
+            cv.text(6, 6, &format!("frame {index} no face {why}"), colour);
+        }
+    }
+    cv
+}

@@ -1,0 +1,434 @@
+//! `holoface tracking-losses`: tracking losses with and without headset-motion compensation, measured
+//! with a real aligner on rendered headset sequences.
+//!
+//! Each validation face (never trained on) is cut out of its photo and hung as a flat, life-size picture
+//! (`render.rs`) that moves like a head (±15° yaw, ±8° pitch and roll, ±5 cm), while the wearer's headset
+//! turns quickly (default ±15° yaw every 1.5 s, ≈ 60°/s at its fastest, plus pitch and sway). Every frame
+//! is the exact homography of the photo, so the annotated landmarks' true positions are known.
+//!
+//! Two tracker sessions see the same frames, with the same detector, aligner and thresholds; the only
+//! difference is whether the previous landmarks are moved with the headset's pose before aligning.
+//! Per session:
+//! * **loss**: a frame initialised from tracking whose result is not a good face: the aligner's own
+//!   signal rejects it (the session re-detects on the next frame), or it is accepted but NME49 against
+//!   the truth exceeds 0.08 (silent drift). Counted once per episode;
+//! * good / drifting / no-face frames and the detector runs they cost.
+//!
+//! `--write-sequence DIR` also exports the first face's sequence as `sequence.mp4` (H.264), `poses.jsonl`
+//! (the pose sidecar `holoface track --poses` reads) and `truth.jsonl` (true landmarks per frame).
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::candide::Intrinsics;
+use holoface_models::geometry::{Point2, Rect};
+use holoface_models::image::GrayImage;
+use holoface_models::math3::{Mat3, Pose, Vec3};
+use holoface_models::metrics::nme49;
+use holoface_models::shape::dan_mean_shape;
+use serde_json::json;
+
+use crate::align::Aligner;
+use crate::data::{Split, default_data_root, load_folder};
+use crate::render::PlanarScene;
+use crate::runtime::{RuntimeArgs, load_face_model};
+use crate::session::{Frame, FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
+
+/// Aligner for the measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LossAligner {
+    /// KRFWS (the headset's local aligner).
+    Krfws,
+    /// DAN in-process through ONNX Runtime.
+    Dan,
+}
+
+/// Arguments of `holoface tracking-losses`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// Annotated faces (`NAME.jpg` + `NAME.pts`); the validation split is used.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Number of validation faces (sequences).
+    #[arg(long, default_value_t = 20)]
+    pub faces: usize,
+    /// Length of each sequence, seconds.
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Frame rate.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Headset yaw amplitude, degrees (the wearer turning their head).
+    #[arg(long, default_value_t = 15.0)]
+    pub headset_yaw_deg: f64,
+    /// Period of the headset's yaw, seconds.
+    #[arg(long, default_value_t = 1.5)]
+    pub headset_period_s: f64,
+    /// Aligner.
+    #[arg(long, value_enum, default_value = "krfws")]
+    pub aligner: LossAligner,
+    /// CANDIDE-3 model (`.wfm`).
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+    /// JSON report.
+    #[arg(long, default_value = "runs/tracking-losses.json")]
+    pub out: PathBuf,
+    /// Also export the first face's sequence (MP4 + pose sidecar + true landmarks) into this folder.
+    #[arg(long)]
+    pub write_sequence: Option<PathBuf>,
+    /// Runtime assets.
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+const FRAME_W: usize = 640;
+const FRAME_H: usize = 480;
+const K: Intrinsics = Intrinsics {
+    fx: 500.0,
+    fy: 500.0,
+    cx: 319.5,
+    cy: 239.5,
+};
+const FACE_DISTANCE_M: f64 = 0.6;
+const GOOD_NME: f64 = 0.08;
+
+/// The scenario's motion; `phase` decorrelates sequences.
+#[derive(Clone, Copy, Debug)]
+struct Motion {
+    yaw: f64,
+    period: f64,
+    phase: f64,
+}
+
+impl Motion {
+    fn headset(&self, t: f64) -> Pose {
+        let w = std::f64::consts::TAU / self.period;
+        let s = t + self.phase;
+        Pose {
+            rotation: Mat3::rot_y(self.yaw.to_radians() * (w * s).sin())
+                * Mat3::rot_x((0.4 * self.yaw).to_radians() * (0.7 * w * s + 1.0).sin()),
+            translation: Vec3::new(
+                0.03 * (0.5 * w * s).sin(),
+                0.02 * (0.6 * w * s + 0.3).sin(),
+                0.03 * (0.4 * w * s).sin(),
+            ),
+        }
+    }
+
+    /// The face's own motion, slower than the headset's: where the picture hangs at `t`.
+    fn head(&self, t: f64) -> Pose {
+        let tau = std::f64::consts::TAU;
+        let s = t + 2.0 * self.phase;
+        Pose {
+            rotation: Mat3::rot_y(15f64.to_radians() * (tau * s / 6.0).sin())
+                * Mat3::rot_x(8f64.to_radians() * (tau * s / 4.5 + 0.5).sin())
+                * Mat3::rot_z(8f64.to_radians() * (tau * s / 5.0).sin()),
+            translation: Vec3::new(
+                0.05 * (tau * s / 7.0).sin(),
+                0.03 * (tau * s / 5.5).sin(),
+                FACE_DISTANCE_M + 0.05 * (tau * s / 8.0).sin(),
+            ),
+        }
+    }
+}
+
+/// The face's photo region: the landmarks' box grown by its size on every side (other faces in group
+/// photos are mostly cut away); landmarks are moved into the cut.
+fn cut_face(image: &GrayImage, lm: &[Point2; 68]) -> anyhow::Result<(GrayImage, [Point2; 68])> {
+    let r = Rect::bounding(lm).context("empty landmarks")?;
+    let m = r.width().max(r.height());
+    let x0 = (r.x0 - m).floor().max(0.0) as usize;
+    let y0 = (r.y0 - m).floor().max(0.0) as usize;
+    let x1 = ((r.x1 + m).ceil() as usize).min(image.width());
+    let y1 = ((r.y1 + m).ceil() as usize).min(image.height());
+    if x1 <= x0 + 1 || y1 <= y0 + 1 {
+        bail!("face box outside the image");
+    }
+    let (w, h) = (x1 - x0, y1 - y0);
+    let src = image.as_bytes();
+    let mut data = Vec::with_capacity(w * h);
+    for y in y0..y1 {
+        data.extend_from_slice(&src[y * image.width() + x0..y * image.width() + x1]);
+    }
+    let moved = std::array::from_fn(|i| Point2::new(lm[i].x - x0 as f32, lm[i].y - y0 as f32));
+    Ok((GrayImage::from_vec(data, w, h)?, moved))
+}
+
+/// Per-session counters.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+struct Tally {
+    frames: usize,
+    good: usize,
+    drifting: usize,
+    no_face: usize,
+    detections: usize,
+    losses: usize,
+    nme49_sum: f64,
+    nme49_n: usize,
+    #[serde(skip)]
+    was_good: bool,
+}
+
+impl Tally {
+    fn record(&mut self, result: &FrameResult, init: Option<InitSource>, truth: &[Point2; 68]) {
+        self.frames += 1;
+        if init == Some(InitSource::Detection) {
+            self.detections += 1;
+        }
+        let good = match result {
+            FrameResult::Face(u) => {
+                let e = nme49(&u.landmarks, truth).unwrap_or(f64::INFINITY);
+                if e.is_finite() {
+                    self.nme49_sum += e;
+                    self.nme49_n += 1;
+                }
+                if e <= GOOD_NME {
+                    self.good += 1;
+                    true
+                } else {
+                    self.drifting += 1;
+                    false
+                }
+            }
+            FrameResult::NoFace(_) => {
+                self.no_face += 1;
+                false
+            }
+        };
+        if init == Some(InitSource::Tracking) && self.was_good && !good {
+            self.losses += 1;
+        }
+        self.was_good = good;
+    }
+
+    fn summary(&self, fps: f64) -> serde_json::Value {
+        let n = self.frames.max(1) as f64;
+        json!({
+            "frames": self.frames,
+            "losses": self.losses,
+            "losses_per_minute": self.losses as f64 / (self.frames as f64 / fps / 60.0).max(1e-9),
+            "good_frames_pct": 100.0 * self.good as f64 / n,
+            "drifting_frames_pct": 100.0 * self.drifting as f64 / n,
+            "no_face_frames_pct": 100.0 * self.no_face as f64 / n,
+            "detector_runs": self.detections,
+            "mean_nme49_pct": 100.0 * self.nme49_sum / self.nme49_n.max(1) as f64,
+        })
+    }
+}
+
+struct Runner {
+    session: TrackerSession,
+    aligner: Box<dyn Aligner>,
+    tally: Tally,
+}
+
+impl Runner {
+    fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
+        let prepared = self.session.prepare(frame)?;
+        let (alignment, init) = match prepared {
+            Prepared::Align { init, source } => {
+                (Some(self.aligner.align(&frame.image, &init)?), Some(source))
+            }
+            Prepared::NoFace => (None, None),
+        };
+        let result = self.session.complete(frame, alignment);
+        self.tally.record(&result, init, truth);
+        Ok(())
+    }
+}
+
+/// Writes a sequence's MP4, pose sidecar and truth file.
+struct SequenceExport {
+    video: crate::video::Mp4Writer,
+    poses: std::io::BufWriter<std::fs::File>,
+    truth: std::io::BufWriter<std::fs::File>,
+}
+
+impl SequenceExport {
+    fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let file = |name: &str| -> anyhow::Result<_> {
+            let p = dir.join(name);
+            Ok(std::io::BufWriter::new(
+                std::fs::File::create(&p).with_context(|| format!("creating {}", p.display()))?,
+            ))
+        };
+        Ok(Self {
+            video: crate::video::Mp4Writer::create(
+                &dir.join("sequence.mp4"),
+                FRAME_W,
+                FRAME_H,
+                fps.round() as u32,
+            )?,
+            poses: file("poses.jsonl")?,
+            truth: file("truth.jsonl")?,
+        })
+    }
+
+    fn push(
+        &mut self,
+        i: usize,
+        t_us: u64,
+        image: &GrayImage,
+        cam: &Pose,
+        truth: &[Point2; 68],
+    ) -> anyhow::Result<()> {
+        self.video.push(image)?;
+        crate::poses::write_line(&mut self.poses, i, cam, Some(&K), Some(t_us))?;
+        let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
+        serde_json::to_writer(&mut self.truth, &json!({"frame": i, "landmarks_px": lm}))?;
+        self.truth.write_all(b"\n")?;
+        Ok(())
+    }
+
+    fn finish(mut self) -> anyhow::Result<u64> {
+        self.poses.flush()?;
+        self.truth.flush()?;
+        self.video.finish()
+    }
+}
+
+/// Runs `holoface tracking-losses`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    if args.faces == 0 || !positive(args.seconds) || !positive(args.fps) || !positive(args.headset_period_s) {
+        bail!("--faces, --seconds, --fps and --headset-period-s must be positive");
+    }
+    let root = args
+        .data
+        .clone()
+        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let samples = load_folder(&root, Split::Validation, true)?;
+    let model = load_face_model(&args.candide)?;
+    let make_aligner = || -> anyhow::Result<Box<dyn Aligner>> {
+        Ok(match args.aligner {
+            LossAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
+            LossAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+        })
+    };
+    let mut runners = Vec::new();
+    for compensate in [true, false] {
+        let opts = SessionOptions {
+            motion_compensation: compensate,
+            ..SessionOptions::default()
+        };
+        runners.push(Runner {
+            session: TrackerSession::new(
+                Box::new(args.runtime.detector()?),
+                model.clone(),
+                dan_mean_shape(),
+                opts,
+            ),
+            aligner: make_aligner()?,
+            tally: Tally::default(),
+        });
+    }
+    let frames = (args.seconds * args.fps).round() as usize;
+    let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
+    let mut export = match &args.write_sequence {
+        Some(dir) => Some(SequenceExport::create(dir, args.fps)?),
+        None => None,
+    };
+    let mut per_face = Vec::new();
+    for (n, sample) in samples.iter().take(args.faces).enumerate() {
+        let Some(lm) = sample.landmarks else { continue };
+        let (photo, lm) = cut_face(&sample.image, &lm).with_context(|| sample.name.clone())?;
+        let scene = PlanarScene::life_size(photo, lm).with_context(|| sample.name.clone())?;
+        let motion = Motion {
+            yaw: args.headset_yaw_deg,
+            period: args.headset_period_s,
+            phase: 0.37 * n as f64,
+        };
+        let before: Vec<Tally> = runners.iter().map(|r| r.tally.clone()).collect();
+        for r in &mut runners {
+            r.session.reset();
+            r.tally.was_good = false;
+        }
+        for i in 0..frames {
+            let t = i as f64 / args.fps;
+            let cam = motion.headset(t);
+            let h = scene.homography(&K, &cam, &motion.head(t));
+            scene.render(&h, &mut image, 90)?;
+            let truth = scene.landmarks_in(&h);
+            let t_us = (t * 1e6).round() as u64;
+            let frame = Frame {
+                timestamp_us: t_us,
+                image: image.view(),
+                intrinsics: K,
+                world_from_camera: cam,
+            };
+            for r in &mut runners {
+                r.step(&frame, &truth)?;
+            }
+            if n == 0
+                && let Some(e) = export.as_mut()
+            {
+                e.push(i, t_us, &image, &cam, &truth)?;
+            }
+        }
+        if n == 0
+            && let Some(e) = export.take()
+        {
+            let written = e.finish()?;
+            if let Some(dir) = &args.write_sequence {
+                println!("wrote {written} frames of {} to {}", sample.name, dir.display());
+            }
+        }
+        let losses: Vec<usize> = runners
+            .iter()
+            .zip(&before)
+            .map(|(r, b)| r.tally.losses - b.losses)
+            .collect();
+        println!(
+            "{:>3} {:<28} losses: compensated {:>3}, uncompensated {:>3}",
+            n + 1,
+            sample.name,
+            losses[0],
+            losses[1]
+        );
+        per_face.push(
+            json!({"face": sample.name, "losses_compensated": losses[0], "losses_uncompensated": losses[1]}),
+        );
+    }
+    let report = json!({
+        "aligner": format!("{:?}", args.aligner).to_lowercase(),
+        "faces": per_face.len(),
+        "seconds_per_face": args.seconds,
+        "fps": args.fps,
+        "headset_yaw_deg": args.headset_yaw_deg,
+        "headset_period_s": args.headset_period_s,
+        "motion_compensated": runners[0].tally.summary(args.fps),
+        "uncompensated": runners[1].tally.summary(args.fps),
+        "per_face": per_face,
+    });
+    println!("\n{:<26} {:>10} {:>14}", "", "compensated", "uncompensated");
+    for key in [
+        "losses",
+        "losses_per_minute",
+        "good_frames_pct",
+        "drifting_frames_pct",
+        "no_face_frames_pct",
+        "detector_runs",
+        "mean_nme49_pct",
+    ] {
+        let f = |v: &serde_json::Value| v[key].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "{key:<26} {:>10.2} {:>14.2}",
+            f(&report["motion_compensated"]),
+            f(&report["uncompensated"])
+        );
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(&args.out, serde_json::to_vec_pretty(&report)?)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
