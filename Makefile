@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all c-example sample setup venv venv-train venv-peer compare ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+.PHONY: all c-example sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
 
 all: test
 
@@ -151,6 +151,11 @@ compare: setup venv-peer
 	./target/release/holoface eval --split validation --init detector --aligner dan,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
 	./target/release/holoface eval --split validation --init gt-box --aligner dan,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
+
+# KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
+speed-vs-dlib: setup venv-peer
+	$(CARGO) build --release -p holoface-client
+	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
 train-dan: venv-train
 	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 6500 --threads 1 \

@@ -81,6 +81,31 @@ pub trait Aligner {
     fn name(&self) -> &'static str;
     /// Aligns one face.
     fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError>;
+
+    /// Aligns a face whose initial shape was placed on a detector's box rather than carried over from
+    /// the previous frame. A coarser start: an aligner may spend more work here (KRFWS runs several
+    /// starts). Default: [`Aligner::align`].
+    fn align_detection(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> Result<Alignment, AlignError> {
+        self.align(image, init)
+    }
+}
+
+/// Aligns from a prepared initial shape: [`Aligner::align_detection`] after a detection,
+/// [`Aligner::align`] when tracking.
+pub fn align_from(
+    aligner: &mut (impl Aligner + ?Sized),
+    image: &GrayView<'_>,
+    init: &[Point2; 68],
+    source: crate::session::InitSource,
+) -> Result<Alignment, AlignError> {
+    match source {
+        crate::session::InitSource::Detection => aligner.align_detection(image, init),
+        crate::session::InitSource::Tracking => aligner.align(image, init),
+    }
 }
 
 /// The similarity that maps `init` onto the canonical crop shape.
@@ -216,7 +241,11 @@ pub fn landmarks_from_crop(
 pub struct KrfwsAligner {
     model: holoface_models::krfws::Krfws,
     scratch: holoface_models::krfws::KrfwsScratch,
+    restarts: usize,
 }
+
+/// Starts KRFWS runs on a detection frame (see [`holoface_models::krfws::Krfws::align_restarts`]).
+pub const KRFWS_DETECTION_STARTS: usize = 13;
 
 impl KrfwsAligner {
     /// Wraps a loaded model.
@@ -224,22 +253,29 @@ impl KrfwsAligner {
         Self {
             model,
             scratch: holoface_models::krfws::KrfwsScratch::new(),
+            restarts: KRFWS_DETECTION_STARTS,
         }
     }
-}
 
-impl Aligner for KrfwsAligner {
-    fn name(&self) -> &'static str {
-        "krfws"
+    /// Sets the number of starts on detection frames (1 = a single alignment).
+    pub fn set_detection_starts(&mut self, starts: usize) {
+        self.restarts = starts.max(1);
     }
 
-    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+    fn run(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        starts: usize,
+    ) -> Result<Alignment, AlignError> {
         if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
             return Err(AlignError::DegenerateInit);
         }
         let start: [Point2; 51] = std::array::from_fn(|i| init[17 + i]);
         let mut out = start;
-        let score = self.model.align(image, &start, &mut self.scratch, &mut out);
+        let score = self
+            .model
+            .align_restarts(image, &start, starts, &mut self.scratch, &mut out);
         let mut landmarks = *init;
         landmarks[17..].copy_from_slice(&out);
         Ok(Alignment {
@@ -249,5 +285,23 @@ impl Aligner for KrfwsAligner {
             accepted: score < self.model.threshold(),
             answered_by: AnsweredBy::Krfws,
         })
+    }
+}
+
+impl Aligner for KrfwsAligner {
+    fn name(&self) -> &'static str {
+        "krfws"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        self.run(image, init, 1)
+    }
+
+    fn align_detection(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> Result<Alignment, AlignError> {
+        self.run(image, init, self.restarts)
     }
 }

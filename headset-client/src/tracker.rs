@@ -256,7 +256,12 @@ impl FaceTracker {
         let prepared = self.session.prepare(frame)?;
         let t1 = Instant::now();
         let alignment = match prepared {
-            Prepared::Align { init, .. } => Some(self.aligner.align(&frame.image, &init)?),
+            Prepared::Align { init, source } => Some(crate::align::align_from(
+                &mut *self.aligner,
+                &frame.image,
+                &init,
+                source,
+            )?),
             Prepared::NoFace => None,
         };
         let t2 = Instant::now();

@@ -12,8 +12,9 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
 use holoface_models::geometry::{Point2, Rect};
+use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch};
 use holoface_models::image::{GrayImage, GrayView};
-use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
+use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, stage_features};
 use holoface_models::shape::parse_pts68;
 
 fn data_root() -> PathBuf {
@@ -80,6 +81,35 @@ fn bench_align(c: &mut Criterion) {
     g.throughput(Throughput::Elements(1));
     g.bench_function("align_3_stages+failure", |b| {
         b.iter(|| model.align(black_box(&view), black_box(&init), &mut scratch, &mut out))
+    });
+    // The parts of one stage (portable build; `align` runs them compiled for AVX2 when available).
+    let stage = &model.stages()[0];
+    let mut patch = [0u8; PATCH_PIXELS];
+    let mut norm = [Point2::default(); N_POINTS];
+    let mut hog = vec![0f32; FAILURE_DIM];
+    g.bench_function("part/sample_51_windows+hog", |b| {
+        b.iter(|| {
+            stage_features(
+                &view,
+                black_box(&init),
+                stage.dest(),
+                &mut patch,
+                &mut norm,
+                &mut hog,
+            )
+        })
+    });
+    let mut row = [0f32; HOG_DIM];
+    g.bench_function("part/hog_51_windows", |b| {
+        b.iter(|| {
+            for _ in 0..N_POINTS {
+                hog_patch(black_box(&patch), &mut row);
+            }
+        })
+    });
+    let mut leaves = vec![0u32; stage.trees.len()];
+    g.bench_function("part/route_306_trees", |b| {
+        b.iter(|| stage.leaves(black_box(&hog), &mut leaves))
     });
     g.bench_function("from_bytes", |b| {
         b.iter(|| Krfws::from_bytes(black_box(&bytes)).unwrap())

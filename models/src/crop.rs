@@ -123,76 +123,48 @@ impl<'a> BilinearSampler<'a> {
     }
 
     /// Destination pixels `(u0 + i, v)` for `i` in `0..out.len()`.
-    ///
-    /// Works on blocks of [`LANES`] pixels so that the coordinate, weight and rounding arithmetic
-    /// vectorises (per lane it is the same IEEE operations in the same order as the scalar formula, so
-    /// the pixels are identical); only the four taps per pixel are scalar loads.
-    #[inline]
+    #[inline(always)]
     pub fn row(&self, u0: i64, v: i64, out: &mut [u8]) {
         let [a, b, tx, ty] = self.t;
+        let (w, h, stride, data) = (self.w, self.h, self.stride, self.data);
         let vf = v as f32;
         // Hoisted per-row products; the same f32 values as evaluating `a·u − b·v + tx` per pixel.
         let (bv, av) = (b * vf, a * vf);
-        let (wm1, hm1) = ((self.w - 1).max(0) as u64, (self.h - 1).max(0) as u64);
-        let stride = self.stride;
-        let mut base = u0;
-        for chunk in out.chunks_mut(LANES) {
-            let n = chunk.len();
-            let mut sx = [0f32; LANES];
-            let mut sy = [0f32; LANES];
-            for (i, (x, y)) in sx.iter_mut().zip(&mut sy).enumerate() {
-                let uf = (base + i as i64) as f32;
-                *x = a * uf - bv + tx;
-                *y = b * uf + av + ty;
-            }
-            let x0f = sx.map(fast_floor);
-            let y0f = sy.map(fast_floor);
-            let x0 = x0f.map(|f| f as i64);
-            let y0 = y0f.map(|f| f as i64);
-            // All four taps of every pixel of the block inside: no per-tap checks.
-            let inside = x0[..n]
-                .iter()
-                .zip(&y0[..n])
-                .all(|(&x, &y)| (x as u64) < wm1 && (y as u64) < hm1);
-            let mut taps = [[0f32; LANES]; 4];
-            for i in 0..n {
-                let q = if inside {
-                    let k = y0[i] as usize * stride + x0[i] as usize;
-                    self.data.get(k..k + stride + 2).map(|q| {
-                        [
-                            f32::from(q[0]),
-                            f32::from(q[1]),
-                            f32::from(q[stride]),
-                            f32::from(q[stride + 1]),
-                        ]
-                    })
-                } else {
-                    None
-                };
-                let q = q.unwrap_or_else(|| {
-                    let (x, y) = (x0[i], y0[i]);
-                    [
-                        self.tap(x, y),
-                        self.tap(x + 1, y),
-                        self.tap(x, y + 1),
-                        self.tap(x + 1, y + 1),
-                    ]
-                });
-                for (t, v) in taps.iter_mut().zip(q) {
-                    t[i] = v;
-                }
-            }
-            let mut vals = [0u8; LANES];
-            for i in 0..LANES {
-                let (fx, fy) = (sx[i] - x0f[i], sy[i] - y0f[i]);
-                let top = taps[0][i] * (1.0 - fx) + taps[1][i] * fx;
-                let bot = taps[2][i] * (1.0 - fx) + taps[3][i] * fx;
-                let val = top * (1.0 - fy) + bot * fy;
-                // val ∈ [0, 255]: truncation is the floor, and `as u8` saturates (NaN → 0).
-                vals[i] = (val + 0.5) as u8;
-            }
-            chunk.copy_from_slice(&vals[..n]);
-            base += LANES as i64;
+        let (wm1, hm1) = ((w - 1).max(0) as u64, (h - 1).max(0) as u64);
+        for (du, o) in out.iter_mut().enumerate() {
+            let uf = (u0 + du as i64) as f32;
+            let sx = a * uf - bv + tx;
+            let sy = b * uf + av + ty;
+            let (x0f, y0f) = (fast_floor(sx), fast_floor(sy));
+            let (fx, fy) = (sx - x0f, sy - y0f);
+            let (x0, y0) = (x0f as i64, y0f as i64);
+            // Both taps of both rows inside: one unsigned compare per axis.
+            let quad = if (x0 as u64) < wm1 && (y0 as u64) < hm1 {
+                let i = y0 as usize * stride + x0 as usize;
+                data.get(i..i + stride + 2).map(|q| {
+                    (
+                        f32::from(q[0]),
+                        f32::from(q[1]),
+                        f32::from(q[stride]),
+                        f32::from(q[stride + 1]),
+                    )
+                })
+            } else {
+                None
+            };
+            let (p00, p01, p10, p11) = quad.unwrap_or_else(|| {
+                (
+                    self.tap(x0, y0),
+                    self.tap(x0 + 1, y0),
+                    self.tap(x0, y0 + 1),
+                    self.tap(x0 + 1, y0 + 1),
+                )
+            });
+            let top = p00 * (1.0 - fx) + p01 * fx;
+            let bot = p10 * (1.0 - fx) + p11 * fx;
+            let val = top * (1.0 - fy) + bot * fy;
+            // val ∈ [0, 255]: truncation is the floor, and `as u8` saturates (NaN → 0).
+            *o = (val + 0.5) as u8;
         }
     }
 
@@ -208,9 +180,6 @@ impl<'a> BilinearSampler<'a> {
         }
     }
 }
-
-/// Pixels per block of [`BilinearSampler::row`].
-pub const LANES: usize = 8;
 
 /// `floor` without a libm call (baseline x86-64 has no rounding instruction): exact for |x| < 2³¹;
 /// beyond, the taps are outside any image either way.

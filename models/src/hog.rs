@@ -108,6 +108,7 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
 ///
 /// Fast path: two passes per row (gradients and orientation vectorisable, then 8 unconditional votes
 /// per pixel into a padded 6×6×9 accumulator).
+#[inline(always)]
 pub fn hog_patch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     let mut acc = [0.0f32; PAD * PAD * BINS];
     let scale = BINS as f32 / std::f32::consts::PI;

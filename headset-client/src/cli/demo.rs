@@ -267,7 +267,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let t0 = Instant::now();
         let alignment = match session.prepare(&frame)? {
-            Prepared::Align { init, .. } => Some(aligner.align(&frame.image, &init)?),
+            Prepared::Align { init, source } => Some(crate::align::align_from(
+                &mut aligner,
+                &frame.image,
+                &init,
+                source,
+            )?),
             Prepared::NoFace => None,
         };
         let result = session.complete(&frame, alignment);

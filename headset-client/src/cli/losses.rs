@@ -232,9 +232,15 @@ impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
         let prepared = self.session.prepare(frame)?;
         let (alignment, init) = match prepared {
-            Prepared::Align { init, source } => {
-                (Some(self.aligner.align(&frame.image, &init)?), Some(source))
-            }
+            Prepared::Align { init, source } => (
+                Some(crate::align::align_from(
+                    &mut *self.aligner,
+                    &frame.image,
+                    &init,
+                    source,
+                )?),
+                Some(source),
+            ),
             Prepared::NoFace => (None, None),
         };
         let result = self.session.complete(frame, alignment);

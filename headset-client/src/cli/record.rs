@@ -84,7 +84,6 @@ impl CropCutter {
 
     /// The crop payload of `f`, or `None` when no face is tracked.
     fn cut(&mut self, f: &crate::source::SourceFrame) -> anyhow::Result<Option<FramePayload>> {
-        use crate::align::Aligner;
         use crate::session::{Frame, Prepared};
         let frame = Frame {
             timestamp_us: f.timestamp_us,
@@ -92,7 +91,7 @@ impl CropCutter {
             intrinsics: f.intrinsics,
             world_from_camera: f.world_from_camera,
         };
-        let Prepared::Align { init, .. } = self.session.prepare(&frame)? else {
+        let Prepared::Align { init, source } = self.session.prepare(&frame)? else {
             self.session.complete(&frame, None);
             return Ok(None);
         };
@@ -100,7 +99,7 @@ impl CropCutter {
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
         let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;
-        let a = self.local.align(&frame.image, &init)?;
+        let a = crate::align::align_from(&mut self.local, &frame.image, &init, source)?;
         self.session.complete(&frame, Some(a));
         Ok(Some(FramePayload::Crop {
             image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],

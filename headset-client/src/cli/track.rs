@@ -144,7 +144,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let t_prepare = t0.elapsed();
         let t1 = Instant::now();
         let alignment = match prepared {
-            Prepared::Align { init, .. } => Some(aligner.align(&frame.image, &init)?),
+            Prepared::Align { init, source } => Some(crate::align::align_from(
+                &mut *aligner,
+                &frame.image,
+                &init,
+                source,
+            )?),
             Prepared::NoFace => None,
         };
         let t_align = t1.elapsed();

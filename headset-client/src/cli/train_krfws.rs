@@ -40,7 +40,7 @@ pub struct Args {
     #[arg(long, default_value_t = 10)]
     pub perturbations: usize,
     /// Every `full_period`-th stage-1 start shape gets the full DAN perturbation (others small/medium).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 5)]
     pub full_period: usize,
     /// Smallest child size of a split.
     #[arg(long, default_value_t = 8)]

@@ -20,7 +20,6 @@
 pub mod format;
 pub mod train;
 
-use crate::crop::BilinearSampler;
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH, PATCH_PIXELS, hog_patch, round_coord};
 use crate::image::GrayView;
@@ -38,6 +37,25 @@ pub const FAILURE_DIM: usize = N_POINTS * HOG_DIM;
 pub const DEFAULT_SCALES: [f32; 3] = [0.35, 0.55, 0.80];
 /// Horizontal extent of the mean shape, in HoloFace's mean-shape units (`meanS.bin` spans ±61.07).
 pub const MEAN_SHAPE_WIDTH: f32 = 122.14;
+
+/// Start perturbations of [`Krfws::align_restarts`]: scale and rotation (radians) about the centroid,
+/// then a shift in units of the start shape's width. The first is the start itself; then shifts of 7 %,
+/// ±10 % scale, ±11.5° roll, shifts of 14 %.
+pub const RESTARTS: [(f32, f32, f32, f32); 13] = [
+    (1.0, 0.0, 0.0, 0.0),
+    (1.0, 0.0, 0.0, 0.07),
+    (1.0, 0.0, -0.07, 0.0),
+    (1.0, 0.0, 0.07, 0.0),
+    (1.0, 0.0, 0.0, -0.07),
+    (0.9, 0.0, 0.0, 0.0),
+    (1.1, 0.0, 0.0, 0.0),
+    (1.0, 0.2, 0.0, 0.0),
+    (1.0, -0.2, 0.0, 0.0),
+    (1.0, 0.0, 0.0, 0.14),
+    (1.0, 0.0, -0.14, 0.0),
+    (1.0, 0.0, 0.14, 0.0),
+    (1.0, 0.0, 0.0, -0.14),
+];
 
 /// One internal node of a tree: `proj·hog ≤ threshold` goes `left`, else `right`.
 ///
@@ -145,6 +163,7 @@ impl Stage {
     ///
     /// Level-synchronous: every tree advances one level per pass, so the projection loads of different
     /// trees are independent and overlap in memory (the stage's projections do not fit in cache).
+    #[inline(always)]
     pub fn leaves(&self, hog: &[f32], leaves: &mut [u32]) {
         const DONE: u32 = 1 << 31;
         let t = self.trees_per_forest.max(1);
@@ -188,6 +207,7 @@ impl Stage {
     }
 
     /// Adds the `W` rows of `leaves` into `delta` (102 values).
+    #[inline(always)]
     pub fn accumulate(&self, leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
         delta.fill(0.0);
         for &leaf in leaves {
@@ -216,6 +236,7 @@ pub struct FailureModel {
 
 impl FailureModel {
     /// Score of a 51×144 HOG.
+    #[inline(always)]
     pub fn score(&self, hog: &[f32]) -> f32 {
         let mut acc = [0.0f32; 8];
         for (w, h) in self.weights.chunks_exact(8).zip(hog.chunks_exact(8)) {
@@ -243,6 +264,8 @@ pub struct KrfwsScratch {
     patch: Box<[u8; PATCH_PIXELS]>,
     hog: Vec<f32>,
     last_hog: Vec<f32>,
+    best_hog: Vec<f32>,
+    restarts: Vec<(f32, [Point2; N_POINTS])>,
     leaves: Vec<u32>,
     delta: [f32; DELTA_DIM],
     shape: [Point2; N_POINTS],
@@ -262,6 +285,8 @@ impl KrfwsScratch {
             patch: Box::new([0; PATCH_PIXELS]),
             hog: vec![0.0; FAILURE_DIM],
             last_hog: vec![0.0; FAILURE_DIM],
+            best_hog: Vec::new(),
+            restarts: Vec::new(),
             leaves: Vec::with_capacity(N_POINTS * 64),
             delta: [0.0; DELTA_DIM],
             shape: [Point2::default(); N_POINTS],
@@ -326,20 +351,118 @@ pub(crate) fn dot144(a: &[f32], b: &[f32; HOG_DIM]) -> f32 {
     (acc[0] + acc[4]) + (acc[1] + acc[5]) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
-/// Samples the 16×16 window at the rounded normalised-frame point `p` from the image through the
-/// sampler (`image_from_norm`): exactly the pixels `crop::warp_bilinear` would write into an unbounded
-/// normalised-frame canvas, without warping the whole window.
-#[inline]
-pub fn sample_window(sampler: &BilinearSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
-    let (u0, v0) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
-    for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
-        sampler.row(u0, v0 + dv as i64, row);
+/// KRFWS's window sampler: bilinear, zero fill, in fixed point. Image coordinates are tracked in 16.16
+/// fixed point along each window row (one add per pixel instead of two products), the bilinear weights
+/// have 8 bits, and the value is rounded half up: within one grey level of the float sampler
+/// ([`crate::crop::BilinearSampler`]) and several times cheaper. Training and inference both sample
+/// through here, so the model sees the same pixels in both.
+#[derive(Clone, Copy, Debug)]
+pub struct WindowSampler<'a> {
+    data: &'a [u8],
+    stride: usize,
+    w: i64,
+    h: i64,
+    /// `image_from_norm` as `a, b, tx, ty` (f64 for the per-row starting points).
+    t: [f64; 4],
+    /// `a` and `b` in 16.16 fixed point: the per-pixel step along a window row.
+    step: (i64, i64),
+}
+
+const FIX_ONE: f64 = 65536.0;
+
+impl<'a> WindowSampler<'a> {
+    /// A sampler of `image` through `image_from_norm` (`a, b, tx, ty`: `x = a·u − b·v + tx`,
+    /// `y = b·u + a·v + ty`).
+    pub fn new(image: &GrayView<'a>, image_from_norm: [f32; 4]) -> Self {
+        let t = image_from_norm.map(f64::from);
+        Self {
+            data: image.data(),
+            stride: image.stride(),
+            w: image.width() as i64,
+            h: image.height() as i64,
+            t,
+            step: (Self::fix(t[0]), Self::fix(t[1])),
+        }
+    }
+
+    /// Fixed point of a coordinate, clamped far outside any image (so no overflow in the row walk).
+    #[inline(always)]
+    fn fix(x: f64) -> i64 {
+        (x.clamp(-1e9, 1e9) * FIX_ONE).round() as i64
+    }
+
+    /// Fixed-point image position of normalised-frame pixel `(u, v)`.
+    #[inline(always)]
+    fn at(&self, u: i64, v: i64) -> (i64, i64) {
+        let [a, b, tx, ty] = self.t;
+        let (uf, vf) = (u as f64, v as f64);
+        (Self::fix(a * uf - b * vf + tx), Self::fix(b * uf + a * vf + ty))
+    }
+
+    /// The 16×16 window centred on the rounded normalised-frame point `p` (`[p − 8, p + 8)`).
+    #[inline(always)]
+    pub fn window(&self, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
+        let (u0, v0) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
+        let (sa, sb) = self.step;
+        let last = PATCH as i64 - 1;
+        // Every tap inside (with a pixel of margin for the row walk's rounding): no per-tap checks.
+        let inside = [(0, 0), (last, 0), (0, last), (last, last)]
+            .iter()
+            .all(|&(du, dv)| {
+                let (x, y) = self.at(u0, v0 + dv);
+                let (x, y) = ((x + du * sa) >> 16, (y + du * sb) >> 16);
+                x >= 1 && y >= 1 && x < self.w - 2 && y < self.h - 2
+            });
+        let stride = self.stride;
+        for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
+            let (mut x, mut y) = self.at(u0, v0 + dv as i64);
+            for o in row.iter_mut() {
+                let (xi, yi) = (x >> 16, y >> 16);
+                let (fx, fy) = (((x >> 8) & 0xff) as u32, ((y >> 8) & 0xff) as u32);
+                let taps = if inside {
+                    let k = yi as usize * stride + xi as usize;
+                    self.data
+                        .get(k..k + stride + 2)
+                        .map(|q| [q[0], q[1], q[stride], q[stride + 1]])
+                } else {
+                    None
+                };
+                let [p00, p01, p10, p11] = taps
+                    .unwrap_or_else(|| {
+                        [
+                            self.tap(xi, yi),
+                            self.tap(xi + 1, yi),
+                            self.tap(xi, yi + 1),
+                            self.tap(xi + 1, yi + 1),
+                        ]
+                    })
+                    .map(u32::from);
+                let top = p00 * (256 - fx) + p01 * fx;
+                let bot = p10 * (256 - fx) + p11 * fx;
+                *o = ((top * (256 - fy) + bot * fy + (1 << 15)) >> 16) as u8;
+                x += sa;
+                y += sb;
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn tap(&self, x: i64, y: i64) -> u8 {
+        if x >= 0 && x < self.w && y >= 0 && y < self.h {
+            self.data
+                .get(y as usize * self.stride + x as usize)
+                .copied()
+                .unwrap_or(0)
+        } else {
+            0
+        }
     }
 }
 
 /// Normalised-frame features of one stage: fits `norm_from_image` (current shape → `dest`), writes the
 /// shape in the normalised frame into `norm` and the 51×144 HOG into `hog`. Returns the similarity, or
 /// `None` for a degenerate shape.
+#[inline(always)]
 pub fn stage_features(
     image: &GrayView<'_>,
     shape: &[Point2; N_POINTS],
@@ -355,9 +478,9 @@ pub fn stage_features(
         return None;
     }
     t.apply_all(shape, norm);
-    let sampler = BilinearSampler::new(image, inv32);
+    let sampler = WindowSampler::new(image, inv32);
     for (p, row) in norm.iter().zip(hog.chunks_exact_mut(HOG_DIM)) {
-        sample_window(&sampler, *p, patch);
+        sampler.window(*p, patch);
         if let Ok(r) = <&mut [f32; HOG_DIM]>::try_from(row) {
             hog_patch(patch, r);
         }
@@ -438,6 +561,41 @@ impl Krfws {
         scratch: &mut KrfwsScratch,
         out: &mut [Point2; N_POINTS],
     ) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            #[allow(unsafe_code)]
+            // SAFETY: `align_avx2` only differs from `align_portable` in being compiled for AVX2, which
+            // the running CPU has (checked just above).
+            return unsafe { self.align_avx2(image, init, scratch, out) };
+        }
+        self.align_portable(image, init, scratch, out)
+    }
+
+    /// [`Krfws::align`] compiled for AVX2: the same code (inlined below), so the same IEEE operations
+    /// in the same order and bit-identical results, with 8-lane vectors for the window sampling, the HOG
+    /// and the projections (Rust never fuses a multiply and an add on its own, so enabling AVX2 cannot
+    /// change a rounding).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn align_avx2(
+        &self,
+        image: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+        out: &mut [Point2; N_POINTS],
+    ) -> f32 {
+        self.align_portable(image, init, scratch, out)
+    }
+
+    /// [`Krfws::align`] for the build's baseline instruction set.
+    #[inline(always)]
+    pub fn align_portable(
+        &self,
+        image: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+        out: &mut [Point2; N_POINTS],
+    ) -> f32 {
         scratch.shape = self.init_from_previous(init);
         let n = self.stages.len();
         let score = self.run_stages(image, scratch, 0..n, true);
@@ -445,8 +603,73 @@ impl Krfws {
         score.unwrap_or(f32::INFINITY)
     }
 
+    /// Aligns from the first `starts` of [`RESTARTS`] (perturbations of `init` about its centroid) and
+    /// returns the per-coordinate median of the results whose failure score is within
+    /// `max(0.5·|best|, 0.005)` of the best one (an ensemble over starts, as in explicit shape regression;
+    /// the failure detector drops the starts that did not converge). The returned score and
+    /// [`KrfwsScratch::last_hog`] are the best start's. For a detector's box, a coarser start than the
+    /// previous frame's landmarks; costs `starts` alignments. `starts ≤ 1` is [`Krfws::align`].
+    pub fn align_restarts(
+        &self,
+        image: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        starts: usize,
+        scratch: &mut KrfwsScratch,
+        out: &mut [Point2; N_POINTS],
+    ) -> f32 {
+        let starts = starts.clamp(1, RESTARTS.len());
+        let c = crate::geometry::centroid(init);
+        let width = Rect::bounding(init).map_or(0.0, |r| r.width());
+        let mut results = std::mem::take(&mut scratch.restarts);
+        results.clear();
+        let mut best_hog = std::mem::take(&mut scratch.best_hog);
+        best_hog.resize(FAILURE_DIM, 0.0);
+        let mut best = f32::INFINITY;
+        let mut shape = [Point2::default(); N_POINTS];
+        for &(scale, rot, dx, dy) in &RESTARTS[..starts] {
+            let (sn, cs) = rot.sin_cos();
+            let start: [Point2; N_POINTS] = std::array::from_fn(|i| {
+                let (x, y) = (init[i].x - c.x, init[i].y - c.y);
+                Point2::new(
+                    c.x + scale * (cs * x - sn * y) + dx * width,
+                    c.y + scale * (sn * x + cs * y) + dy * width,
+                )
+            });
+            let score = self.align(image, &start, scratch, &mut shape);
+            if results.is_empty() || score < best {
+                best = score;
+                best_hog.copy_from_slice(&scratch.last_hog);
+            }
+            results.push((score, shape));
+        }
+        let gate = best + (0.5 * best.abs()).max(0.005);
+        let mut xs = Vec::with_capacity(starts);
+        let mut ys = Vec::with_capacity(starts);
+        for (i, o) in out.iter_mut().enumerate() {
+            xs.clear();
+            ys.clear();
+            for (_, r) in results.iter().filter(|(sc, _)| *sc <= gate) {
+                xs.push(r[i].x);
+                ys.push(r[i].y);
+            }
+            if xs.is_empty() {
+                // Every score is NaN or infinite: keep the first start's answer.
+                *o = results.first().map_or(init[i], |(_, r)| r[i]);
+                continue;
+            }
+            xs.sort_by(f32::total_cmp);
+            ys.sort_by(f32::total_cmp);
+            *o = Point2::new(xs[xs.len() / 2], ys[ys.len() / 2]);
+        }
+        scratch.last_hog.copy_from_slice(&best_hog);
+        scratch.best_hog = best_hog;
+        scratch.restarts = results;
+        best
+    }
+
     /// Runs `stages` on `scratch.shape` in place. With `score`, returns the failure score of the last
     /// stage run (else 0).
+    #[inline(always)]
     fn run_stages(
         &self,
         image: &GrayView<'_>,
@@ -492,9 +715,11 @@ mod tests {
     use crate::crop::warp_bilinear;
 
     #[test]
-    fn direct_window_sampling_equals_a_warped_canvas() {
+    fn window_sampling_is_within_one_grey_level_of_a_warped_canvas() {
         let (w, h) = (64usize, 48usize);
-        let img: Vec<u8> = (0..w * h).map(|i| ((i * 37) % 251) as u8).collect();
+        let img: Vec<u8> = (0..w * h)
+            .map(|i| (128.0 + 100.0 * ((i % w) as f32 / 5.0).sin() * ((i / w) as f32 / 7.0).cos()) as u8)
+            .collect();
         let v = GrayView::new(&img, w, h, w).unwrap();
         let t = Similarity2::from_parts(0.8, 0.3, 5.0, -2.0);
         let (cw, ch) = (60usize, 60usize);
@@ -502,12 +727,25 @@ mod tests {
         warp_bilinear(&v, &t, cw, ch, &mut canvas).unwrap();
         let inv = t.inverse().unwrap().to_f32_array();
         let mut win = [0u8; PATCH_PIXELS];
-        let p = Point2::new(20.3, 30.6);
-        sample_window(&BilinearSampler::new(&v, inv), p, &mut win);
-        for dv in 0..16 {
-            for du in 0..16 {
-                let (x, y) = (20 - 8 + du, 31 - 8 + dv);
-                assert_eq!(win[dv * 16 + du], canvas[y * cw + x], "({du}, {dv})");
+        // Inside the image, and overlapping its border (zero fill).
+        for p in [
+            Point2::new(20.3, 30.6),
+            Point2::new(40.0, 9.0),
+            Point2::new(3.0, 3.0),
+        ] {
+            WindowSampler::new(&v, inv).window(p, &mut win);
+            let (cx, cy) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
+            for dv in 0..16 {
+                for du in 0..16 {
+                    let (x, y) = (cx + du, cy + dv);
+                    let want = if x >= 0 && y >= 0 && (x as usize) < cw && (y as usize) < ch {
+                        canvas[y as usize * cw + x as usize]
+                    } else {
+                        continue;
+                    };
+                    let got = win[(dv * 16 + du) as usize];
+                    assert!(got.abs_diff(want) <= 1, "{p:?} ({du}, {dv}): {got} vs {want}");
+                }
             }
         }
     }
