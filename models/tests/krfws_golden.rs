@@ -104,6 +104,26 @@ fn restarts_recover_from_shifted_boxes_better_than_one_start() {
 }
 
 #[test]
+fn dispatched_build_gives_exactly_the_portable_results() {
+    let root = data_root();
+    if !root.is_dir() {
+        eprintln!("{} missing: skipping", root.display());
+        return;
+    }
+    let m = model();
+    let (mut s1, mut s2) = (KrfwsScratch::new(), KrfwsScratch::new());
+    let (mut o1, mut o2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
+    for (img, gt) in validation_faces(&root).iter().take(20) {
+        let init = m.init_from_box(&Rect::bounding(gt).unwrap());
+        let a = m.align(&img.view(), &init, &mut s1, &mut o1);
+        let b = m.align_portable(&img.view(), &init, &mut s2, &mut o2);
+        assert_eq!(a.to_bits(), b.to_bits());
+        assert_eq!(o1, o2);
+        assert_eq!(s1.last_hog(), s2.last_hog());
+    }
+}
+
+#[test]
 fn committed_model_reproduces_its_validation_nme() {
     let root = data_root();
     if !root.is_dir() {
@@ -113,23 +133,15 @@ fn committed_model_reproduces_its_validation_nme() {
     let m = model();
     let mut scratch = KrfwsScratch::new();
     let mut out = [Point2::default(); N_POINTS];
-    let names: Vec<&str> = include_str!("../splits/val.txt")
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#'))
-        .collect();
+    let faces = validation_faces(&root);
     let mut sum = 0.0;
-    for name in &names {
-        let img = image::open(root.join(format!("{name}.jpg"))).unwrap().to_luma8();
-        let (w, h) = (img.width() as usize, img.height() as usize);
-        let img = GrayImage::from_vec(img.into_raw(), w, h).unwrap();
-        let gt = parse_pts68(&std::fs::read_to_string(root.join(format!("{name}.pts"))).unwrap()).unwrap();
-        let init = m.init_from_box(&Rect::bounding(&gt).unwrap());
+    for (img, gt) in &faces {
+        let init = m.init_from_box(&Rect::bounding(gt).unwrap());
         let score = m.align(&img.view(), &init, &mut scratch, &mut out);
         assert!(score.is_finite());
-        sum += nme49_inner(&out, &gt);
+        sum += nme49_inner(&out, gt);
     }
-    let mean = sum / names.len() as f64;
-    assert_eq!(names.len(), 101);
+    let mean = sum / faces.len() as f64;
+    assert_eq!(faces.len(), 101);
     assert!((mean - VAL_NME49_GT_BOX).abs() < NME_TOL, "mean NME49 {mean}");
 }
