@@ -75,6 +75,25 @@ impl RuntimeArgs {
     }
 }
 
+/// The CANDIDE-3 model option shared by the commands that fit a face (`--candide`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct CandideArg {
+    /// CANDIDE-3 model (`.wfm`), resolved by the set-up command.
+    #[arg(
+        long,
+        env = "HOLOFACE_CANDIDE",
+        default_value = "../shared/data/candide3/candide3.wfm"
+    )]
+    pub candide: PathBuf,
+}
+
+impl CandideArg {
+    /// Loads the model.
+    pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
+        load_face_model(&self.candide)
+    }
+}
+
 /// Loads the CANDIDE-3 face model from a `.wfm` file.
 pub fn load_face_model(path: &std::path::Path) -> anyhow::Result<holoface_models::candide::FaceModel> {
     let text = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;

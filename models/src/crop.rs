@@ -99,8 +99,8 @@ pub fn warp_bilinear(
 /// Bilinear sampling of a grey image through `image_from_dst = (a, b, tx, ty)`:
 /// `x = a·u − b·v + tx`, `y = b·u + a·v + ty`; taps outside the image read 0; values rounded half up.
 ///
-/// The one implementation behind [`warp_bilinear`] (the DAN crop, whose pixels the Python trainer
-/// reproduces) and KRFWS's window sampling, so both produce the same pixels for the same transform.
+/// The sampling of [`warp_bilinear`] (the DAN crop, whose pixels the Python trainer reproduces). KRFWS
+/// samples its windows with its own fixed-point sampler (`krfws::WindowSampler`).
 #[derive(Clone, Copy, Debug)]
 pub struct BilinearSampler<'a> {
     data: &'a [u8],

@@ -27,7 +27,7 @@ use crate::link::relay::UdpRelay;
 use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
 use crate::plot::Canvas;
 use crate::render::PlanarScene;
-use crate::runtime::{RuntimeArgs, load_face_model};
+use crate::runtime::RuntimeArgs;
 use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface demo`.
@@ -58,13 +58,9 @@ pub struct Args {
     /// ONNX Runtime threads of the in-process server.
     #[arg(long, default_value_t = 1)]
     pub server_threads: usize,
-    /// CANDIDE-3 model (`.wfm`).
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
-    pub candide: PathBuf,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::runtime::CandideArg,
     /// Output folder (frames.jsonl, strip.png, summary.json).
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
@@ -216,7 +212,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut aligner = LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts);
     let mut session = TrackerSession::new(
         Box::new(args.runtime.detector()?),
-        load_face_model(&args.candide)?,
+        args.candide.load()?,
         dan_mean_shape(),
         SessionOptions::default(),
     );

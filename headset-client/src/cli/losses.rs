@@ -33,7 +33,7 @@ use serde_json::json;
 use crate::align::Aligner;
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
-use crate::runtime::{RuntimeArgs, load_face_model};
+use crate::runtime::RuntimeArgs;
 use crate::session::{Frame, FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
 
 /// Aligner for the measurement.
@@ -69,13 +69,9 @@ pub struct Args {
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
     pub aligner: LossAligner,
-    /// CANDIDE-3 model (`.wfm`).
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
-    pub candide: PathBuf,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::runtime::CandideArg,
     /// JSON report.
     #[arg(long, default_value = "runs/tracking-losses.json")]
     pub out: PathBuf,
@@ -311,7 +307,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| default_data_root().join("faces68/train"));
     let samples = load_folder(&root, Split::Validation, true)?;
-    let model = load_face_model(&args.candide)?;
+    let model = args.candide.load()?;
     let make_aligner = || -> anyhow::Result<Box<dyn Aligner>> {
         Ok(match args.aligner {
             LossAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),

@@ -44,13 +44,9 @@ pub struct Args {
     /// its crop-to-image similarity. Frames without a face are skipped. The load tester replays these.
     #[arg(long)]
     pub crops: Option<crate::link::CropCodec>,
-    /// CANDIDE-3 model (`.wfm`), for the tracker of `--crops`.
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
-    pub candide: PathBuf,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::runtime::CandideArg,
     /// Runtime assets (for `--crops`).
     #[command(flatten)]
     pub runtime: crate::runtime::RuntimeArgs,
@@ -72,7 +68,7 @@ impl CropCutter {
             codec,
             session: crate::session::TrackerSession::new(
                 Box::new(args.runtime.detector()?),
-                crate::runtime::load_face_model(&args.candide)?,
+                args.candide.load()?,
                 mean,
                 crate::session::SessionOptions::default(),
             ),

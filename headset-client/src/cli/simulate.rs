@@ -20,13 +20,9 @@ use serde_json::json;
 /// Arguments of `holoface simulate`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// CANDIDE-3 model (`.wfm`).
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
-    pub candide: PathBuf,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::runtime::CandideArg,
     /// Sequence length in seconds.
     #[arg(long, default_value_t = 20.0)]
     pub seconds: f64,
@@ -147,7 +143,7 @@ fn percentile(v: &[f64], p: f64) -> f64 {
 
 /// Runs `holoface simulate`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let model = crate::runtime::load_face_model(&args.candide)?;
+    let model = args.candide.load()?;
     let n = (args.seconds * args.fps).round() as usize;
     let dt = 1.0 / args.fps;
     let yaw = args.headset_yaw_deg.to_radians();

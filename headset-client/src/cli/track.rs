@@ -42,13 +42,9 @@ pub struct Args {
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
     pub aligner: TrackAligner,
-    /// CANDIDE-3 model (`.wfm`), resolved by the set-up command.
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
-    pub candide: PathBuf,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::runtime::CandideArg,
     /// Disable headset-motion compensation of the tracking initialisation.
     #[arg(long)]
     pub no_motion_compensation: bool,
@@ -108,7 +104,7 @@ fn remote_aligner(args: &Args) -> anyhow::Result<Box<dyn Aligner>> {
 
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let model = crate::runtime::load_face_model(&args.candide)?;
+    let model = args.candide.load()?;
     let detector = args.runtime.detector()?;
     let mut aligner: Box<dyn Aligner> = match args.aligner {
         TrackAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
