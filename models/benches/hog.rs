@@ -8,7 +8,9 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group};
 use holoface_models::geometry::Point2;
-use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch, hog_patch_naive, hog_points, window_at};
+use holoface_models::hog::{
+    HOG_DIM, PATCH_PIXELS, hog_patch, hog_patch_dispatch, hog_patch_naive, hog_points, window_at,
+};
 use holoface_models::image::GrayView;
 
 /// A 352×352 textured image (smooth shading, blobs and noise) and 51 landmark-like points.
@@ -56,6 +58,13 @@ fn bench_hog(c: &mut Criterion) {
     let mut g = c.benchmark_group("hog51");
     g.throughput(Throughput::Elements(1));
     g.bench_function("fast", |b| {
+        b.iter(|| {
+            for (w, o) in windows.iter().zip(out.iter_mut()) {
+                hog_patch_dispatch(black_box(w), o);
+            }
+        })
+    });
+    g.bench_function("fast_portable", |b| {
         b.iter(|| {
             for (w, o) in windows.iter().zip(out.iter_mut()) {
                 hog_patch(black_box(w), o);

@@ -14,7 +14,11 @@ use criterion::{Criterion, Throughput, criterion_group};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch};
 use holoface_models::image::{GrayImage, GrayView};
-use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, stage_features};
+#[cfg(target_arch = "x86_64")]
+use holoface_models::krfws::Avx512;
+use holoface_models::krfws::{
+    FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, stage_features, stage_features_with,
+};
 use holoface_models::shape::parse_pts68;
 
 fn data_root() -> PathBuf {
@@ -82,39 +86,98 @@ fn bench_align(c: &mut Criterion) {
     g.bench_function("align_3_stages+failure", |b| {
         b.iter(|| model.align(black_box(&view), black_box(&init), &mut scratch, &mut out))
     });
-    // The parts of one stage (portable build; `align` runs them compiled for AVX2 when available).
+    // The parts of one stage, compiled like `align` (AVX-512F / AVX2 when the CPU has them).
     let stage = &model.stages()[0];
     let mut patch = [0u8; PATCH_PIXELS];
     let mut norm = [Point2::default(); N_POINTS];
     let mut hog = vec![0f32; FAILURE_DIM];
     g.bench_function("part/sample_51_windows+hog", |b| {
-        b.iter(|| {
-            stage_features(
-                &view,
-                black_box(&init),
-                stage.dest(),
-                &mut patch,
-                &mut norm,
-                &mut hog,
-            )
-        })
+        b.iter(|| fast::features(&view, black_box(&init), stage, &mut patch, &mut norm, &mut hog))
     });
     let mut row = [0f32; HOG_DIM];
     g.bench_function("part/hog_51_windows", |b| {
-        b.iter(|| {
-            for _ in 0..N_POINTS {
-                hog_patch(black_box(&patch), &mut row);
-            }
-        })
+        b.iter(|| fast::hog51(black_box(&patch), &mut row))
     });
     let mut leaves = vec![0u32; stage.trees.len()];
     g.bench_function("part/route_306_trees", |b| {
-        b.iter(|| stage.leaves(black_box(&hog), &mut leaves))
+        b.iter(|| fast::route(stage, black_box(&hog), &mut leaves))
     });
     g.bench_function("from_bytes", |b| {
         b.iter(|| Krfws::from_bytes(black_box(&bytes)).unwrap())
     });
     g.finish();
+}
+
+/// The parts compiled like `Krfws::align` compiles them on this CPU (AVX-512F, AVX2 or baseline).
+mod fast {
+    use super::*;
+    use holoface_models::krfws::Stage;
+
+    macro_rules! versions {
+        ($(fn $name:ident($($a:ident: $t:ty),*) $body:block)*) => {$(
+            pub(super) fn $name($($a: $t),*) {
+                #[cfg(target_arch = "x86_64")]
+                {
+                    #[target_feature(enable = "avx512f")]
+                    fn avx512($($a: $t),*) $body
+                    #[target_feature(enable = "avx2")]
+                    fn avx2($($a: $t),*) $body
+                    #[allow(unsafe_code)]
+                    // SAFETY: each copy runs only on a CPU with its feature.
+                    unsafe {
+                        if std::is_x86_feature_detected!("avx512f") {
+                            return avx512($($a),*);
+                        }
+                        if std::is_x86_feature_detected!("avx2") {
+                            return avx2($($a),*);
+                        }
+                    }
+                }
+                $body
+            }
+        )*};
+    }
+
+    versions! {
+        fn hog51(patch: &[u8; PATCH_PIXELS], row: &mut [f32; HOG_DIM]) {
+            for _ in 0..N_POINTS {
+                hog_patch(black_box(patch), row);
+            }
+        }
+        fn route(stage: &Stage, hog: &[f32], leaves: &mut [u32]) {
+            stage.leaves(hog, leaves)
+        }
+    }
+
+    /// Window sampling and HOG of one stage, as `align` runs them.
+    pub(super) fn features(
+        view: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        stage: &Stage,
+        patch: &mut [u8; PATCH_PIXELS],
+        norm: &mut [Point2; N_POINTS],
+        hog: &mut [f32],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(k) = Avx512::detect() {
+            #[target_feature(enable = "avx512f")]
+            fn avx512(
+                k: Avx512,
+                view: &GrayView<'_>,
+                init: &[Point2; N_POINTS],
+                stage: &Stage,
+                patch: &mut [u8; PATCH_PIXELS],
+                norm: &mut [Point2; N_POINTS],
+                hog: &mut [f32],
+            ) {
+                black_box(stage_features_with(k, view, init, stage.dest(), patch, norm, hog));
+            }
+            #[allow(unsafe_code)]
+            // SAFETY: the token proves AVX-512F.
+            return unsafe { avx512(k, view, init, stage, patch, norm, hog) };
+        }
+        black_box(stage_features(view, init, stage.dest(), patch, norm, hog));
+    }
 }
 
 /// On-CPU nanoseconds of this thread (`/proc/thread-self/schedstat`), robust to a loaded machine.

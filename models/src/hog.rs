@@ -50,31 +50,38 @@ pub enum HogError {
     },
 }
 
-/// Side of the padded cell grid: cells −1..=4, so out-of-grid shares land in a discarded border.
-const PAD: usize = CELLS + 2;
+/// Tent weight of window coordinate `u` (0..16) for cell `c` (0..4): the bilinear share of a vote at
+/// `u` for the cell centred at `1.5 + 4c`; zero for the border coordinates 0 and 15, which have no
+/// central difference and do not vote.
+const fn tent(c: usize, u: usize) -> f32 {
+    if u == 0 || u == PATCH - 1 {
+        return 0.0;
+    }
+    let d = u as f32 - 1.5 - (CELL_PIXELS * c) as f32;
+    let d = if d < 0.0 { -d } else { d };
+    let w = 1.0 - d / CELL_PIXELS as f32;
+    if w > 0.0 { w } else { 0.0 }
+}
 
-/// Per window coordinate `u` (0..16): padded index of the lower cell and the weights of the lower and
-/// upper cell (bilinear in the cell-centre lattice 1.5 + 4·i).
-static SPATIAL: [(usize, f32, f32); PATCH] = spatial_table();
-
-const fn spatial_table() -> [(usize, f32, f32); PATCH] {
-    let mut t = [(0usize, 0.0f32, 0.0f32); PATCH];
-    let mut u = 0;
-    while u < PATCH {
-        // f = (u − 1.5) / 4 ∈ [−0.375, 3.375]; lower cell floor(f) ∈ −1..=3 → padded floor(f) + 1.
-        let f = (u as f32 - 1.5) / CELL_PIXELS as f32;
-        let shifted = f + 1.0; // ≥ 0.625
-        let lo = shifted as usize; // floor for non-negative values
-        let frac = shifted - lo as f32;
-        t[u] = (lo, 1.0 - frac, frac);
-        u += 1;
+const fn tent_table() -> [[f32; PATCH]; CELLS] {
+    let mut t = [[0.0f32; PATCH]; CELLS];
+    let mut c = 0;
+    while c < CELLS {
+        let mut u = 0;
+        while u < PATCH {
+            t[c][u] = tent(c, u);
+            u += 1;
+        }
+        c += 1;
     }
     t
 }
 
-/// `floor(f + 1)` (0..=9) → lower and upper bin, wrapping.
-static BIN_LO: [usize; 10] = [8, 0, 1, 2, 3, 4, 5, 6, 7, 8];
-static BIN_HI: [usize; 10] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 0];
+/// Adding and subtracting 1.5·2²³ rounds an f32 of magnitude < 2²² to the nearest integer.
+const ROUND_MAGIC: f32 = 12_582_912.0;
+
+/// `TENT[c][u]`: share of a vote at window coordinate `u` (x or y) for cell `c`.
+static TENT: [[f32; PATCH]; CELLS] = tent_table();
 
 /// Unsigned gradient orientation in radians, `[0, π]`, without `atan2`.
 #[inline(always)]
@@ -106,68 +113,124 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
 
 /// HOG of one 16×16 window (row-major grey levels) into `out` (144 values).
 ///
-/// Fast path: two passes per row (gradients and orientation vectorisable, then 8 unconditional votes
-/// per pixel into a padded 6×6×9 accumulator).
+/// Fast path, written as fixed-width lane loops that vectorise (and are compiled for AVX2 by
+/// [`crate::krfws::Krfws::align`]): per window row, the 16 gradients, magnitudes and bin positions;
+/// each pixel's two bin shares become 9 orientation planes (a lane holds its share of the bin or 0),
+/// which are pooled vertically into the 4 cell rows with the tent weights; at the end each cell row
+/// is pooled horizontally into the 4 cells. No scattered read-modify-write (the old per-pixel vote loop
+/// stalled on store-to-load forwarding when neighbours hit the same bin), no data-dependent branch.
 #[inline(always)]
 pub fn hog_patch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
-    let mut acc = [0.0f32; PAD * PAD * BINS];
+    const L: usize = PATCH;
     let scale = BINS as f32 / std::f32::consts::PI;
-    // Pass 1 over the whole flattened window (vectorises): grey levels, then magnitude and bin position.
-    // Columns 0 and 15 get meaningless values (their neighbours wrap to the adjacent row) and are skipped.
-    let mut f = [0.0f32; PATCH_PIXELS];
-    for (d, s) in f.iter_mut().zip(patch) {
+    let mut f = [0.0f32; PATCH_PIXELS + 2];
+    for (d, s) in f[1..=PATCH_PIXELS].iter_mut().zip(patch) {
         *d = f32::from(*s);
     }
-    let mut mag = [0.0f32; PATCH_PIXELS];
-    let mut pos = [0.0f32; PATCH_PIXELS];
-    for i in PATCH..PATCH_PIXELS - PATCH {
-        let dx = 0.5 * (f[i + 1] - f[i - 1]);
-        let dy = 0.5 * (f[i + PATCH] - f[i - PATCH]);
-        mag[i] = (dx * dx + dy * dy).sqrt();
-        // Bin coordinate + 1: θ·9/π − 0.5 + 1 ∈ [0.5, 9.5].
-        pos[i] = unsigned_angle(dx, dy) * scale + 0.5;
-    }
-    // Pass 2: 8 unconditional votes per interior pixel.
-    for y in 1..PATCH - 1 {
-        let (cy, wy0, wy1) = SPATIAL[y];
-        let row0 = cy * PAD;
-        let row1 = (cy + 1) * PAD;
-        for x in 1..PATCH - 1 {
-            let m = mag[y * PATCH + x];
-            let p = pos[y * PATCH + x];
-            let b = (p as usize).min(9);
-            let frac = p - b as f32;
-            let (b0, b1) = (BIN_LO[b], BIN_HI[b]);
-            let (v0, v1) = (m * (1.0 - frac), m * frac);
-            let (cx, wx0, wx1) = SPATIAL[x];
-            let c00 = (row0 + cx) * BINS;
-            let c01 = (row0 + cx + 1) * BINS;
-            let c10 = (row1 + cx) * BINS;
-            let c11 = (row1 + cx + 1) * BINS;
-            let (w00, w01, w10, w11) = (wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1);
-            acc[c00 + b0] += w00 * v0;
-            acc[c00 + b1] += w00 * v1;
-            acc[c01 + b0] += w01 * v0;
-            acc[c01 + b1] += w01 * v1;
-            acc[c10 + b0] += w10 * v0;
-            acc[c10 + b1] += w10 * v1;
-            acc[c11 + b0] += w11 * v0;
-            acc[c11 + b1] += w11 * v1;
+    // Pass 1, all 14 interior rows (independent, so their long arctangent chains overlap): each pixel's
+    // two bin shares and bins. Columns 0 and 15 get meaningless (finite) values: their tent weight is 0.
+    const R: usize = PATCH - 2;
+    let (mut lo_share, mut hi_share) = ([[0.0f32; L]; R], [[0.0f32; L]; R]);
+    let (mut lo_bin, mut hi_bin) = ([[0.0f32; L]; R], [[0.0f32; L]; R]);
+    for j in 0..R {
+        // Window row j + 1 starts at f[1 + 16(j + 1)]; f[16(j + 1) + x] is its left neighbour of x.
+        let row = 1 + (j + 1) * PATCH;
+        let run = |start: usize| <&[f32; L]>::try_from(&f[start..start + L]);
+        let (Ok(left), Ok(right), Ok(up), Ok(down)) =
+            (run(row - 1), run(row + 1), run(row - PATCH), run(row + PATCH))
+        else {
+            continue;
+        };
+        for x in 0..L {
+            let dx = 0.5 * (right[x] - left[x]);
+            let dy = 0.5 * (down[x] - up[x]);
+            let mag = (dx * dx + dy * dy).sqrt();
+            // Bin coordinate + 1: θ·9/π − 0.5 + 1 ∈ [0.5, 9.5]; lower bin floor − 1 (wrapping to 8).
+            let pos = unsigned_angle(dx, dy) * scale + 0.5;
+            // floor(pos) by the 1.5·2²³ rounding trick on pos − 0.5 (vectorises on any x86-64, unlike
+            // `floor` or a saturating cast). At an exact integer it may answer pos − 1 with frac = 1,
+            // which gives the same two shares: the bin interpolation is continuous there.
+            let b = (((pos - 0.5) + ROUND_MAGIC) - ROUND_MAGIC).clamp(0.0, 9.0);
+            let frac = pos - b;
+            lo_share[j][x] = mag * (1.0 - frac);
+            hi_share[j][x] = mag * frac;
+            lo_bin[j][x] = if b == 0.0 { 8.0 } else { b - 1.0 };
+            hi_bin[j][x] = if b == 9.0 { 0.0 } else { b };
         }
     }
-    let mut ss = 0.0f32;
-    for cy in 0..CELLS {
-        let src = ((cy + 1) * PAD + 1) * BINS;
-        let dst = cy * CELLS * BINS;
-        out[dst..dst + CELLS * BINS].copy_from_slice(&acc[src..src + CELLS * BINS]);
+    // Pass 2, per row: 9 orientation planes pooled into the cell rows.
+    // cols[bin][cell_y][x]: the votes of column x pooled over the rows, per cell row.
+    let mut cols = [[[0.0f32; L]; CELLS]; BINS];
+    for j in 0..R {
+        let (lo_s, hi_s, lo_b, hi_b) = (&lo_share[j], &hi_share[j], &lo_bin[j], &hi_bin[j]);
+        for (k, planes) in cols.iter_mut().enumerate() {
+            let kf = k as f32;
+            let mut plane = [0.0f32; L];
+            for x in 0..L {
+                // Multiplying by 0 or 1 (the shares are finite and ≥ 0): a select the compiler keeps
+                // vectorised.
+                plane[x] = lo_s[x] * f32::from(lo_b[x] == kf) + hi_s[x] * f32::from(hi_b[x] == kf);
+            }
+            for (cell_row, w) in planes.iter_mut().zip(&TENT) {
+                let wy = w[j + 1];
+                if wy != 0.0 {
+                    for x in 0..L {
+                        cell_row[x] += plane[x] * wy;
+                    }
+                }
+            }
+        }
     }
-    for v in out.iter() {
-        ss += v * v;
+    // Horizontal pooling: out[(cy·4 + cx)·9 + k] = Σ_x cols[k][cy][x]·TENT[cx][x], in a fixed tree.
+    let mut sq = [0.0f32; 8];
+    for (k, planes) in cols.iter().enumerate() {
+        for (cy, r) in planes.iter().enumerate() {
+            for (cx, w) in TENT.iter().enumerate() {
+                let mut p = [0.0f32; 8];
+                for i in 0..8 {
+                    p[i] = r[i] * w[i] + r[i + 8] * w[i + 8];
+                }
+                let v = ((p[0] + p[4]) + (p[2] + p[6])) + ((p[1] + p[5]) + (p[3] + p[7]));
+                out[(cy * CELLS + cx) * BINS + k] = v;
+            }
+        }
     }
+    for c in out.chunks_exact(8) {
+        for i in 0..8 {
+            sq[i] += c[i] * c[i];
+        }
+    }
+    let ss = ((sq[0] + sq[4]) + (sq[2] + sq[6])) + ((sq[1] + sq[5]) + (sq[3] + sq[7]));
     let inv = 1.0 / (ss.sqrt() + 1e-8);
     for v in out.iter_mut() {
         *v *= inv;
     }
+}
+
+/// [`hog_patch`] compiled for AVX2 when the CPU has it (the same operations, so the same bits); for
+/// callers outside [`crate::krfws::Krfws::align`], which dispatches once per face.
+pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx512f") {
+        #[target_feature(enable = "avx512f")]
+        fn avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+            hog_patch(patch, out)
+        }
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has AVX-512F (checked just above).
+        return unsafe { avx512(patch, out) };
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        #[target_feature(enable = "avx2")]
+        fn avx2(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+            hog_patch(patch, out)
+        }
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has AVX2 (checked just above).
+        return unsafe { avx2(patch, out) };
+    }
+    hog_patch(patch, out)
 }
 
 /// The readable specification of [`hog_patch`]: `atan2` in `f64`, explicit range checks, no tables.

@@ -11,6 +11,7 @@ pub mod crop;
 pub mod geometry;
 pub mod hog;
 pub mod image;
+pub mod isa;
 pub mod kalman;
 pub mod krfws;
 pub mod math3;

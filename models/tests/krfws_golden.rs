@@ -9,6 +9,7 @@ use std::path::PathBuf;
 
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::image::GrayImage;
+use holoface_models::isa::{self, Isa};
 use holoface_models::krfws::train::nme49_inner;
 use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
 use holoface_models::shape::parse_pts68;
@@ -104,7 +105,7 @@ fn restarts_recover_from_shifted_boxes_better_than_one_start() {
 }
 
 #[test]
-fn dispatched_build_gives_exactly_the_portable_results() {
+fn every_instruction_set_path_gives_exactly_the_portable_results() {
     let root = data_root();
     if !root.is_dir() {
         eprintln!("{} missing: skipping", root.display());
@@ -113,13 +114,25 @@ fn dispatched_build_gives_exactly_the_portable_results() {
     let m = model();
     let (mut s1, mut s2) = (KrfwsScratch::new(), KrfwsScratch::new());
     let (mut o1, mut o2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
+    eprintln!("this CPU: {:?}", isa::detected());
     for (img, gt) in validation_faces(&root).iter().take(20) {
-        let init = m.init_from_box(&Rect::bounding(gt).unwrap());
-        let a = m.align(&img.view(), &init, &mut s1, &mut o1);
-        let b = m.align_portable(&img.view(), &init, &mut s2, &mut o2);
-        assert_eq!(a.to_bits(), b.to_bits());
-        assert_eq!(o1, o2);
-        assert_eq!(s1.last_hog(), s2.last_hog());
+        let b = Rect::bounding(gt).unwrap();
+        // The box, and the box pushed half off the image (windows across the border, zero fill).
+        for shift in [0.0, -0.5 * b.x1, 0.5 * (img.width() as f32 - b.x0)] {
+            let moved = Rect {
+                x0: b.x0 + shift,
+                x1: b.x1 + shift,
+                ..b
+            };
+            let init = m.init_from_box(&moved);
+            let want = m.align_on(Isa::Baseline, &img.view(), &init, &mut s2, &mut o2);
+            for path in [Isa::Avx2, Isa::Avx512] {
+                let got = m.align_on(path, &img.view(), &init, &mut s1, &mut o1);
+                assert_eq!(got.to_bits(), want.to_bits(), "{path:?}");
+                assert_eq!(o1, o2, "{path:?}");
+                assert_eq!(s1.last_hog(), s2.last_hog(), "{path:?}");
+            }
+        }
     }
 }
 

@@ -23,6 +23,7 @@ pub mod train;
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH, PATCH_PIXELS, hog_patch, round_coord};
 use crate::image::GrayView;
+use crate::isa::Isa;
 use crate::shape::{INNER51, dan_mean_shape};
 
 pub use format::ModelError;
@@ -399,20 +400,100 @@ impl<'a> WindowSampler<'a> {
         (Self::fix(a * uf - b * vf + tx), Self::fix(b * uf + a * vf + ty))
     }
 
+    /// Whether every tap of the window at `(u0, v0)` is inside the image with a pixel of margin for the
+    /// row walk's rounding on the top/left and `right` pixels on the right (the taps of a row of the
+    /// window lie between its end points, the end points of the middle rows between the corners').
+    #[inline(always)]
+    fn inside(&self, u0: i64, v0: i64, right: i64) -> bool {
+        let (sa, sb) = self.step;
+        let last = PATCH as i64 - 1;
+        [(0, 0), (last, 0), (0, last), (last, last)]
+            .iter()
+            .all(|&(du, dv)| {
+                let (x, y) = self.at(u0, v0 + dv);
+                let (x, y) = ((x + du * sa) >> 16, (y + du * sb) >> 16);
+                x >= 1 && y >= 1 && x < self.w - right && y < self.h - 2
+            })
+    }
+
+    /// [`WindowSampler::window`] with AVX-512F: one 16-lane row at a time, the four taps of each
+    /// lane fetched by two gathers (two neighbouring bytes each), the same integer arithmetic, so the
+    /// same bytes. Windows that touch the image border, and images too large for 32-bit fixed point,
+    /// take the scalar path.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    #[allow(unsafe_code)]
+    pub unsafe fn window_avx512(&self, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
+        use std::arch::x86_64::*;
+        let (u0, v0) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
+        let (sa, sb) = self.step;
+        let len = self.data.len();
+        // 16.16 positions and byte offsets fit in i32; every 4-byte read stays inside `data`.
+        let small = self.w < 32_768 && self.h < 32_768 && len < (1 << 30) && len >= self.stride + 4;
+        if !(small && self.inside(u0, v0, 4)) {
+            return self.window(p, out);
+        }
+        let stride = self.stride as i32;
+        // Offsets are clamped to the readable range: a no-op given `inside`, and what makes the
+        // gathers memory-safe whatever the arithmetic above concluded.
+        let k_max = _mm512_set1_epi32((len - self.stride - 4) as i32);
+        let zero = _mm512_setzero_si512();
+        let iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        // |15·step| < image size < 2¹⁵ pixels, so the lane offsets fit in i32.
+        let ox = _mm512_mullo_epi32(iota, _mm512_set1_epi32(sa as i32));
+        let oy = _mm512_mullo_epi32(iota, _mm512_set1_epi32(sb as i32));
+        let byte = _mm512_set1_epi32(0xff);
+        let vstride = _mm512_set1_epi32(stride);
+        let base = self.data.as_ptr().cast::<i32>();
+        for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
+            let (x0, y0) = self.at(u0, v0 + dv as i64);
+            let x = _mm512_add_epi32(_mm512_set1_epi32(x0 as i32), ox);
+            let y = _mm512_add_epi32(_mm512_set1_epi32(y0 as i32), oy);
+            let (xi, yi) = (_mm512_srai_epi32::<16>(x), _mm512_srai_epi32::<16>(y));
+            let fx = _mm512_and_si512(_mm512_srai_epi32::<8>(x), byte);
+            let fy = _mm512_and_si512(_mm512_srai_epi32::<8>(y), byte);
+            let k = _mm512_add_epi32(_mm512_mullo_epi32(yi, vstride), xi);
+            let k = _mm512_min_epi32(_mm512_max_epi32(k, zero), k_max);
+            // SAFETY: 0 ≤ k ≤ len − stride − 4, so the 4 bytes at k and at k + stride are in `data`.
+            let (g0, g1) = unsafe {
+                (
+                    _mm512_i32gather_epi32::<1>(k, base),
+                    _mm512_i32gather_epi32::<1>(_mm512_add_epi32(k, vstride), base),
+                )
+            };
+            let p00 = _mm512_and_si512(g0, byte);
+            let p01 = _mm512_and_si512(_mm512_srli_epi32::<8>(g0), byte);
+            let p10 = _mm512_and_si512(g1, byte);
+            let p11 = _mm512_and_si512(_mm512_srli_epi32::<8>(g1), byte);
+            // p00·(256 − fx) + p01·fx = 256·p00 + (p01 − p00)·fx: the same integer, no overflow.
+            let top = _mm512_add_epi32(
+                _mm512_slli_epi32::<8>(p00),
+                _mm512_mullo_epi32(_mm512_sub_epi32(p01, p00), fx),
+            );
+            let bot = _mm512_add_epi32(
+                _mm512_slli_epi32::<8>(p10),
+                _mm512_mullo_epi32(_mm512_sub_epi32(p11, p10), fx),
+            );
+            let v = _mm512_add_epi32(
+                _mm512_slli_epi32::<8>(top),
+                _mm512_mullo_epi32(_mm512_sub_epi32(bot, top), fy),
+            );
+            let v = _mm512_srli_epi32::<16>(_mm512_add_epi32(v, _mm512_set1_epi32(1 << 15)));
+            let bytes = _mm512_cvtepi32_epi8(v);
+            // SAFETY: `row` is 16 bytes.
+            unsafe { _mm_storeu_si128(row.as_mut_ptr().cast(), bytes) };
+        }
+    }
+
     /// The 16×16 window centred on the rounded normalised-frame point `p` (`[p − 8, p + 8)`).
     #[inline(always)]
     pub fn window(&self, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
         let (u0, v0) = (round_coord(p.x) - 8, round_coord(p.y) - 8);
         let (sa, sb) = self.step;
-        let last = PATCH as i64 - 1;
-        // Every tap inside (with a pixel of margin for the row walk's rounding): no per-tap checks.
-        let inside = [(0, 0), (last, 0), (0, last), (last, last)]
-            .iter()
-            .all(|&(du, dv)| {
-                let (x, y) = self.at(u0, v0 + dv);
-                let (x, y) = ((x + du * sa) >> 16, (y + du * sb) >> 16);
-                x >= 1 && y >= 1 && x < self.w - 2 && y < self.h - 2
-            });
+        let inside = self.inside(u0, v0, 2);
         let stride = self.stride;
         for (dv, row) in out.chunks_exact_mut(PATCH).enumerate() {
             let (mut x, mut y) = self.at(u0, v0 + dv as i64);
@@ -459,11 +540,69 @@ impl<'a> WindowSampler<'a> {
     }
 }
 
+/// The kernels one compiled copy of [`Krfws::align`] inlines: the portable ones, or hand-vectorised
+/// ones for an instruction set the running CPU was checked to have (the token types can only be made
+/// by that check). Every implementation gives the same bits.
+pub trait Kernels: Copy {
+    /// [`WindowSampler::window`].
+    fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]);
+}
+
+/// The portable kernels.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Portable;
+
+impl Kernels for Portable {
+    #[inline(always)]
+    fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
+        sampler.window(p, out)
+    }
+}
+
+/// Proof that the CPU has AVX-512F: the AVX-512 kernels.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, Debug)]
+pub struct Avx512(());
+
+#[cfg(target_arch = "x86_64")]
+impl Avx512 {
+    /// The token, when the CPU has AVX-512F.
+    pub fn detect() -> Option<Self> {
+        std::is_x86_feature_detected!("avx512f").then_some(Self(()))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Kernels for Avx512 {
+    #[inline(always)]
+    fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
+        #[allow(unsafe_code)]
+        // SAFETY: an `Avx512` token exists only on a CPU with AVX-512F.
+        unsafe {
+            sampler.window_avx512(p, out)
+        }
+    }
+}
+
 /// Normalised-frame features of one stage: fits `norm_from_image` (current shape → `dest`), writes the
 /// shape in the normalised frame into `norm` and the 51×144 HOG into `hog`. Returns the similarity, or
 /// `None` for a degenerate shape.
 #[inline(always)]
 pub fn stage_features(
+    image: &GrayView<'_>,
+    shape: &[Point2; N_POINTS],
+    dest: &[Point2; N_POINTS],
+    patch: &mut [u8; PATCH_PIXELS],
+    norm: &mut [Point2; N_POINTS],
+    hog: &mut [f32],
+) -> Option<Similarity2> {
+    stage_features_with(Portable, image, shape, dest, patch, norm, hog)
+}
+
+/// [`stage_features`] with the given kernels.
+#[inline(always)]
+pub fn stage_features_with<K: Kernels>(
+    kernels: K,
     image: &GrayView<'_>,
     shape: &[Point2; N_POINTS],
     dest: &[Point2; N_POINTS],
@@ -480,7 +619,7 @@ pub fn stage_features(
     t.apply_all(shape, norm);
     let sampler = WindowSampler::new(image, inv32);
     for (p, row) in norm.iter().zip(hog.chunks_exact_mut(HOG_DIM)) {
-        sampler.window(*p, patch);
+        kernels.window(&sampler, *p, patch);
         if let Ok(r) = <&mut [f32; HOG_DIM]>::try_from(row) {
             hog_patch(patch, r);
         }
@@ -561,20 +700,43 @@ impl Krfws {
         scratch: &mut KrfwsScratch,
         out: &mut [Point2; N_POINTS],
     ) -> f32 {
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            #[allow(unsafe_code)]
-            // SAFETY: `align_avx2` only differs from `align_portable` in being compiled for AVX2, which
-            // the running CPU has (checked just above).
-            return unsafe { self.align_avx2(image, init, scratch, out) };
-        }
-        self.align_portable(image, init, scratch, out)
+        self.align_on(crate::isa::detected(), image, init, scratch, out)
     }
 
-    /// [`Krfws::align`] compiled for AVX2: the same code (inlined below), so the same IEEE operations
-    /// in the same order and bit-identical results, with 8-lane vectors for the window sampling, the HOG
-    /// and the projections (Rust never fuses a multiply and an add on its own, so enabling AVX2 cannot
-    /// change a rounding).
+    /// [`Krfws::align`] on the code path compiled for `isa` when this CPU has it (else the baseline
+    /// path). Every path gives the same bits; tests compare them.
+    pub fn align_on(
+        &self,
+        isa: Isa,
+        image: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+        out: &mut [Point2; N_POINTS],
+    ) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        match isa {
+            Isa::Avx512 => {
+                if let Some(k) = Avx512::detect() {
+                    #[allow(unsafe_code)]
+                    // SAFETY: the token proves the CPU has AVX-512F.
+                    return unsafe { self.align_avx512(k, image, init, scratch, out) };
+                }
+            }
+            Isa::Avx2 => {
+                if std::is_x86_feature_detected!("avx2") {
+                    #[allow(unsafe_code)]
+                    // SAFETY: the CPU has AVX2 (checked just above).
+                    return unsafe { self.align_avx2(image, init, scratch, out) };
+                }
+            }
+            Isa::Baseline => {}
+        }
+        self.align_with(Portable, image, init, scratch, out)
+    }
+
+    /// [`Krfws::align`] compiled for AVX2: the portable kernels (inlined below) as 8-lane vector code,
+    /// the same IEEE operations in the same order, so the same bits (Rust never fuses a multiply and
+    /// an add on its own, so enabling AVX2 cannot change a rounding).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     fn align_avx2(
@@ -584,13 +746,27 @@ impl Krfws {
         scratch: &mut KrfwsScratch,
         out: &mut [Point2; N_POINTS],
     ) -> f32 {
-        self.align_portable(image, init, scratch, out)
+        self.align_with(Portable, image, init, scratch, out)
     }
 
-    /// [`Krfws::align`] for the build's baseline instruction set.
-    #[inline(always)]
-    pub fn align_portable(
+    /// [`Krfws::align`] compiled for AVX-512F: 16-lane vector code and the AVX-512 kernels (same bits).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    fn align_avx512(
         &self,
+        kernels: Avx512,
+        image: &GrayView<'_>,
+        init: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+        out: &mut [Point2; N_POINTS],
+    ) -> f32 {
+        self.align_with(kernels, image, init, scratch, out)
+    }
+
+    #[inline(always)]
+    fn align_with<K: Kernels>(
+        &self,
+        kernels: K,
         image: &GrayView<'_>,
         init: &[Point2; N_POINTS],
         scratch: &mut KrfwsScratch,
@@ -598,7 +774,7 @@ impl Krfws {
     ) -> f32 {
         scratch.shape = self.init_from_previous(init);
         let n = self.stages.len();
-        let score = self.run_stages(image, scratch, 0..n, true);
+        let score = self.run_stages(kernels, image, scratch, 0..n, true);
         *out = scratch.shape;
         score.unwrap_or(f32::INFINITY)
     }
@@ -670,8 +846,9 @@ impl Krfws {
     /// Runs `stages` on `scratch.shape` in place. With `score`, returns the failure score of the last
     /// stage run (else 0).
     #[inline(always)]
-    fn run_stages(
+    fn run_stages<K: Kernels>(
         &self,
+        kernels: K,
         image: &GrayView<'_>,
         scratch: &mut KrfwsScratch,
         stages: std::ops::Range<usize>,
@@ -681,7 +858,8 @@ impl Krfws {
         let last = stages.end.saturating_sub(1);
         for k in stages {
             let stage = self.stages.get(k)?;
-            let t = stage_features(
+            let t = stage_features_with(
+                kernels,
                 image,
                 &scratch.shape,
                 &stage.dest,
@@ -748,6 +926,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_windows_equal_the_scalar_ones() {
+        let Some(k) = Avx512::detect() else {
+            eprintln!("no AVX-512F on this CPU: nothing to compare");
+            return;
+        };
+        let (w, h) = (97usize, 61usize);
+        let img: Vec<u8> = (0..w * h).map(|i| (i * 7919 % 251) as u8).collect();
+        // A stride wider than the image: the padding must never be read as pixels.
+        let stride = w + 5;
+        let mut padded = vec![255u8; stride * h];
+        for y in 0..h {
+            padded[y * stride..y * stride + w].copy_from_slice(&img[y * w..(y + 1) * w]);
+        }
+        let v = GrayView::new(&padded, w, h, stride).unwrap();
+        let (mut a, mut b) = ([0u8; PATCH_PIXELS], [0u8; PATCH_PIXELS]);
+        let mut inside = 0;
+        for (i, (scale, angle)) in [(1.0f32, 0.0f32), (0.7, 0.4), (1.9, -1.2), (0.3, 3.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let t = [scale * angle.cos(), scale * angle.sin(), 3.0 + i as f32, -2.5];
+            let sampler = WindowSampler::new(&v, t);
+            for py in (-12..80).step_by(3) {
+                for px in (-12..110).step_by(3) {
+                    let p = Point2::new(px as f32 + 0.3, py as f32 - 0.2);
+                    sampler.window(p, &mut a);
+                    k.window(&sampler, p, &mut b);
+                    assert_eq!(a, b, "{p:?} {t:?}");
+                    inside += usize::from(a.iter().all(|&x| x != 0));
+                }
+            }
+        }
+        assert!(inside > 100, "the vector path ran on only {inside} windows");
     }
 
     #[test]

@@ -1,0 +1,34 @@
+//! Run-time instruction-set dispatch for the hot loops.
+//!
+//! The kernels (window sampling, HOG, tree routing) are plain Rust written as fixed-width lane loops,
+//! `#[inline(always)]`. Their entry points ([`crate::krfws::Krfws::align`],
+//! [`crate::hog::hog_patch_dispatch`]) have copies compiled with `#[target_feature]` for AVX-512F and
+//! AVX2 and pick one with [`detected`], so the inlined kernels become 16- or 8-lane vector code. Rust
+//! never fuses or reorders floating-point operations on its own, so every copy performs the same IEEE
+//! operations in the same order: the results are bit-identical whichever path runs (tested in
+//! `tests/krfws_golden.rs`).
+
+/// The vector instruction set the dispatching entry points use on this CPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Isa {
+    /// x86-64 with AVX-512F.
+    Avx512,
+    /// x86-64 with AVX2.
+    Avx2,
+    /// The build's baseline (SSE2 on x86-64, NEON on aarch64).
+    Baseline,
+}
+
+/// The best instruction set of this CPU among those we compile for (cached by the standard library).
+pub fn detected() -> Isa {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx512f") {
+            return Isa::Avx512;
+        }
+        if std::is_x86_feature_detected!("avx2") {
+            return Isa::Avx2;
+        }
+    }
+    Isa::Baseline
+}
