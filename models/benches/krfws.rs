@@ -12,7 +12,7 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
 use holoface_models::geometry::{Point2, Rect};
-use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch};
+use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch_dispatch};
 use holoface_models::image::{GrayImage, GrayView};
 #[cfg(target_arch = "x86_64")]
 use holoface_models::krfws::Avx512;
@@ -96,7 +96,11 @@ fn bench_align(c: &mut Criterion) {
     });
     let mut row = [0f32; HOG_DIM];
     g.bench_function("part/hog_51_windows", |b| {
-        b.iter(|| fast::hog51(black_box(&patch), &mut row))
+        b.iter(|| {
+            for _ in 0..N_POINTS {
+                hog_patch_dispatch(black_box(&patch), &mut row);
+            }
+        })
     });
     let mut leaves = vec![0u32; stage.trees.len()];
     g.bench_function("part/route_306_trees", |b| {
@@ -113,40 +117,19 @@ mod fast {
     use super::*;
     use holoface_models::krfws::Stage;
 
-    macro_rules! versions {
-        ($(fn $name:ident($($a:ident: $t:ty),*) $body:block)*) => {$(
-            pub(super) fn $name($($a: $t),*) {
-                #[cfg(target_arch = "x86_64")]
-                {
-                    #[target_feature(enable = "avx512f")]
-                    fn avx512($($a: $t),*) $body
-                    #[target_feature(enable = "avx2")]
-                    fn avx2($($a: $t),*) $body
-                    #[allow(unsafe_code)]
-                    // SAFETY: each copy runs only on a CPU with its feature.
-                    unsafe {
-                        if std::is_x86_feature_detected!("avx512f") {
-                            return avx512($($a),*);
-                        }
-                        if std::is_x86_feature_detected!("avx2") {
-                            return avx2($($a),*);
-                        }
-                    }
-                }
-                $body
+    /// Tree routing of one stage, as `align` runs it.
+    pub(super) fn route(stage: &Stage, hog: &[f32], leaves: &mut [u32]) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(k) = Avx512::detect() {
+            #[target_feature(enable = "avx512f")]
+            fn avx512(k: Avx512, stage: &Stage, hog: &[f32], leaves: &mut [u32]) {
+                stage.leaves_with(k, hog, leaves)
             }
-        )*};
-    }
-
-    versions! {
-        fn hog51(patch: &[u8; PATCH_PIXELS], row: &mut [f32; HOG_DIM]) {
-            for _ in 0..N_POINTS {
-                hog_patch(black_box(patch), row);
-            }
+            #[allow(unsafe_code)]
+            // SAFETY: the token proves AVX-512F.
+            return unsafe { avx512(k, stage, hog, leaves) };
         }
-        fn route(stage: &Stage, hog: &[f32], leaves: &mut [u32]) {
-            stage.leaves(hog, leaves)
-        }
+        stage.leaves(hog, leaves)
     }
 
     /// Window sampling and HOG of one stage, as `align` runs them.

@@ -207,18 +207,123 @@ pub fn hog_patch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     }
 }
 
+/// [`hog_patch`] with AVX-512F intrinsics, operation for operation (one 16-lane vector per window
+/// row), hence the same bits. Differences that cannot change a bit: the orientation planes are
+/// masked adds (the portable build adds `share·1` or `share·0`: the same sums, as one pixel's two
+/// bins always differ), and the border lanes 0 and 15, whose tent weight is 0, are not replicated.
+///
+/// # Safety
+/// The CPU must support AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(unsafe_code)]
+pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+    use std::arch::x86_64::*;
+    let ps = |v: f32| _mm512_set1_ps(v);
+    // Grey levels of 16 consecutive window pixels from `start` (in bounds for 0 ≤ start ≤ 240).
+    let load = |start: usize| -> __m512 {
+        debug_assert!(start + 16 <= PATCH_PIXELS);
+        // SAFETY: start + 16 ≤ 256 at every call below.
+        let b = unsafe { _mm_loadu_si128(patch.as_ptr().add(start).cast()) };
+        _mm512_cvtepi32_ps(_mm512_cvtepu8_epi32(b))
+    };
+    let scale = ps(BINS as f32 / std::f32::consts::PI);
+    let mut cols = [[_mm512_setzero_ps(); CELLS]; BINS];
+    let tent: [__m512; CELLS] = std::array::from_fn(|c| {
+        // SAFETY: TENT rows are 16 values.
+        unsafe { _mm512_loadu_ps(TENT[c].as_ptr()) }
+    });
+    for y in 1..PATCH - 1 {
+        let c = y * PATCH;
+        let dx = _mm512_mul_ps(ps(0.5), _mm512_sub_ps(load(c + 1), load(c - 1)));
+        let dy = _mm512_mul_ps(ps(0.5), _mm512_sub_ps(load(c + PATCH), load(c - PATCH)));
+        let mag = _mm512_sqrt_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)));
+        // unsigned_angle, step by step.
+        let (ax, ay) = (_mm512_abs_ps(dx), _mm512_abs_ps(dy));
+        let (mx, mn) = (_mm512_max_ps(ax, ay), _mm512_min_ps(ax, ay));
+        let t = _mm512_div_ps(mn, _mm512_add_ps(mx, ps(1e-30)));
+        let t2 = _mm512_mul_ps(t, t);
+        let mut p = ps(0.020_835_1);
+        p = _mm512_sub_ps(_mm512_mul_ps(p, t2), ps(0.085_133));
+        p = _mm512_add_ps(_mm512_mul_ps(p, t2), ps(0.180_141));
+        p = _mm512_sub_ps(_mm512_mul_ps(p, t2), ps(0.330_299_5));
+        p = _mm512_add_ps(_mm512_mul_ps(p, t2), ps(0.999_866));
+        let a = _mm512_mul_ps(p, t);
+        let steep = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(ay, ax);
+        let a = _mm512_mask_sub_ps(a, steep, ps(std::f32::consts::FRAC_PI_2), a);
+        let zero = _mm512_setzero_ps();
+        let opposite =
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(dx, zero) ^ _mm512_cmp_ps_mask::<_CMP_LT_OQ>(dy, zero);
+        let a = _mm512_mask_sub_ps(a, opposite, ps(std::f32::consts::PI), a);
+        let pos = _mm512_add_ps(_mm512_mul_ps(a, scale), ps(0.5));
+        let b = _mm512_sub_ps(
+            _mm512_add_ps(_mm512_sub_ps(pos, ps(0.5)), ps(ROUND_MAGIC)),
+            ps(ROUND_MAGIC),
+        );
+        let b = _mm512_min_ps(_mm512_max_ps(b, zero), ps(9.0));
+        let frac = _mm512_sub_ps(pos, b);
+        let lo_share = _mm512_mul_ps(mag, _mm512_sub_ps(ps(1.0), frac));
+        let hi_share = _mm512_mul_ps(mag, frac);
+        // Lower bin b − 1 (b = 0 → 8), upper bin b (b = 9 → 0): pixel in bin k's lower share iff
+        // b = k + 1 (or k = 8 and b = 0); in its upper share iff b = k (or k = 0 and b = 9).
+        let at = |v: f32| _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(b, ps(v));
+        let eq: [__mmask16; 10] = std::array::from_fn(|v| at(v as f32));
+        for (cy, w) in TENT.iter().enumerate() {
+            let wy = w[y];
+            if wy == 0.0 {
+                continue;
+            }
+            let lo_w = _mm512_mul_ps(lo_share, ps(wy));
+            let hi_w = _mm512_mul_ps(hi_share, ps(wy));
+            for (k, planes) in cols.iter_mut().enumerate() {
+                let lo_m = if k == 8 { eq[9] | eq[0] } else { eq[k + 1] };
+                let hi_m = if k == 0 { eq[0] | eq[9] } else { eq[k] };
+                let v = planes[cy];
+                let v = _mm512_mask_add_ps(v, lo_m, v, lo_w);
+                planes[cy] = _mm512_mask_add_ps(v, hi_m, v, hi_w);
+            }
+        }
+    }
+    // Horizontal pooling in the portable tree order, then the L2 normalisation.
+    for (k, planes) in cols.iter().enumerate() {
+        for (cy, r) in planes.iter().enumerate() {
+            for (cx, w) in tent.iter().enumerate() {
+                let prod = _mm512_mul_ps(*r, *w);
+                let lo = _mm512_castps512_ps256(prod);
+                let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(prod)));
+                let p8 = _mm256_add_ps(lo, hi);
+                let q4 = _mm_add_ps(_mm256_castps256_ps128(p8), _mm256_extractf128_ps::<1>(p8));
+                let q2 = _mm_add_ps(q4, _mm_movehl_ps(q4, q4));
+                let v = _mm_cvtss_f32(_mm_add_ss(q2, _mm_shuffle_ps::<1>(q2, q2)));
+                out[(cy * CELLS + cx) * BINS + k] = v;
+            }
+        }
+    }
+    let mut acc = _mm256_setzero_ps();
+    for c in out.chunks_exact(8) {
+        // SAFETY: chunks of 8 values.
+        let v = unsafe { _mm256_loadu_ps(c.as_ptr()) };
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(v, v));
+    }
+    let mut lanes = [0.0f32; 8];
+    // SAFETY: 8 values.
+    unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), acc) };
+    let ss =
+        ((lanes[0] + lanes[4]) + (lanes[2] + lanes[6])) + ((lanes[1] + lanes[5]) + (lanes[3] + lanes[7]));
+    let inv = 1.0 / (ss.sqrt() + 1e-8);
+    for v in out.iter_mut() {
+        *v *= inv;
+    }
+}
+
 /// [`hog_patch`] compiled for AVX2 when the CPU has it (the same operations, so the same bits); for
 /// callers outside [`crate::krfws::Krfws::align`], which dispatches once per face.
 pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx512f") {
-        #[target_feature(enable = "avx512f")]
-        fn avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
-            hog_patch(patch, out)
-        }
         #[allow(unsafe_code)]
         // SAFETY: the CPU has AVX-512F (checked just above).
-        return unsafe { avx512(patch, out) };
+        return unsafe { hog_patch_avx512(patch, out) };
     }
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
@@ -408,6 +513,46 @@ mod tests {
             }
             let norm: f32 = f.iter().map(|v| v * v).sum::<f32>().sqrt();
             assert!((norm - 1.0).abs() < 1e-4);
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx512_kernel_gives_the_portable_bits() {
+        if !std::is_x86_feature_detected!("avx512f") {
+            eprintln!("no AVX-512F on this CPU: nothing to compare");
+            return;
+        }
+        let mut s = 0x9e37_79b9_u32;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 17;
+            s ^= s << 5;
+            s
+        };
+        for case in 0..300 {
+            // Noise, smooth ramps at every angle (bin boundaries), flat and saturated patches.
+            let (a, b) = ((next() % 9) as f32 - 4.0, (next() % 9) as f32 - 4.0);
+            let p: [u8; PATCH_PIXELS] = std::array::from_fn(|i| match case % 4 {
+                0 => (next() >> 24) as u8,
+                1 => (128.0 + a * (i % PATCH) as f32 + b * (i / PATCH) as f32) as u8,
+                2 => {
+                    if (i % PATCH) * 3 > (i / PATCH) * 2 + 7 {
+                        255
+                    } else {
+                        0
+                    }
+                }
+                _ => 77,
+            });
+            let (mut want, mut got) = ([0.0; HOG_DIM], [1.0; HOG_DIM]);
+            hog_patch(&p, &mut want);
+            #[allow(unsafe_code)]
+            // SAFETY: AVX-512F checked above.
+            unsafe {
+                hog_patch_avx512(&p, &mut got)
+            };
+            assert_eq!(want.map(f32::to_bits), got.map(f32::to_bits), "case {case}");
         }
     }
 

@@ -8,10 +8,11 @@
 use std::path::PathBuf;
 
 use holoface_models::geometry::{Point2, Rect};
+use holoface_models::hog::PATCH_PIXELS;
 use holoface_models::image::GrayImage;
 use holoface_models::isa::{self, Isa};
 use holoface_models::krfws::train::nme49_inner;
-use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
+use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, Portable, stage_features};
 use holoface_models::shape::parse_pts68;
 
 /// Mean validation NME49 from the GT box, as written by `holoface train-krfws` into `krfws.json`.
@@ -115,6 +116,10 @@ fn every_instruction_set_path_gives_exactly_the_portable_results() {
     let (mut s1, mut s2) = (KrfwsScratch::new(), KrfwsScratch::new());
     let (mut o1, mut o2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
     eprintln!("this CPU: {:?}", isa::detected());
+    assert!(
+        m.stages().iter().all(|s| s.streams_f16()),
+        "a stored model has exact f16 copies"
+    );
     for (img, gt) in validation_faces(&root).iter().take(20) {
         let b = Rect::bounding(gt).unwrap();
         // The box, and the box pushed half off the image (windows across the border, zero fill).
@@ -132,6 +137,49 @@ fn every_instruction_set_path_gives_exactly_the_portable_results() {
                 assert_eq!(o1, o2, "{path:?}");
                 assert_eq!(s1.last_hog(), s2.last_hog(), "{path:?}");
             }
+        }
+    }
+}
+
+#[test]
+fn pipelined_routing_reaches_the_same_leaves_as_features_then_routing() {
+    let root = data_root();
+    if !root.is_dir() {
+        eprintln!("{} missing: skipping", root.display());
+        return;
+    }
+    let m = model();
+    let mut patch = [0u8; PATCH_PIXELS];
+    let (mut norm1, mut norm2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
+    let (mut hog1, mut hog2) = (vec![0f32; FAILURE_DIM], vec![0f32; FAILURE_DIM]);
+    for (img, gt) in validation_faces(&root).iter().take(10) {
+        let init = m.init_from_box(&Rect::bounding(gt).unwrap());
+        for stage in m.stages() {
+            let mut want = vec![0u32; stage.trees.len()];
+            let mut got = vec![7u32; stage.trees.len()];
+            stage_features(
+                &img.view(),
+                &init,
+                stage.dest(),
+                &mut patch,
+                &mut norm1,
+                &mut hog1,
+            )
+            .unwrap();
+            stage.leaves(&hog1, &mut want);
+            stage
+                .features_and_leaves(
+                    Portable,
+                    &img.view(),
+                    &init,
+                    &mut patch,
+                    &mut norm2,
+                    &mut hog2,
+                    &mut got,
+                )
+                .unwrap();
+            assert_eq!(hog1, hog2);
+            assert_eq!(want, got);
         }
     }
 }

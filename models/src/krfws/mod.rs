@@ -84,6 +84,15 @@ pub struct Tree {
 }
 
 impl Tree {
+    /// The projection of internal node `node`.
+    #[inline(always)]
+    pub fn projection(&self, node: usize) -> Option<&[f32; HOG_DIM]> {
+        self.projections
+            .get(node * HOG_DIM..(node + 1) * HOG_DIM)?
+            .try_into()
+            .ok()
+    }
+
     /// The leaf `hog` reaches. The tree must be valid (the loader and the trainer guarantee it); an
     /// out-of-range child stops at leaf 0 instead of panicking.
     #[inline]
@@ -120,6 +129,13 @@ pub struct Stage {
     pub weights: Vec<f32>,
     /// Global index of each tree's leaf 0 (prefix sums of `n_leaves`); derived.
     leaf_offsets: Vec<u32>,
+    /// Every tree's nodes in the vector kernels' layout, tree after tree (empty unless every
+    /// projection is exactly an f16); derived.
+    packed: Vec<PackedNode>,
+    /// Index of each tree's root in `packed`.
+    packed_offsets: Vec<u32>,
+    /// `W` as f16 bit patterns (empty unless every value is exactly an f16); derived.
+    half_weights: Vec<u16>,
     /// The stage's destination shape in the normalised frame; derived from the mean shape and scale.
     dest: [Point2; N_POINTS],
 }
@@ -139,14 +155,70 @@ impl Stage {
             leaf_offsets.push(acc);
             acc = acc.saturating_add(t.n_leaves);
         }
-        Self {
+        let mut stage = Self {
             scale,
             trees_per_forest,
             trees,
             weights,
             leaf_offsets,
+            packed: Vec::new(),
+            packed_offsets: Vec::new(),
+            half_weights: Vec::new(),
             dest: stage_dest(mean, scale),
+        };
+        stage.derive_packed();
+        stage
+    }
+
+    /// Rebuilds the f16 copies the vector kernels stream (after the trees or `W` changed): every
+    /// node as a [`PackedNode`] and `W` as f16, each only if every value is exactly an f16 (a stored
+    /// model is: see `Krfws::round_to_storage`), so the copies hold the same values as the f32 ones.
+    pub(crate) fn derive_packed(&mut self) {
+        fn exact_f16(v: f32) -> Option<u16> {
+            let h = half::f16::from_f32(v);
+            (h.to_f32().to_bits() == v.to_bits()).then_some(h.to_bits())
         }
+        self.packed.clear();
+        self.packed_offsets.clear();
+        'trees: for t in &self.trees {
+            self.packed_offsets.push(self.packed.len() as u32);
+            for (i, n) in t.nodes.iter().enumerate() {
+                let mut proj = [0u16; HOG_DIM];
+                for (h, &v) in proj.iter_mut().zip(t.projection(i).into_iter().flatten()) {
+                    match exact_f16(v) {
+                        Some(b) => *h = b,
+                        None => {
+                            self.packed.clear();
+                            self.packed_offsets.clear();
+                            break 'trees;
+                        }
+                    }
+                }
+                self.packed.push(PackedNode {
+                    proj,
+                    threshold: n.threshold,
+                    left: n.left,
+                    right: n.right,
+                });
+            }
+        }
+        self.half_weights = self
+            .weights
+            .iter()
+            .map(|&v| exact_f16(v))
+            .collect::<Option<_>>()
+            .unwrap_or_default();
+    }
+
+    /// Internal node `node` of tree `k` in the packed layout, if the stage has it.
+    #[inline(always)]
+    fn packed_node(&self, k: usize, node: usize) -> Option<&PackedNode> {
+        let first = *self.packed_offsets.get(k)? as usize;
+        let n = self.trees.get(k)?.nodes.len();
+        if node >= n {
+            return None;
+        }
+        self.packed.get(first + node)
     }
 
     /// Total leaves over all trees.
@@ -159,6 +231,11 @@ impl Stage {
         &self.dest
     }
 
+    /// Whether the vector kernels stream the f16 copies (true for any stored model).
+    pub fn streams_f16(&self) -> bool {
+        !self.packed.is_empty() && !self.half_weights.is_empty()
+    }
+
     /// Global leaf indices reached by the 51 HOG rows, one per tree, into `leaves`
     /// (`trees.len()` entries).
     ///
@@ -166,45 +243,111 @@ impl Stage {
     /// trees are independent and overlap in memory (the stage's projections do not fit in cache).
     #[inline(always)]
     pub fn leaves(&self, hog: &[f32], leaves: &mut [u32]) {
-        const DONE: u32 = 1 << 31;
-        let t = self.trees_per_forest.max(1);
+        self.leaves_with(Portable, hog, leaves)
+    }
+
+    /// [`Stage::leaves`] with the given kernels.
+    #[inline(always)]
+    pub fn leaves_with<K: Kernels>(&self, kernels: K, hog: &[f32], leaves: &mut [u32]) {
         leaves.fill(0);
+        for k in 0..self.trees.len() {
+            kernels.prefetch_node(self, k, 0);
+        }
+        self.drain(kernels, hog, leaves);
+    }
+
+    /// Advances every unfinished tree a level at a time until all reached their leaves, then turns
+    /// the per-tree leaves into global leaf indices.
+    #[inline(always)]
+    fn drain<K: Kernels>(&self, kernels: K, hog: &[f32], leaves: &mut [u32]) {
+        let t = self.trees_per_forest.max(1);
         loop {
             let mut active = false;
-            for (k, (tree, state)) in self.trees.iter().zip(leaves.iter_mut()).enumerate() {
-                if *state & DONE != 0 {
-                    continue;
-                }
-                let l = k / t;
-                let idx = *state as usize;
-                let (Some(node), Some(proj), Some(row)) = (
-                    tree.nodes.get(idx),
-                    tree.projections.get(idx * HOG_DIM..(idx + 1) * HOG_DIM),
-                    hog.get(l * HOG_DIM..(l + 1) * HOG_DIM)
-                        .and_then(|r| <&[f32; HOG_DIM]>::try_from(r).ok()),
-                ) else {
-                    *state = DONE;
-                    continue;
-                };
-                let next = if dot144(proj, row) <= node.threshold {
-                    node.left
-                } else {
-                    node.right
-                };
-                *state = if next < 0 {
-                    DONE | (-(next + 1)) as u32
-                } else {
-                    active = true;
-                    next as u32
-                };
+            for (k, state) in leaves.iter_mut().enumerate() {
+                active |= self.step(kernels, k, hog_row(hog, k / t), state);
             }
             if !active {
                 break;
             }
         }
         for (state, off) in leaves.iter_mut().zip(&self.leaf_offsets) {
-            *state = off + (*state & !DONE);
+            *state = off + (*state & !ROUTE_DONE);
         }
+    }
+
+    /// Moves tree `k` one node down on `row`. `state` is the current internal node, or
+    /// [`ROUTE_DONE`] `|` the reached leaf. Returns whether the tree has further to go. Asks the
+    /// caches for the next node, or for the leaf's `W` row, as soon as it is known.
+    #[inline(always)]
+    fn step<K: Kernels>(&self, kernels: K, k: usize, row: Option<&[f32; HOG_DIM]>, state: &mut u32) -> bool {
+        if *state & ROUTE_DONE != 0 {
+            return false;
+        }
+        let Some(next) = row.and_then(|r| kernels.descend(self, k, *state as usize, r)) else {
+            *state = ROUTE_DONE;
+            return false;
+        };
+        if next < 0 {
+            let leaf = (-(next + 1)) as u32;
+            kernels.prefetch_row(
+                self,
+                (self.leaf_offsets.get(k).copied().unwrap_or(0) + leaf) as usize,
+            );
+            *state = ROUTE_DONE | leaf;
+            false
+        } else {
+            kernels.prefetch_node(self, k, next as usize);
+            *state = next as u32;
+            true
+        }
+    }
+
+    /// [`stage_features_with`] and [`Stage::leaves_with`] in one pass, software-pipelined: after each
+    /// landmark's window and HOG, the trees of the last [`ROUTE_LAG`] landmarks go one level down, so
+    /// each next node is asked for a whole HOG computation before it is needed and the node traffic
+    /// (the stage's nodes do not fit in L2) overlaps the arithmetic. The same leaves as the two calls
+    /// in sequence (each tree takes the same path; only the order of the trees' steps differs).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    pub fn features_and_leaves<K: Kernels>(
+        &self,
+        kernels: K,
+        image: &GrayView<'_>,
+        shape: &[Point2; N_POINTS],
+        patch: &mut [u8; PATCH_PIXELS],
+        norm: &mut [Point2; N_POINTS],
+        hog: &mut [f32],
+        leaves: &mut [u32],
+    ) -> Option<Similarity2> {
+        let (t, sampler) = stage_frame(image, shape, &self.dest, norm)?;
+        let tpf = self.trees_per_forest.max(1);
+        leaves.fill(0);
+        let roots = |l: usize| {
+            for k in l * tpf..((l + 1) * tpf).min(self.trees.len()) {
+                kernels.prefetch_node(self, k, 0);
+            }
+        };
+        roots(0);
+        for (l, p) in norm.iter().enumerate() {
+            roots(l + 1);
+            kernels.window(&sampler, *p, patch);
+            if let Some(row) = hog
+                .get_mut(l * HOG_DIM..(l + 1) * HOG_DIM)
+                .and_then(|r| <&mut [f32; HOG_DIM]>::try_from(r).ok())
+            {
+                kernels.hog(patch, row);
+            }
+            for m in (l + 1).saturating_sub(ROUTE_LAG)..=l {
+                let row = hog_row(hog, m);
+                for k in m * tpf..(m + 1) * tpf {
+                    if let Some(state) = leaves.get_mut(k) {
+                        self.step(kernels, k, row, state);
+                    }
+                }
+            }
+        }
+        self.drain(kernels, hog, leaves);
+        Some(t)
     }
 
     /// Adds the `W` rows of `leaves` into `delta` (102 values).
@@ -220,6 +363,51 @@ impl Stage {
             }
         }
     }
+}
+
+/// A node laid out for the vector kernels: its projection as f16 and its test, in one 64-byte-aligned
+/// block of five cache lines (one prefetch stream per node visit, no separate miss on the test).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(64))]
+struct PackedNode {
+    proj: [u16; HOG_DIM],
+    threshold: f32,
+    left: i32,
+    right: i32,
+}
+
+/// Marks a finished tree in the routing state (the low bits hold its leaf).
+const ROUTE_DONE: u32 = 1 << 31;
+
+/// Landmarks whose trees advance after each HOG in [`Stage::features_and_leaves`]: the trees' depth,
+/// so a tree usually finishes inside the pipeline.
+const ROUTE_LAG: usize = 5;
+
+/// Row `l` of a 51×144 HOG.
+#[inline(always)]
+fn hog_row(hog: &[f32], l: usize) -> Option<&[f32; HOG_DIM]> {
+    hog.get(l * HOG_DIM..(l + 1) * HOG_DIM)?.try_into().ok()
+}
+
+/// Asks the caches for every line of `data` (a hint: it never faults and never changes a result).
+#[inline(always)]
+fn prefetch<T>(data: Option<&[T]>) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(d) = data {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let p = d.as_ptr().cast::<i8>();
+        let skew = p as usize % 64;
+        let first = p.wrapping_sub(skew);
+        for o in (0..size_of_val(d) + skew).step_by(64) {
+            #[allow(unsafe_code)]
+            // SAFETY: a prefetch reads nothing and never faults, whatever the address.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(first.wrapping_add(o))
+            };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = data;
 }
 
 /// The failure detector: `score = weights·hog + intercept`, a ridge regression of the fit's NME49
@@ -340,16 +528,105 @@ fn box_template() -> ([Point2; N_POINTS], f32, f32) {
     )
 }
 
-/// Dot product of two 144-vectors with 8 independent accumulators (vectorises).
+/// Dot product of a 144-d projection and a HOG row, in the one summation order every build uses:
+/// 16 lane sums over the 9 blocks of 16, then a halving tree (lane i + lane i+8, then +4, +2, +1).
+/// The order is the AVX-512 kernel's; the portable build vectorises it too. A shorter `a` counts its
+/// missing values as 0 (the loader guarantees 144).
 #[inline(always)]
 pub(crate) fn dot144(a: &[f32], b: &[f32; HOG_DIM]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    for (x, y) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
-        for k in 0..8 {
-            acc[k] += x[k] * y[k];
+    let mut acc = [0.0f32; 16];
+    for (x, y) in a.chunks_exact(16).zip(b.chunks_exact(16)) {
+        for i in 0..16 {
+            acc[i] += x[i] * y[i];
         }
     }
-    (acc[0] + acc[4]) + (acc[1] + acc[5]) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
+    let s8: [f32; 8] = std::array::from_fn(|i| acc[i] + acc[i + 8]);
+    let s4: [f32; 4] = std::array::from_fn(|i| s8[i] + s8[i + 4]);
+    (s4[0] + s4[2]) + (s4[1] + s4[3])
+}
+
+/// A node's projection in either storage (f16 → f32 is exact: the same products).
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+enum Proj<'a> {
+    Full(&'a [f32; HOG_DIM]),
+    Half(&'a [u16; HOG_DIM]),
+}
+
+/// [`dot144`] with AVX-512F, operation for operation.
+///
+/// # Safety
+/// The CPU must support AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(unsafe_code)]
+#[inline]
+unsafe fn dot144_avx512(a: Proj<'_>, b: &[f32; HOG_DIM]) -> f32 {
+    use std::arch::x86_64::*;
+    let mut acc = _mm512_setzero_ps();
+    for j in 0..HOG_DIM / 16 {
+        // SAFETY: 16·j + 16 ≤ 144 values of each array.
+        let (x, y) = unsafe {
+            (
+                match a {
+                    Proj::Full(p) => _mm512_loadu_ps(p.as_ptr().add(16 * j)),
+                    Proj::Half(h) => _mm512_cvtph_ps(_mm256_loadu_si256(h.as_ptr().add(16 * j).cast())),
+                },
+                _mm512_loadu_ps(b.as_ptr().add(16 * j)),
+            )
+        };
+        acc = _mm512_add_ps(acc, _mm512_mul_ps(x, y));
+    }
+    let lo = _mm512_castps512_ps256(acc);
+    let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(acc)));
+    let s8 = _mm256_add_ps(lo, hi);
+    let s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_extractf128_ps::<1>(s8));
+    let s2 = _mm_add_ps(s4, _mm_movehl_ps(s4, s4));
+    let s1 = _mm_add_ss(s2, _mm_shuffle_ps::<1>(s2, s2));
+    _mm_cvtss_f32(s1)
+}
+
+/// [`Stage::accumulate`] from the f16 copy of `W` with AVX-512F: the same values added in the same
+/// order per output, so the same bits.
+///
+/// # Safety
+/// The CPU must support AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(unsafe_code)]
+#[inline]
+unsafe fn accumulate_half_avx512(half: &[u16], leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
+    use std::arch::x86_64::*;
+    const FULL: usize = DELTA_DIM / 16; // 6 full vectors, then 6 values
+    const TAIL: __mmask16 = (1 << (DELTA_DIM - 16 * FULL)) - 1;
+    let mut acc = [_mm512_setzero_ps(); FULL + 1];
+    for &leaf in leaves {
+        let s = leaf as usize * DELTA_DIM;
+        let Some(row) = half.get(s..s + DELTA_DIM) else {
+            continue;
+        };
+        for (j, a) in acc.iter_mut().enumerate() {
+            // SAFETY: the full blocks end at 96 ≤ 102; the tail load reads only its 6 lanes.
+            let w = unsafe {
+                if j < FULL {
+                    _mm256_loadu_si256(row.as_ptr().add(16 * j).cast())
+                } else {
+                    _mm256_maskz_loadu_epi16(TAIL, row.as_ptr().add(16 * j).cast())
+                }
+            };
+            *a = _mm512_add_ps(*a, _mm512_cvtph_ps(w));
+        }
+    }
+    for (j, a) in acc.iter().enumerate() {
+        // SAFETY: as above, for the 102 outputs.
+        unsafe {
+            if j < FULL {
+                _mm512_storeu_ps(delta.as_mut_ptr().add(16 * j), *a);
+            } else {
+                _mm512_mask_storeu_ps(delta.as_mut_ptr().add(16 * j), TAIL, *a);
+            }
+        }
+    }
 }
 
 /// KRFWS's window sampler: bilinear, zero fill, in fixed point. Image coordinates are tracked in 16.16
@@ -546,6 +823,17 @@ impl<'a> WindowSampler<'a> {
 pub trait Kernels: Copy {
     /// [`WindowSampler::window`].
     fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]);
+    /// [`hog_patch`].
+    fn hog(self, patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]);
+    /// The child internal node `node` of tree `k` sends `row` to (the [`Node`] convention), using
+    /// [`dot144`]'s summation order; `None` for a node the tree does not have.
+    fn descend(self, stage: &Stage, k: usize, node: usize, row: &[f32; HOG_DIM]) -> Option<i32>;
+    /// Asks the caches for what [`Kernels::descend`] will read for node `node` of tree `k`.
+    fn prefetch_node(self, stage: &Stage, k: usize, node: usize);
+    /// Asks the caches for row `row` of `W` as [`Kernels::accumulate`] will read it.
+    fn prefetch_row(self, stage: &Stage, row: usize);
+    /// [`Stage::accumulate`].
+    fn accumulate(self, stage: &Stage, leaves: &[u32], delta: &mut [f32; DELTA_DIM]);
 }
 
 /// The portable kernels.
@@ -557,9 +845,38 @@ impl Kernels for Portable {
     fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
         sampler.window(p, out)
     }
+    #[inline(always)]
+    fn hog(self, patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+        hog_patch(patch, out)
+    }
+    #[inline(always)]
+    fn descend(self, stage: &Stage, k: usize, node: usize, row: &[f32; HOG_DIM]) -> Option<i32> {
+        let tree = stage.trees.get(k)?;
+        let n = tree.nodes.get(node)?;
+        let d = dot144(tree.projection(node)?, row);
+        Some(if d <= n.threshold { n.left } else { n.right })
+    }
+    #[inline(always)]
+    fn prefetch_node(self, stage: &Stage, k: usize, node: usize) {
+        prefetch(
+            stage
+                .trees
+                .get(k)
+                .and_then(|t| t.projection(node))
+                .map(|p| &p[..]),
+        );
+    }
+    #[inline(always)]
+    fn prefetch_row(self, stage: &Stage, row: usize) {
+        prefetch(stage.weights.get(row * DELTA_DIM..(row + 1) * DELTA_DIM));
+    }
+    #[inline(always)]
+    fn accumulate(self, stage: &Stage, leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
+        stage.accumulate(leaves, delta)
+    }
 }
 
-/// Proof that the CPU has AVX-512F: the AVX-512 kernels.
+/// Proof that the CPU has AVX-512F: the AVX-512 kernels (and the f16 copies of the model).
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy, Debug)]
 pub struct Avx512(());
@@ -573,15 +890,66 @@ impl Avx512 {
 }
 
 #[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)] // SAFETY (every block below): an `Avx512` token exists only on a CPU with AVX-512F.
 impl Kernels for Avx512 {
     #[inline(always)]
     fn window(self, sampler: &WindowSampler<'_>, p: Point2, out: &mut [u8; PATCH_PIXELS]) {
-        #[allow(unsafe_code)]
-        // SAFETY: an `Avx512` token exists only on a CPU with AVX-512F.
-        unsafe {
-            sampler.window_avx512(p, out)
+        unsafe { sampler.window_avx512(p, out) }
+    }
+    #[inline(always)]
+    fn hog(self, patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+        unsafe { crate::hog::hog_patch_avx512(patch, out) }
+    }
+    #[inline(always)]
+    fn descend(self, stage: &Stage, k: usize, node: usize, row: &[f32; HOG_DIM]) -> Option<i32> {
+        if let Some(n) = stage.packed_node(k, node) {
+            let d = unsafe { dot144_avx512(Proj::Half(&n.proj), row) };
+            return Some(if d <= n.threshold { n.left } else { n.right });
+        }
+        let tree = stage.trees.get(k)?;
+        let n = tree.nodes.get(node)?;
+        let d = unsafe { dot144_avx512(Proj::Full(tree.projection(node)?), row) };
+        Some(if d <= n.threshold { n.left } else { n.right })
+    }
+    #[inline(always)]
+    fn prefetch_node(self, stage: &Stage, k: usize, node: usize) {
+        match stage.packed_node(k, node) {
+            Some(n) => prefetch(Some(std::slice::from_ref(n))),
+            None => Portable.prefetch_node(stage, k, node),
         }
     }
+    #[inline(always)]
+    fn prefetch_row(self, stage: &Stage, row: usize) {
+        match stage.half_weights.get(row * DELTA_DIM..(row + 1) * DELTA_DIM) {
+            Some(h) => prefetch(Some(h)),
+            None => Portable.prefetch_row(stage, row),
+        }
+    }
+    #[inline(always)]
+    fn accumulate(self, stage: &Stage, leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
+        if stage.half_weights.is_empty() {
+            return stage.accumulate(leaves, delta);
+        }
+        unsafe { accumulate_half_avx512(&stage.half_weights, leaves, delta) }
+    }
+}
+
+/// The stage's normalised frame: `norm_from_image` (current shape → `dest`), the shape in that frame
+/// (into `norm`) and the window sampler through its inverse; `None` for a degenerate shape.
+#[inline(always)]
+fn stage_frame<'a>(
+    image: &GrayView<'a>,
+    shape: &[Point2; N_POINTS],
+    dest: &[Point2; N_POINTS],
+    norm: &mut [Point2; N_POINTS],
+) -> Option<(Similarity2, WindowSampler<'a>)> {
+    let t = Similarity2::fit(shape, dest)?;
+    let inv32 = t.inverse()?.to_f32_array();
+    if !inv32.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    t.apply_all(shape, norm);
+    Some((t, WindowSampler::new(image, inv32)))
 }
 
 /// Normalised-frame features of one stage: fits `norm_from_image` (current shape → `dest`), writes the
@@ -610,18 +978,11 @@ pub fn stage_features_with<K: Kernels>(
     norm: &mut [Point2; N_POINTS],
     hog: &mut [f32],
 ) -> Option<Similarity2> {
-    let t = Similarity2::fit(shape, dest)?;
-    let inv = t.inverse()?;
-    let inv32 = inv.to_f32_array();
-    if !inv32.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    t.apply_all(shape, norm);
-    let sampler = WindowSampler::new(image, inv32);
+    let (t, sampler) = stage_frame(image, shape, dest, norm)?;
     for (p, row) in norm.iter().zip(hog.chunks_exact_mut(HOG_DIM)) {
         kernels.window(&sampler, *p, patch);
         if let Ok(r) = <&mut [f32; HOG_DIM]>::try_from(row) {
-            hog_patch(patch, r);
+            kernels.hog(patch, r);
         }
     }
     Some(t)
@@ -858,22 +1219,21 @@ impl Krfws {
         let last = stages.end.saturating_sub(1);
         for k in stages {
             let stage = self.stages.get(k)?;
-            let t = stage_features_with(
+            scratch.leaves.resize(stage.trees.len(), 0);
+            let t = stage.features_and_leaves(
                 kernels,
                 image,
                 &scratch.shape,
-                &stage.dest,
                 &mut scratch.patch,
                 &mut scratch.norm,
                 &mut scratch.hog,
+                &mut scratch.leaves,
             )?;
             if k == last && score {
                 result = self.failure.score(&scratch.hog);
                 scratch.last_hog.copy_from_slice(&scratch.hog);
             }
-            scratch.leaves.resize(stage.trees.len(), 0);
-            stage.leaves(&scratch.hog, &mut scratch.leaves);
-            stage.accumulate(&scratch.leaves, &mut scratch.delta);
+            kernels.accumulate(stage, &scratch.leaves, &mut scratch.delta);
             let inv = t.inverse()?;
             for (i, p) in scratch.norm.iter().enumerate() {
                 let q = Point2::new(
