@@ -284,23 +284,41 @@ pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_D
             }
         }
     }
-    // Horizontal pooling in the portable tree order, then the L2 normalisation.
+    // Horizontal pooling in the portable tree order, 16 outputs at a time: the 16 products of one
+    // bin (4 cell rows × 4 cells) are reduced together by shuffles (lane i + lane i+8, then +4, +2, +1
+    // within each product: exactly the portable tree), landing in lane 4·cx + cy.
+    let mut pooled = [0.0f32; HOG_DIM];
+    // Output position of lane 4·cx + cy, without the bin.
+    let slot = _mm512_setr_epi32(0, 36, 72, 108, 9, 45, 81, 117, 18, 54, 90, 126, 27, 63, 99, 135);
     for (k, planes) in cols.iter().enumerate() {
-        for (cy, r) in planes.iter().enumerate() {
-            for (cx, w) in tent.iter().enumerate() {
-                let prod = _mm512_mul_ps(*r, *w);
-                let lo = _mm512_castps512_ps256(prod);
-                let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(prod)));
-                let p8 = _mm256_add_ps(lo, hi);
-                let q4 = _mm_add_ps(_mm256_castps256_ps128(p8), _mm256_extractf128_ps::<1>(p8));
-                let q2 = _mm_add_ps(q4, _mm_movehl_ps(q4, q4));
-                let v = _mm_cvtss_f32(_mm_add_ss(q2, _mm_shuffle_ps::<1>(q2, q2)));
-                out[(cy * CELLS + cx) * BINS + k] = v;
-            }
-        }
+        let p: [__m512; 16] = std::array::from_fn(|i| _mm512_mul_ps(planes[i / 4], tent[i % 4]));
+        let s8: [__m512; 8] = std::array::from_fn(|j| {
+            let (a, b) = (p[2 * j], p[2 * j + 1]);
+            _mm512_add_ps(
+                _mm512_shuffle_f32x4::<0x44>(a, b),
+                _mm512_shuffle_f32x4::<0xEE>(a, b),
+            )
+        });
+        let s4: [__m512; 4] = std::array::from_fn(|m| {
+            let (a, b) = (s8[2 * m], s8[2 * m + 1]);
+            _mm512_add_ps(
+                _mm512_shuffle_f32x4::<0x88>(a, b),
+                _mm512_shuffle_f32x4::<0xDD>(a, b),
+            )
+        });
+        let s2: [__m512; 2] = std::array::from_fn(|u| {
+            let (a, b) = (s4[2 * u], s4[2 * u + 1]);
+            _mm512_add_ps(_mm512_shuffle_ps::<0x44>(a, b), _mm512_shuffle_ps::<0xEE>(a, b))
+        });
+        let (a, b) = (s2[0], s2[1]);
+        let v = _mm512_add_ps(_mm512_shuffle_ps::<0x88>(a, b), _mm512_shuffle_ps::<0xDD>(a, b));
+        let idx = _mm512_add_epi32(slot, _mm512_set1_epi32(k as i32));
+        // SAFETY: every index is below 144 = pooled.len().
+        unsafe { _mm512_i32scatter_ps::<4>(pooled.as_mut_ptr(), idx, v) };
     }
+    // The L2 normalisation (portable order: 8 lane sums, then a fixed tree).
     let mut acc = _mm256_setzero_ps();
-    for c in out.chunks_exact(8) {
+    for c in pooled.chunks_exact(8) {
         // SAFETY: chunks of 8 values.
         let v = unsafe { _mm256_loadu_ps(c.as_ptr()) };
         acc = _mm256_add_ps(acc, _mm256_mul_ps(v, v));
@@ -310,9 +328,10 @@ pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_D
     unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), acc) };
     let ss =
         ((lanes[0] + lanes[4]) + (lanes[2] + lanes[6])) + ((lanes[1] + lanes[5]) + (lanes[3] + lanes[7]));
-    let inv = 1.0 / (ss.sqrt() + 1e-8);
-    for v in out.iter_mut() {
-        *v *= inv;
+    let inv = _mm512_set1_ps(1.0 / (ss.sqrt() + 1e-8));
+    for (o, c) in out.chunks_exact_mut(16).zip(pooled.chunks_exact(16)) {
+        // SAFETY: chunks of 16 values.
+        unsafe { _mm512_storeu_ps(o.as_mut_ptr(), _mm512_mul_ps(_mm512_loadu_ps(c.as_ptr()), inv)) };
     }
 }
 

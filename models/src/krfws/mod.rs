@@ -134,7 +134,8 @@ pub struct Stage {
     packed: Vec<PackedNode>,
     /// Index of each tree's root in `packed`.
     packed_offsets: Vec<u32>,
-    /// `W` as f16 bit patterns (empty unless every value is exactly an f16); derived.
+    /// `W` as f16 bit patterns, rows padded to [`HALF_ROW`] values (empty unless every value is
+    /// exactly an f16); derived.
     half_weights: Vec<u16>,
     /// The stage's destination shape in the normalised frame; derived from the mean shape and scale.
     dest: [Point2; N_POINTS],
@@ -202,12 +203,21 @@ impl Stage {
                 });
             }
         }
-        self.half_weights = self
-            .weights
-            .iter()
-            .map(|&v| exact_f16(v))
-            .collect::<Option<_>>()
-            .unwrap_or_default();
+        // Rows padded to HALF_ROW values, so the kernel loads whole vectors.
+        self.half_weights.clear();
+        for row in self.weights.chunks_exact(DELTA_DIM) {
+            for &v in row {
+                match exact_f16(v) {
+                    Some(b) => self.half_weights.push(b),
+                    None => {
+                        self.half_weights.clear();
+                        return;
+                    }
+                }
+            }
+            self.half_weights
+                .resize(self.half_weights.len() + HALF_ROW - DELTA_DIM, 0);
+        }
     }
 
     /// Internal node `node` of tree `k` in the packed layout, if the stage has it.
@@ -375,6 +385,9 @@ struct PackedNode {
     left: i32,
     right: i32,
 }
+
+/// Row stride of the f16 copy of `W`: 102 values padded to 7 vectors of 16.
+const HALF_ROW: usize = 112;
 
 /// Marks a finished tree in the routing state (the low bits hold its leaf).
 const ROUTE_DONE: u32 = 1 << 31;
@@ -586,8 +599,8 @@ unsafe fn dot144_avx512(a: Proj<'_>, b: &[f32; HOG_DIM]) -> f32 {
     _mm_cvtss_f32(s1)
 }
 
-/// [`Stage::accumulate`] from the f16 copy of `W` with AVX-512F: the same values added in the same
-/// order per output, so the same bits.
+/// [`Stage::accumulate`] from the f16 copy of `W` (rows of [`HALF_ROW`]) with AVX-512F: the same
+/// values added in the same order per output, so the same bits.
 ///
 /// # Safety
 /// The CPU must support AVX-512F.
@@ -597,28 +610,23 @@ unsafe fn dot144_avx512(a: Proj<'_>, b: &[f32; HOG_DIM]) -> f32 {
 #[inline]
 unsafe fn accumulate_half_avx512(half: &[u16], leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
     use std::arch::x86_64::*;
-    const FULL: usize = DELTA_DIM / 16; // 6 full vectors, then 6 values
+    const VECS: usize = HALF_ROW / 16;
+    const FULL: usize = DELTA_DIM / 16; // 6 whole output vectors, then 6 values
     const TAIL: __mmask16 = (1 << (DELTA_DIM - 16 * FULL)) - 1;
-    let mut acc = [_mm512_setzero_ps(); FULL + 1];
+    let mut acc = [_mm512_setzero_ps(); VECS];
     for &leaf in leaves {
-        let s = leaf as usize * DELTA_DIM;
-        let Some(row) = half.get(s..s + DELTA_DIM) else {
+        let s = leaf as usize * HALF_ROW;
+        let Some(row) = half.get(s..s + HALF_ROW) else {
             continue;
         };
         for (j, a) in acc.iter_mut().enumerate() {
-            // SAFETY: the full blocks end at 96 ≤ 102; the tail load reads only its 6 lanes.
-            let w = unsafe {
-                if j < FULL {
-                    _mm256_loadu_si256(row.as_ptr().add(16 * j).cast())
-                } else {
-                    _mm256_maskz_loadu_epi16(TAIL, row.as_ptr().add(16 * j).cast())
-                }
-            };
+            // SAFETY: 16·j + 16 ≤ 112 values of the row.
+            let w = unsafe { _mm256_loadu_si256(row.as_ptr().add(16 * j).cast()) };
             *a = _mm512_add_ps(*a, _mm512_cvtph_ps(w));
         }
     }
     for (j, a) in acc.iter().enumerate() {
-        // SAFETY: as above, for the 102 outputs.
+        // SAFETY: whole vectors end at 96 ≤ 102; the last store writes only its 6 lanes.
         unsafe {
             if j < FULL {
                 _mm512_storeu_ps(delta.as_mut_ptr().add(16 * j), *a);
@@ -920,7 +928,7 @@ impl Kernels for Avx512 {
     }
     #[inline(always)]
     fn prefetch_row(self, stage: &Stage, row: usize) {
-        match stage.half_weights.get(row * DELTA_DIM..(row + 1) * DELTA_DIM) {
+        match stage.half_weights.get(row * HALF_ROW..row * HALF_ROW + DELTA_DIM) {
             Some(h) => prefetch(Some(h)),
             None => Portable.prefetch_row(stage, row),
         }
