@@ -449,7 +449,7 @@ pub fn hog_points(image: &GrayView<'_>, points: &[Point2], out: &mut [f32]) -> R
     for (p, row) in points.iter().zip(out.chunks_exact_mut(HOG_DIM)) {
         window_at(image, *p, &mut patch);
         if let Ok(dst) = <&mut [f32; HOG_DIM]>::try_from(row) {
-            hog_patch(&patch, dst);
+            hog_patch_dispatch(&patch, dst);
         }
     }
     Ok(())
