@@ -14,6 +14,7 @@ use criterion::{Criterion, Throughput, criterion_group};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::hog::{HOG_DIM, PATCH_PIXELS, hog_patch_dispatch};
 use holoface_models::image::{GrayImage, GrayView};
+use holoface_models::isa::Isa;
 #[cfg(target_arch = "x86_64")]
 use holoface_models::krfws::Avx512;
 use holoface_models::krfws::{
@@ -86,6 +87,12 @@ fn bench_align(c: &mut Criterion) {
     g.bench_function("align_3_stages+failure", |b| {
         b.iter(|| model.align(black_box(&view), black_box(&init), &mut scratch, &mut out))
     });
+    // The same on the slower code paths (taken on CPUs without AVX-512 / AVX2).
+    for (name, isa) in [("align/avx2", Isa::Avx2), ("align/baseline", Isa::Baseline)] {
+        g.bench_function(name, |b| {
+            b.iter(|| model.align_on(isa, black_box(&view), black_box(&init), &mut scratch, &mut out))
+        });
+    }
     // The parts of one stage, compiled like `align` (AVX-512F / AVX2 when the CPU has them).
     let stage = &model.stages()[0];
     let mut patch = [0u8; PATCH_PIXELS];
