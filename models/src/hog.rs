@@ -113,8 +113,8 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
 
 /// HOG of one 16×16 window (row-major grey levels) into `out` (144 values).
 ///
-/// Fast path, written as fixed-width lane loops that vectorise (and are compiled for AVX2 by
-/// [`crate::krfws::Krfws::align`]): per window row, the 16 gradients, magnitudes and bin positions;
+/// Portable fast path, written as fixed-width lane loops that vectorise (compiled for AVX2 by
+/// [`crate::krfws::Krfws::align`] on CPUs without AVX-512, which get [`hog_patch_avx512`]): per window row, the 16 gradients, magnitudes and bin positions;
 /// each pixel's two bin shares become 9 orientation planes (a lane holds its share of the bin or 0),
 /// which are pooled vertically into the 4 cell rows with the tent weights; at the end each cell row
 /// is pooled horizontally into the 4 cells. No scattered read-modify-write (the old per-pixel vote loop
@@ -335,8 +335,9 @@ pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_D
     }
 }
 
-/// [`hog_patch`] compiled for AVX2 when the CPU has it (the same operations, so the same bits); for
-/// callers outside [`crate::krfws::Krfws::align`], which dispatches once per face.
+/// The fastest HOG this CPU runs: [`hog_patch_avx512`], else [`hog_patch`] compiled for AVX2, else the
+/// baseline build (the same bits on every path); for callers outside [`crate::krfws::Krfws::align`],
+/// which dispatches once per face.
 pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx512f") {

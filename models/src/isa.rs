@@ -1,12 +1,12 @@
 //! Run-time instruction-set dispatch for the hot loops.
 //!
-//! The kernels (window sampling, HOG, tree routing) are plain Rust written as fixed-width lane loops,
-//! `#[inline(always)]`. Their entry points ([`crate::krfws::Krfws::align`],
-//! [`crate::hog::hog_patch_dispatch`]) have copies compiled with `#[target_feature]` for AVX-512F and
-//! AVX2 and pick one with [`detected`], so the inlined kernels become 16- or 8-lane vector code. Rust
-//! never fuses or reorders floating-point operations on its own, so every copy performs the same IEEE
-//! operations in the same order: the results are bit-identical whichever path runs (tested in
-//! `tests/krfws_golden.rs`).
+//! The kernels (window sampling, HOG, tree routing, `W` sums) are plain Rust written as fixed-width lane
+//! loops, `#[inline(always)]`, plus hand-written AVX-512 versions of them (`krfws::Avx512`). The
+//! entry points ([`crate::krfws::Krfws::align`], [`crate::hog::hog_patch_dispatch`]) pick a copy with
+//! [`detected`]: the AVX-512 kernels, the portable code compiled with `#[target_feature]` for AVX2 (8-lane
+//! vectors), or the baseline build. Rust never fuses or reorders floating-point operations on its own
+//! and the AVX-512 kernels perform the portable code's operations in its order, so the results are
+//! bit-identical whichever path runs (tested in `tests/krfws_golden.rs` and next to each kernel).
 
 /// The vector instruction set the dispatching entry points use on this CPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

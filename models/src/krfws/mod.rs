@@ -15,6 +15,10 @@
 //! 3. the failure score is `w·hog + b` over the last stage's 51×144 HOG taken **before** its update
 //!    (HoloFace's ranking); it regresses the expected NME49 of the result (see [`FailureModel`]).
 //!
+//! **Speed** (ARCHITECTURE.md, "KRFWS inference cost"): sampling, HOG and routing of a stage run
+//! software-pipelined ([`Stage::features_and_leaves`]) through the [`Kernels`] of the CPU ([`Portable`]
+//! or the AVX-512 ones, bit-identical), with the nodes and `W` streamed as the stored f16 values.
+//!
 //! All per-call buffers live in [`KrfwsScratch`]; `align` does not allocate.
 
 pub mod format;
@@ -313,7 +317,7 @@ impl Stage {
     }
 
     /// [`stage_features_with`] and [`Stage::leaves_with`] in one pass, software-pipelined: after each
-    /// landmark's window and HOG, the trees of the last [`ROUTE_LAG`] landmarks go one level down, so
+    /// landmark's window and HOG, the trees of the last `ROUTE_LAG` (5) landmarks go one level down, so
     /// each next node is asked for a whole HOG computation before it is needed and the node traffic
     /// (the stage's nodes do not fit in L2) overlaps the arithmetic. The same leaves as the two calls
     /// in sequence (each tree takes the same path; only the order of the trees' steps differs).
@@ -836,7 +840,7 @@ pub trait Kernels: Copy {
     /// [`hog_patch`].
     fn hog(self, patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]);
     /// The child internal node `node` of tree `k` sends `row` to (the [`Node`] convention), using
-    /// [`dot144`]'s summation order; `None` for a node the tree does not have.
+    /// `dot144`'s summation order; `None` for a node the tree does not have.
     fn descend(self, stage: &Stage, k: usize, node: usize, row: &[f32; HOG_DIM]) -> Option<i32>;
     /// Asks the caches for what [`Kernels::descend`] will read for node `node` of tree `k`.
     fn prefetch_node(self, stage: &Stage, k: usize, node: usize);
