@@ -12,7 +12,7 @@ use holoface_models::hog::PATCH_PIXELS;
 use holoface_models::image::GrayImage;
 use holoface_models::isa::{self, Isa};
 use holoface_models::krfws::train::nme49_inner;
-use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, Portable, stage_features};
+use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, Portable, Stage, stage_features};
 use holoface_models::shape::parse_pts68;
 
 /// Mean validation NME49 from the GT box, as written by `holoface train-krfws` into `krfws.json`.
@@ -137,6 +137,42 @@ fn every_instruction_set_path_gives_exactly_the_portable_results() {
                 assert_eq!(o1, o2, "{path:?}");
                 assert_eq!(s1.last_hog(), s2.last_hog(), "{path:?}");
             }
+        }
+    }
+}
+
+#[test]
+fn paths_agree_on_a_model_without_exact_f16_copies() {
+    // An unrounded model (as the trainer holds it before saving): the vector path must fall back to the
+    // f32 projections and W and still give the portable bits.
+    let root = data_root();
+    if !root.is_dir() {
+        eprintln!("{} missing: skipping", root.display());
+        return;
+    }
+    let m = model();
+    let stages: Vec<Stage> = m
+        .stages()
+        .iter()
+        .map(|s| {
+            let mut trees = s.trees.clone();
+            for t in &mut trees {
+                t.projections.iter_mut().for_each(|v| *v *= 1.000_03);
+            }
+            let w = s.weights.iter().map(|v| v * 1.000_03).collect();
+            Stage::new(m.mean_shape(), s.scale, s.trees_per_forest, trees, w)
+        })
+        .collect();
+    assert!(stages.iter().all(|s| !s.streams_f16()));
+    let odd = Krfws::new(*m.mean_shape(), stages, m.failure().clone());
+    let (mut s1, mut s2) = (KrfwsScratch::new(), KrfwsScratch::new());
+    let (mut o1, mut o2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
+    for (img, gt) in validation_faces(&root).iter().take(10) {
+        let init = odd.init_from_box(&Rect::bounding(gt).unwrap());
+        let want = odd.align_on(Isa::Baseline, &img.view(), &init, &mut s2, &mut o2);
+        for path in [Isa::Avx2, Isa::Avx512] {
+            let got = odd.align_on(path, &img.view(), &init, &mut s1, &mut o1);
+            assert_eq!((got.to_bits(), o1), (want.to_bits(), o2), "{path:?}");
         }
     }
 }

@@ -353,7 +353,7 @@ impl Krfws {
                 round_f16(&mut t.projections);
             }
             round_f16(&mut s.weights);
-            s.derive_packed();
+            s.refresh();
         }
     }
 }

@@ -127,9 +127,10 @@ pub struct Stage {
     pub scale: f32,
     /// Trees per landmark forest.
     pub trees_per_forest: usize,
-    /// `N_POINTS · trees_per_forest` trees, landmark-major.
+    /// `N_POINTS · trees_per_forest` trees, landmark-major (call [`Stage::refresh`] after changing them).
     pub trees: Vec<Tree>,
-    /// `n_leaves × 102` row-major regression matrix, in mean-shape units (multiplied by `scale` at use).
+    /// `n_leaves × 102` row-major regression matrix, in mean-shape units (multiplied by `scale` at use;
+    /// call [`Stage::refresh`] after changing it).
     pub weights: Vec<f32>,
     /// Global index of each tree's leaf 0 (prefix sums of `n_leaves`); derived.
     leaf_offsets: Vec<u32>,
@@ -154,70 +155,74 @@ impl Stage {
         trees: Vec<Tree>,
         weights: Vec<f32>,
     ) -> Self {
-        let mut leaf_offsets = Vec::with_capacity(trees.len());
-        let mut acc = 0u32;
-        for t in &trees {
-            leaf_offsets.push(acc);
-            acc = acc.saturating_add(t.n_leaves);
-        }
         let mut stage = Self {
             scale,
             trees_per_forest,
             trees,
             weights,
-            leaf_offsets,
+            leaf_offsets: Vec::new(),
             packed: Vec::new(),
             packed_offsets: Vec::new(),
             half_weights: Vec::new(),
             dest: stage_dest(mean, scale),
         };
-        stage.derive_packed();
+        stage.refresh();
         stage
     }
 
-    /// Rebuilds the f16 copies the vector kernels stream (after the trees or `W` changed): every
-    /// node as a [`PackedNode`] and `W` as f16, each only if every value is exactly an f16 (a stored
-    /// model is: see `Krfws::round_to_storage`), so the copies hold the same values as the f32 ones.
-    pub(crate) fn derive_packed(&mut self) {
+    /// Rebuilds what is derived from `trees` and `weights`: the leaf offsets and the f16 copies the
+    /// vector kernels stream (every node as a `PackedNode`, `W` as f16 rows). Each copy is made only
+    /// if every value is exactly an f16 (a stored model is: see `Krfws::round_to_storage`), so it holds
+    /// the same numbers as the f32 fields and every path decides alike. [`Stage::new`] calls it; call it
+    /// again after changing `trees` or `weights` in place.
+    pub fn refresh(&mut self) {
         fn exact_f16(v: f32) -> Option<u16> {
             let h = half::f16::from_f32(v);
             (h.to_f32().to_bits() == v.to_bits()).then_some(h.to_bits())
         }
+        self.leaf_offsets.clear();
+        let mut acc = 0u32;
+        for t in &self.trees {
+            self.leaf_offsets.push(acc);
+            acc = acc.saturating_add(t.n_leaves);
+        }
         self.packed.clear();
         self.packed_offsets.clear();
-        'trees: for t in &self.trees {
-            self.packed_offsets.push(self.packed.len() as u32);
-            for (i, n) in t.nodes.iter().enumerate() {
-                let mut proj = [0u16; HOG_DIM];
-                for (h, &v) in proj.iter_mut().zip(t.projection(i).into_iter().flatten()) {
-                    match exact_f16(v) {
-                        Some(b) => *h = b,
-                        None => {
-                            self.packed.clear();
-                            self.packed_offsets.clear();
-                            break 'trees;
-                        }
+        let packed = 'trees: {
+            for t in &self.trees {
+                self.packed_offsets.push(self.packed.len() as u32);
+                for (i, n) in t.nodes.iter().enumerate() {
+                    let Some(p) = t.projection(i) else {
+                        break 'trees false;
+                    };
+                    let mut proj = [0u16; HOG_DIM];
+                    for (h, &v) in proj.iter_mut().zip(p) {
+                        let Some(b) = exact_f16(v) else { break 'trees false };
+                        *h = b;
                     }
+                    self.packed.push(PackedNode {
+                        proj,
+                        threshold: n.threshold,
+                        left: n.left,
+                        right: n.right,
+                    });
                 }
-                self.packed.push(PackedNode {
-                    proj,
-                    threshold: n.threshold,
-                    left: n.left,
-                    right: n.right,
-                });
             }
+            true
+        };
+        if !packed {
+            self.packed.clear();
+            self.packed_offsets.clear();
         }
         // Rows padded to HALF_ROW values, so the kernel loads whole vectors.
         self.half_weights.clear();
         for row in self.weights.chunks_exact(DELTA_DIM) {
             for &v in row {
-                match exact_f16(v) {
-                    Some(b) => self.half_weights.push(b),
-                    None => {
-                        self.half_weights.clear();
-                        return;
-                    }
-                }
+                let Some(b) = exact_f16(v) else {
+                    self.half_weights.clear();
+                    return;
+                };
+                self.half_weights.push(b);
             }
             self.half_weights
                 .resize(self.half_weights.len() + HALF_ROW - DELTA_DIM, 0);
