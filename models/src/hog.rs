@@ -113,8 +113,8 @@ fn unsigned_angle(dx: f32, dy: f32) -> f32 {
 
 /// HOG of one 16×16 window (row-major grey levels) into `out` (144 values).
 ///
-/// Portable fast path, written as fixed-width lane loops that vectorise (compiled for AVX2 by
-/// [`crate::krfws::Krfws::align`] on CPUs without AVX-512, which get [`hog_patch_avx512`]): per window row, the 16 gradients, magnitudes and bin positions;
+/// Portable fast path, written as fixed-width lane loops that vectorise (the specification the vector
+/// kernels [`hog_patch_avx512`] and [`hog_patch_avx2`] reproduce bit for bit): per window row, the 16 gradients, magnitudes and bin positions;
 /// each pixel's two bin shares become 9 orientation planes (a lane holds its share of the bin or 0),
 /// which are pooled vertically into the 4 cell rows with the tent weights; at the end each cell row
 /// is pooled horizontally into the 4 cells. No scattered read-modify-write (the old per-pixel vote loop
@@ -316,7 +316,136 @@ pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_D
         // SAFETY: every index is below 144 = pooled.len().
         unsafe { _mm512_i32scatter_ps::<4>(pooled.as_mut_ptr(), idx, v) };
     }
-    // The L2 normalisation (portable order: 8 lane sums, then a fixed tree).
+    // SAFETY: AVX-512F implies AVX2.
+    unsafe { l2_normalise_avx2(&pooled, out) }
+}
+
+/// [`hog_patch_avx512`] on 8-lane vectors (each window row as two halves), for CPUs with AVX2 but not
+/// AVX-512: the same operations, hence the same bits as [`hog_patch`]. The orientation planes add
+/// `share & mask` (the share or +0: adding +0 to a non-negative sum changes no bit).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(unsafe_code)]
+pub unsafe fn hog_patch_avx2(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
+    use std::arch::x86_64::*;
+    let ps = |v: f32| _mm256_set1_ps(v);
+    // Grey levels of 8 consecutive window pixels from `start` (in bounds for 0 ≤ start ≤ 248).
+    let load = |start: usize| -> __m256 {
+        debug_assert!(start + 8 <= PATCH_PIXELS);
+        // SAFETY: start + 8 ≤ 256 at every call below.
+        let b = unsafe { _mm_loadl_epi64(patch.as_ptr().add(start).cast()) };
+        _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(b))
+    };
+    let scale = ps(BINS as f32 / std::f32::consts::PI);
+    let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let zero = _mm256_setzero_ps();
+    let mut cols = [[[zero; 2]; CELLS]; BINS];
+    let tent: [[__m256; 2]; CELLS] = std::array::from_fn(|c| {
+        // SAFETY: TENT rows are 16 values.
+        std::array::from_fn(|h| unsafe { _mm256_loadu_ps(TENT[c].as_ptr().add(8 * h)) })
+    });
+    for y in 1..PATCH - 1 {
+        for h in 0..2 {
+            let c = y * PATCH + 8 * h;
+            let dx = _mm256_mul_ps(ps(0.5), _mm256_sub_ps(load(c + 1), load(c - 1)));
+            let dy = _mm256_mul_ps(ps(0.5), _mm256_sub_ps(load(c + PATCH), load(c - PATCH)));
+            let mag = _mm256_sqrt_ps(_mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)));
+            let (ax, ay) = (_mm256_and_ps(dx, abs), _mm256_and_ps(dy, abs));
+            let (mx, mn) = (_mm256_max_ps(ax, ay), _mm256_min_ps(ax, ay));
+            let t = _mm256_div_ps(mn, _mm256_add_ps(mx, ps(1e-30)));
+            let t2 = _mm256_mul_ps(t, t);
+            let mut p = ps(0.020_835_1);
+            p = _mm256_sub_ps(_mm256_mul_ps(p, t2), ps(0.085_133));
+            p = _mm256_add_ps(_mm256_mul_ps(p, t2), ps(0.180_141));
+            p = _mm256_sub_ps(_mm256_mul_ps(p, t2), ps(0.330_299_5));
+            p = _mm256_add_ps(_mm256_mul_ps(p, t2), ps(0.999_866));
+            let a = _mm256_mul_ps(p, t);
+            let steep = _mm256_cmp_ps::<_CMP_GT_OQ>(ay, ax);
+            let a = _mm256_blendv_ps(a, _mm256_sub_ps(ps(std::f32::consts::FRAC_PI_2), a), steep);
+            let opposite = _mm256_xor_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(dx, zero),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(dy, zero),
+            );
+            let a = _mm256_blendv_ps(a, _mm256_sub_ps(ps(std::f32::consts::PI), a), opposite);
+            let pos = _mm256_add_ps(_mm256_mul_ps(a, scale), ps(0.5));
+            let b = _mm256_sub_ps(
+                _mm256_add_ps(_mm256_sub_ps(pos, ps(0.5)), ps(ROUND_MAGIC)),
+                ps(ROUND_MAGIC),
+            );
+            let b = _mm256_min_ps(_mm256_max_ps(b, zero), ps(9.0));
+            let frac = _mm256_sub_ps(pos, b);
+            let lo_share = _mm256_mul_ps(mag, _mm256_sub_ps(ps(1.0), frac));
+            let hi_share = _mm256_mul_ps(mag, frac);
+            let eq: [__m256; 10] = std::array::from_fn(|v| _mm256_cmp_ps::<_CMP_EQ_OQ>(b, ps(v as f32)));
+            for (cy, w) in TENT.iter().enumerate() {
+                let wy = w[y];
+                if wy == 0.0 {
+                    continue;
+                }
+                let lo_w = _mm256_mul_ps(lo_share, ps(wy));
+                let hi_w = _mm256_mul_ps(hi_share, ps(wy));
+                for (k, planes) in cols.iter_mut().enumerate() {
+                    let lo_m = if k == 8 {
+                        _mm256_or_ps(eq[9], eq[0])
+                    } else {
+                        eq[k + 1]
+                    };
+                    let hi_m = if k == 0 { _mm256_or_ps(eq[0], eq[9]) } else { eq[k] };
+                    let v = _mm256_add_ps(planes[cy][h], _mm256_and_ps(lo_m, lo_w));
+                    planes[cy][h] = _mm256_add_ps(v, _mm256_and_ps(hi_m, hi_w));
+                }
+            }
+        }
+    }
+    // Horizontal pooling in the portable tree: lane i + lane i+8 (the two halves), then +4, +2, +1 by
+    // shuffles, 8 outputs at a time; output i·9 + k of bin k for product i = 4·cy + cx.
+    let mut pooled = [0.0f32; HOG_DIM];
+    for (k, planes) in cols.iter().enumerate() {
+        let s8: [__m256; 16] = std::array::from_fn(|i| {
+            let (r, w) = (&planes[i / 4], &tent[i % 4]);
+            _mm256_add_ps(_mm256_mul_ps(r[0], w[0]), _mm256_mul_ps(r[1], w[1]))
+        });
+        let s4: [__m256; 8] = std::array::from_fn(|j| {
+            let (a, b) = (s8[2 * j], s8[2 * j + 1]);
+            _mm256_add_ps(
+                _mm256_permute2f128_ps::<0x20>(a, b),
+                _mm256_permute2f128_ps::<0x31>(a, b),
+            )
+        });
+        let s2: [__m256; 4] = std::array::from_fn(|m| {
+            let (a, b) = (s4[2 * m], s4[2 * m + 1]);
+            _mm256_add_ps(_mm256_shuffle_ps::<0x44>(a, b), _mm256_shuffle_ps::<0xEE>(a, b))
+        });
+        for n in 0..2 {
+            let (a, b) = (s2[2 * n], s2[2 * n + 1]);
+            let v = _mm256_add_ps(_mm256_shuffle_ps::<0x88>(a, b), _mm256_shuffle_ps::<0xDD>(a, b));
+            let mut lanes = [0.0f32; 8];
+            // SAFETY: 8 values.
+            unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), v) };
+            // Lane L holds product 8n + 2·(L mod 4) + L div 4.
+            for (l, v) in lanes.into_iter().enumerate() {
+                pooled[(8 * n + 2 * (l % 4) + l / 4) * BINS + k] = v;
+            }
+        }
+    }
+    // SAFETY: the caller guarantees AVX2.
+    unsafe { l2_normalise_avx2(&pooled, out) }
+}
+
+/// The vector kernels' last step: `out = pooled / (‖pooled‖ + 1e-8)` with [`hog_patch`]'s summation
+/// order for the norm (8 lane sums, then a fixed tree).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(unsafe_code)]
+#[inline]
+unsafe fn l2_normalise_avx2(pooled: &[f32; HOG_DIM], out: &mut [f32; HOG_DIM]) {
+    use std::arch::x86_64::*;
     let mut acc = _mm256_setzero_ps();
     for c in pooled.chunks_exact(8) {
         // SAFETY: chunks of 8 values.
@@ -328,15 +457,14 @@ pub unsafe fn hog_patch_avx512(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_D
     unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), acc) };
     let ss =
         ((lanes[0] + lanes[4]) + (lanes[2] + lanes[6])) + ((lanes[1] + lanes[5]) + (lanes[3] + lanes[7]));
-    let inv = _mm512_set1_ps(1.0 / (ss.sqrt() + 1e-8));
-    for (o, c) in out.chunks_exact_mut(16).zip(pooled.chunks_exact(16)) {
-        // SAFETY: chunks of 16 values.
-        unsafe { _mm512_storeu_ps(o.as_mut_ptr(), _mm512_mul_ps(_mm512_loadu_ps(c.as_ptr()), inv)) };
+    let inv = _mm256_set1_ps(1.0 / (ss.sqrt() + 1e-8));
+    for (o, c) in out.chunks_exact_mut(8).zip(pooled.chunks_exact(8)) {
+        // SAFETY: chunks of 8 values.
+        unsafe { _mm256_storeu_ps(o.as_mut_ptr(), _mm256_mul_ps(_mm256_loadu_ps(c.as_ptr()), inv)) };
     }
 }
 
-/// The fastest HOG this CPU runs: [`hog_patch_avx512`], else [`hog_patch`] compiled for AVX2, else the
-/// baseline build (the same bits on every path); for callers outside [`crate::krfws::Krfws::align`],
+/// The fastest HOG this CPU runs: [`hog_patch_avx512`], else [`hog_patch_avx2`], else the baseline build (the same bits on every path); for callers outside [`crate::krfws::Krfws::align`],
 /// which dispatches once per face.
 pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     #[cfg(target_arch = "x86_64")]
@@ -347,13 +475,9 @@ pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) 
     }
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
-        #[target_feature(enable = "avx2")]
-        fn avx2(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
-            hog_patch(patch, out)
-        }
         #[allow(unsafe_code)]
         // SAFETY: the CPU has AVX2 (checked just above).
-        return unsafe { avx2(patch, out) };
+        return unsafe { hog_patch_avx2(patch, out) };
     }
     hog_patch(patch, out)
 }
@@ -538,9 +662,11 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx512_kernel_gives_the_portable_bits() {
-        if !std::is_x86_feature_detected!("avx512f") {
-            eprintln!("no AVX-512F on this CPU: nothing to compare");
+    fn vector_kernels_give_the_portable_bits() {
+        let has512 = std::is_x86_feature_detected!("avx512f");
+        let has2 = std::is_x86_feature_detected!("avx2");
+        if !has2 {
+            eprintln!("no AVX2 on this CPU: nothing to compare");
             return;
         }
         let mut s = 0x9e37_79b9_u32;
@@ -565,14 +691,26 @@ mod tests {
                 }
                 _ => 77,
             });
-            let (mut want, mut got) = ([0.0; HOG_DIM], [1.0; HOG_DIM]);
+            let (mut want, mut got, mut got2) = ([0.0; HOG_DIM], [1.0; HOG_DIM], [1.0; HOG_DIM]);
             hog_patch(&p, &mut want);
             #[allow(unsafe_code)]
-            // SAFETY: AVX-512F checked above.
+            // SAFETY: each kernel runs only if the CPU has its features (checked above).
             unsafe {
-                hog_patch_avx512(&p, &mut got)
-            };
-            assert_eq!(want.map(f32::to_bits), got.map(f32::to_bits), "case {case}");
+                if has512 {
+                    hog_patch_avx512(&p, &mut got);
+                    assert_eq!(
+                        want.map(f32::to_bits),
+                        got.map(f32::to_bits),
+                        "AVX-512, case {case}"
+                    );
+                }
+                hog_patch_avx2(&p, &mut got2);
+            }
+            assert_eq!(
+                want.map(f32::to_bits),
+                got2.map(f32::to_bits),
+                "AVX2, case {case}"
+            );
         }
     }
 

@@ -1,19 +1,19 @@
 //! Run-time instruction-set dispatch for the hot loops.
 //!
 //! The kernels (window sampling, HOG, tree routing, `W` sums) are plain Rust written as fixed-width lane
-//! loops, `#[inline(always)]`, plus hand-written AVX-512 versions of them (`krfws::Avx512`). The
-//! entry points ([`crate::krfws::Krfws::align`], [`crate::hog::hog_patch_dispatch`]) pick a copy with
-//! [`detected`]: the AVX-512 kernels, the portable code compiled with `#[target_feature]` for AVX2 (8-lane
-//! vectors), or the baseline build. Rust never fuses or reorders floating-point operations on its own
-//! and the AVX-512 kernels perform the portable code's operations in its order, so the results are
-//! bit-identical whichever path runs (tested in `tests/krfws_golden.rs` and next to each kernel).
+//! loops, `#[inline(always)]`, plus hand-written AVX-512 and AVX2 versions of them (`krfws::Avx512`,
+//! `krfws::Avx2`). The entry points ([`crate::krfws::Krfws::align`], [`crate::hog::hog_patch_dispatch`])
+//! pick one with [`detected`], else the baseline build. Rust never fuses or reorders floating-point
+//! operations on its own and the vector kernels perform the portable code's operations in its order, so
+//! the results are bit-identical whichever path runs (tested in `tests/krfws_golden.rs` and next to each
+//! kernel).
 
 /// The vector instruction set the dispatching entry points use on this CPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Isa {
     /// x86-64 with AVX-512F.
     Avx512,
-    /// x86-64 with AVX2.
+    /// x86-64 with AVX2 and F16C.
     Avx2,
     /// The build's baseline (SSE2 on x86-64, NEON on aarch64).
     Baseline,
@@ -26,7 +26,7 @@ pub fn detected() -> Isa {
         if std::is_x86_feature_detected!("avx512f") {
             return Isa::Avx512;
         }
-        if std::is_x86_feature_detected!("avx2") {
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("f16c") {
             return Isa::Avx2;
         }
     }

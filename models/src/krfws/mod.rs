@@ -21,8 +21,13 @@
 //!
 //! All per-call buffers live in [`KrfwsScratch`]; `align` does not allocate.
 
+#[cfg(target_arch = "x86_64")]
+mod avx2;
 pub mod format;
 pub mod train;
+
+#[cfg(target_arch = "x86_64")]
+pub use avx2::Avx2;
 
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH, PATCH_PIXELS, hog_patch, round_coord};
@@ -226,6 +231,24 @@ impl Stage {
             }
             self.half_weights
                 .resize(self.half_weights.len() + HALF_ROW - DELTA_DIM, 0);
+        }
+    }
+
+    /// [`Kernels::prefetch_node`] for the vector kernels: the packed node, else the f32 projection.
+    #[inline(always)]
+    fn prefetch_node_f16(&self, k: usize, node: usize) {
+        match self.packed_node(k, node) {
+            Some(n) => prefetch(Some(std::slice::from_ref(n))),
+            None => Portable.prefetch_node(self, k, node),
+        }
+    }
+
+    /// [`Kernels::prefetch_row`] for the vector kernels: the f16 row of `W`, else the f32 one.
+    #[inline(always)]
+    fn prefetch_row_f16(&self, row: usize) {
+        match self.half_weights.get(row * HALF_ROW..row * HALF_ROW + DELTA_DIM) {
+            Some(h) => prefetch(Some(h)),
+            None => Portable.prefetch_row(self, row),
         }
     }
 
@@ -932,17 +955,11 @@ impl Kernels for Avx512 {
     }
     #[inline(always)]
     fn prefetch_node(self, stage: &Stage, k: usize, node: usize) {
-        match stage.packed_node(k, node) {
-            Some(n) => prefetch(Some(std::slice::from_ref(n))),
-            None => Portable.prefetch_node(stage, k, node),
-        }
+        stage.prefetch_node_f16(k, node)
     }
     #[inline(always)]
     fn prefetch_row(self, stage: &Stage, row: usize) {
-        match stage.half_weights.get(row * HALF_ROW..row * HALF_ROW + DELTA_DIM) {
-            Some(h) => prefetch(Some(h)),
-            None => Portable.prefetch_row(stage, row),
-        }
+        stage.prefetch_row_f16(row)
     }
     #[inline(always)]
     fn accumulate(self, stage: &Stage, leaves: &[u32], delta: &mut [f32; DELTA_DIM]) {
@@ -1103,10 +1120,10 @@ impl Krfws {
                 }
             }
             Isa::Avx2 => {
-                if std::is_x86_feature_detected!("avx2") {
+                if let Some(k) = Avx2::detect() {
                     #[allow(unsafe_code)]
-                    // SAFETY: the CPU has AVX2 (checked just above).
-                    return unsafe { self.align_avx2(image, init, scratch, out) };
+                    // SAFETY: the token proves the CPU has AVX2 and F16C.
+                    return unsafe { self.align_avx2(k, image, init, scratch, out) };
                 }
             }
             Isa::Baseline => {}
@@ -1114,19 +1131,20 @@ impl Krfws {
         self.align_with(Portable, image, init, scratch, out)
     }
 
-    /// [`Krfws::align`] compiled for AVX2: the portable kernels (inlined below) as 8-lane vector code,
-    /// the same IEEE operations in the same order, so the same bits (Rust never fuses a multiply and
-    /// an add on its own, so enabling AVX2 cannot change a rounding).
+    /// [`Krfws::align`] compiled for AVX2 and F16C with the AVX2 kernels: 8-lane vectors, the same IEEE
+    /// operations in the same order, so the same bits (Rust never fuses a multiply and an add on its
+    /// own, so enabling AVX2 cannot change a rounding).
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,f16c")]
     fn align_avx2(
         &self,
+        kernels: Avx2,
         image: &GrayView<'_>,
         init: &[Point2; N_POINTS],
         scratch: &mut KrfwsScratch,
         out: &mut [Point2; N_POINTS],
     ) -> f32 {
-        self.align_with(Portable, image, init, scratch, out)
+        self.align_with(kernels, image, init, scratch, out)
     }
 
     /// [`Krfws::align`] compiled for AVX-512F: 16-lane vector code and the AVX-512 kernels (same bits).
