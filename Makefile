@@ -90,7 +90,7 @@ setup: venv ort detector sample
 ## ---- main job -----------------------------------------------------------------------------------
 # Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
 demo: setup
-	$(CARGO) build --release -p holoface-client
+	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface demo
 
 ## ---- tests --------------------------------------------------------------------------------------
@@ -102,11 +102,17 @@ check:
 	$(CARGO) clippy --locked --workspace --all-targets -- -D warnings
 	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps -q
 
-# The protocol crate must not depend on an async runtime or a QUIC stack.
+# The protocol crate must not depend on an async runtime or a QUIC stack; the headset runtime (and the C
+# ABI a headset app links) must not compile the alignment server, its certificate generator, its config
+# parser or its metrics.
 deps-check:
 	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
 	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
 	@echo "holoface-protocol: no tokio, no quinn"
+	@for c in holoface-client holoface-ffi; do \
+	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
+	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
+	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
 
 unit: setup golden
 	$(CARGO) nextest run --locked --workspace --profile ci
@@ -147,14 +153,14 @@ bench: setup
 
 # Side-by-side accuracy table: our aligners and dlib's 68-point predictor on the validation split.
 compare: setup venv-peer
-	$(CARGO) build --release -p holoface-client
+	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface eval --split validation --init detector --aligner dan,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
 	./target/release/holoface eval --split validation --init gt-box --aligner dan,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
 speed-vs-dlib: setup venv-peer
-	$(CARGO) build --release -p holoface-client
+	$(CARGO) build --release -p holoface-tools
 	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
 train-dan: venv-train
@@ -165,7 +171,7 @@ export-dan: venv-train
 	$(PY) models/dan/export_onnx.py --ckpt runs/dan-w0.5/best.pt --out models/assets/dan.onnx
 
 train-krfws:
-	$(CARGO) run --release -p holoface-client -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1
+	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1
 
 clean-venv:
 	rm -rf $(VENV) $(ORT_DIR)

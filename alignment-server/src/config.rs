@@ -21,15 +21,13 @@ use holoface_protocol::ReplyChannel;
 use serde::{Deserialize, Serialize};
 
 use crate::batcher::BatcherConfig;
-use crate::engine::OnnxOptions;
 use crate::internal::is_internal_addr;
+use holoface_inference::OnnxOptions;
 
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
 /// Default model path (relative to the working directory).
 pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
-/// Where `make ort` puts the ONNX Runtime library.
-pub const DEFAULT_ORT_DYLIB: &str = ".cache/onnxruntime/libonnxruntime.so.1.31.1";
 
 /// Configuration errors.
 #[derive(Debug, thiserror::Error)]
@@ -438,12 +436,7 @@ impl ServerConfig {
         let ort_dylib = self
             .engine
             .ort_dylib
-            .or_else(|| {
-                std::env::var_os("ORT_DYLIB_PATH")
-                    .filter(|v| !v.is_empty())
-                    .map(PathBuf::from)
-            })
-            .unwrap_or_else(|| PathBuf::from(DEFAULT_ORT_DYLIB));
+            .unwrap_or_else(holoface_inference::default_ort_dylib);
         let intra_threads = self
             .engine
             .intra_threads

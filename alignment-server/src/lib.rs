@@ -4,15 +4,14 @@
 //!
 //! * [`batcher`]: the sans-IO [`DynamicBatcher`] (takes `now`, unit-tested on
 //!   a fake clock).
-//! * [`engine`]: the [`InferenceEngine`] trait, [`OnnxEngine`] (ort,
-//!   `load-dynamic`), model-contract validation; `FakeEngine` under
-//!   `cfg(test)` / the `test-util` feature.
+//! * The engine ([`InferenceEngine`], [`OnnxEngine`]) lives in
+//!   `holoface-inference`, shared with the headset client.
 //! * [`server`]: the quinn driver: [`Server::bind`], [`Server::run`] with an
 //!   injected shutdown future, [`run`].
 //! * [`config`]: [`ServerConfig`] (TOML + CLI + env, CLI cannot clobber the
 //!   file) resolved into [`Settings`].
-//! * [`tls`]: server certificates and the client-side pinned-fingerprint
-//!   verifier ([`tls::pinned_client_config`]) the headset client reuses.
+//! * [`tls`]: the server's certificate (PEM files or self-signed); the
+//!   fingerprint clients pin is `holoface-quic`'s [`Fingerprint`].
 //! * [`metrics`], [`internal`]: Prometheus `/metrics` and `/health` on a
 //!   loopback/private listener.
 //!
@@ -21,7 +20,6 @@
 
 pub mod batcher;
 pub mod config;
-pub mod engine;
 pub mod internal;
 pub mod metrics;
 pub mod server;
@@ -29,6 +27,6 @@ pub mod tls;
 
 pub use batcher::{BatcherConfig, DynamicBatcher};
 pub use config::{ServerConfig, Settings};
-pub use engine::{InferenceEngine, ModelInfo, OnnxEngine};
+pub use holoface_inference::{InferenceEngine, ModelInfo, OnnxEngine};
+pub use holoface_quic::Fingerprint;
 pub use server::{Server, ServerError, run, shutdown_signal};
-pub use tls::{Fingerprint, pinned_client_config};

@@ -39,10 +39,10 @@ use tracing::{debug, info, warn};
 
 use crate::batcher::{Batch, ClientId, DynamicBatcher, Pending};
 use crate::config::{ServerConfig, Settings, TlsSource};
-use crate::engine::{BatchTensor, EngineError, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine};
 use crate::metrics::Metrics;
 use crate::tls::{Fingerprint, ServerIdentity, TlsError};
 use crate::{config::ConfigError, internal};
+use holoface_inference::{BatchTensor, EngineError, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine};
 
 /// Starting or running the server failed.
 #[derive(Debug, thiserror::Error)]
@@ -157,12 +157,6 @@ pub struct Server {
     metrics_listener: Option<tokio::net::TcpListener>,
     engine: Box<dyn InferenceEngine>,
     settings: Settings,
-}
-
-impl std::fmt::Debug for dyn InferenceEngine {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "InferenceEngine({} {})", self.info().name, self.info().version)
-    }
 }
 
 /// Loads the engine and binds; then [`Server::run`] until `shutdown`.
@@ -1183,7 +1177,7 @@ mod tests {
     use super::*;
 
     use crate::batcher::BatcherConfig;
-    use crate::engine::FakeEngine;
+    use holoface_inference::engine::FakeEngine;
 
     fn submit(client: ClientId, seed: u8, at: Instant) -> (SchedMsg, oneshot::Receiver<FrameOutcome>) {
         let (tx, rx) = oneshot::channel();

@@ -4,7 +4,7 @@
 //!   `holoface eval`; the remote path sends the same crop over QUIC instead).
 //! * The KRFWS aligner lives beside it once the model is trained (`krfws` module).
 
-use alignment_server::engine::{BatchTensor, EngineError, InferenceEngine, LandmarkOut};
+use holoface_inference::{BatchTensor, EngineError, InferenceEngine, LandmarkOut};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::{Point2, Similarity2};
 use holoface_models::image::GrayView;

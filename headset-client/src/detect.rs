@@ -110,7 +110,7 @@ impl BlazeFace {
                 path: model.to_path_buf(),
             });
         }
-        let env = alignment_server::engine::load_runtime(ort_dylib).map_err(|e| DetectError::Runtime {
+        let env = holoface_inference::load_runtime(ort_dylib).map_err(|e| DetectError::Runtime {
             path: ort_dylib.to_path_buf(),
             detail: e.to_string(),
         })?;

@@ -1,17 +1,15 @@
-//! The HoloFace headset client: frame sources, face detection, tracking with an interchangeable aligner,
-//! CANDIDE-3 fitting, world pose and prediction, and the `holoface` command line.
+//! The HoloFace headset runtime, the library a headset app embeds: frame sources, face detection, tracking
+//! with an interchangeable aligner (remote DAN over QUIC with KRFWS fallback, or KRFWS alone), CANDIDE-3
+//! fitting, world pose and prediction. The command-line tools live in `holoface-tools`; the alignment server
+//! is never compiled into a headset app.
 #![deny(missing_docs)]
 
 pub mod align;
-pub mod annotate;
-pub mod cli;
-pub mod data;
+pub mod assets;
 pub mod detect;
+pub mod images;
 pub mod link;
-pub mod plot;
 pub mod poses;
-pub mod render;
-pub mod runtime;
 pub mod session;
 pub mod source;
 pub mod tracker;

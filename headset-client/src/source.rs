@@ -14,7 +14,7 @@ use holoface_models::math3::Pose;
 use holoface_protocol::CropEncoding;
 use holoface_protocol::recording::{FramePayload, RecordingReader};
 
-use crate::data::{list_images, read_gray};
+use crate::images::{list_images, read_gray};
 
 /// One owned frame from a source.
 #[derive(Debug, Clone)]

@@ -30,14 +30,15 @@
 //! `display` are in the *world* frame of the `world_from_camera` poses the caller supplies.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+
 use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use alignment_server::Fingerprint;
 use holoface_models::shape::dan_mean_shape;
+use holoface_quic::Fingerprint;
 
 use crate::align::{AlignError, Aligner, AnsweredBy};
+pub use crate::assets::AssetPaths;
 use crate::detect::DetectError;
 use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
 use crate::session::{FaceUpdate, Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
@@ -53,38 +54,6 @@ pub enum RunningMode {
     /// A live camera: like `Video`, but frames are pushed to [`LiveTracker`] and processed on its thread;
     /// a frame that arrives while one is being processed replaces the waiting one (newest wins).
     LiveStream,
-}
-
-/// Where the runtime assets are; the defaults follow the same environment variables as the CLI.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct AssetPaths {
-    /// ONNX Runtime shared library (`ORT_DYLIB_PATH`).
-    pub ort_dylib: PathBuf,
-    /// BlazeFace model (`HOLOFACE_DETECTOR_MODEL`).
-    pub detector: PathBuf,
-    /// KRFWS model (`HOLOFACE_KRFWS_MODEL`).
-    pub krfws: PathBuf,
-    /// CANDIDE-3 `.wfm` (`HOLOFACE_CANDIDE`).
-    pub candide: PathBuf,
-}
-
-impl Default for AssetPaths {
-    fn default() -> Self {
-        let env = |k: &str, d: &str| {
-            std::env::var_os(k)
-                .filter(|v| !v.is_empty())
-                .map_or_else(|| d.into(), PathBuf::from)
-        };
-        Self {
-            ort_dylib: env("ORT_DYLIB_PATH", ".cache/onnxruntime/libonnxruntime.so.1.31.1"),
-            detector: env(
-                "HOLOFACE_DETECTOR_MODEL",
-                ".cache/blazeface/face_detection_front_128x128.onnx",
-            ),
-            krfws: env("HOLOFACE_KRFWS_MODEL", "models/assets/krfws.bin"),
-            candide: env("HOLOFACE_CANDIDE", "../shared/data/candide3/candide3.wfm"),
-        }
-    }
 }
 
 /// Which aligner answers.
@@ -202,13 +171,8 @@ impl FaceTracker {
     pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
         let a = &opts.assets;
         let detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
-        let model = crate::runtime::load_face_model(&a.candide).map_err(TrackerError::Assets)?;
-        let krfws = std::fs::read(&a.krfws)
-            .map_err(anyhow::Error::from)
-            .and_then(|b| Ok(holoface_models::krfws::Krfws::from_bytes(&b)?))
-            .map_err(|e| {
-                TrackerError::Assets(e.context(format!("loading KRFWS model {}", a.krfws.display())))
-            })?;
+        let model = crate::assets::load_face_model(&a.candide).map_err(TrackerError::Assets)?;
+        let krfws = crate::assets::load_krfws(&a.krfws).map_err(TrackerError::Assets)?;
         let local = crate::align::KrfwsAligner::new(krfws);
         let aligner: Box<dyn Aligner + Send> = match &opts.aligner {
             AlignerChoice::Local => Box::new(local),

@@ -2,11 +2,7 @@
 //! sidecar, and corrupt videos or sidecars are errors that name the file (never a panic).
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::path::Path;
-
-use common::tmp;
 
 use holoface_client::poses::write_line;
 use holoface_client::source::{FrameSource, open_source};
@@ -172,4 +168,12 @@ fn bad_writer_input_is_an_error() {
     assert!(w.push(&frame(0, 64, 64)).is_err());
     let w = Mp4Writer::create(&d.join("none.mp4"), 96, 64, 30).unwrap();
     assert!(w.finish().is_err());
+}
+
+/// A fresh, empty temporary folder unique to this process and `name`.
+fn tmp(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("holoface-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
 }

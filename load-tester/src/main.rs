@@ -16,9 +16,9 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use hdrhistogram::Histogram;
 use holoface_client::link::session::{ConnectConfig, client_endpoint, connect, send_frame};
-use holoface_client::plot::{Series, series_plot_png};
 use holoface_protocol::recording::{FramePayload, RecordingReader};
 use holoface_protocol::{Crop, DropReason, FrameRequest, ReplyOutcome};
+use holoface_tools::plot::{Series, series_plot_png};
 use serde_json::json;
 
 /// Command line.

@@ -18,14 +18,15 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use alignment_server::Server;
 use alignment_server::config::Settings;
 use alignment_server::metrics::Metrics;
-use alignment_server::{Fingerprint, Server, pinned_client_config};
 use bytes::{Bytes, BytesMut};
 use holoface_protocol::{
     ClientHello, CloseCode, Crop, CropEncoding, DecodeError, FrameReply, FrameRequest, Message,
     PROTOCOL_VERSION, ReplyChannel, ServerWelcome, encode_framed,
 };
+use holoface_quic::{Fingerprint, pinned_client_config};
 use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
@@ -38,7 +39,7 @@ pub const TEST_TOKEN: &str = "e2e-token";
 pub enum ClientError {
     /// Building the TLS config failed.
     #[error("tls: {0}")]
-    Tls(#[from] alignment_server::tls::TlsError),
+    Tls(#[from] holoface_quic::TlsError),
     /// Creating the endpoint failed.
     #[error("endpoint: {0}")]
     Io(#[from] std::io::Error),
@@ -106,7 +107,7 @@ pub fn ort_dylib_path() -> PathBuf {
         .map(PathBuf::from)
         .into_iter()
         .collect();
-    candidates.push(root.join(alignment_server::config::DEFAULT_ORT_DYLIB));
+    candidates.push(root.join(holoface_inference::DEFAULT_ORT_DYLIB));
     candidates
         .push(root.join(".venv/lib/python3.11/site-packages/onnxruntime/capi/libonnxruntime.so.1.31.1"));
     match candidates.iter().find(|p| p.is_file()) {

@@ -9,14 +9,14 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use alignment_server::Fingerprint;
 use holoface_client::align::{Aligner, AnsweredBy, KrfwsAligner};
-use holoface_client::data::{Split, default_data_root, load_folder};
-use holoface_client::link::relay::UdpRelay;
 use holoface_client::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, Mode, RemoteLink};
 use holoface_e2e::{TEST_TOKEN, workspace_root};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
+use holoface_quic::Fingerprint;
+use holoface_tools::data::{Split, default_data_root, load_folder};
+use holoface_tools::relay::UdpRelay;
 
 const FRAME: Duration = Duration::from_micros(33_333);
 

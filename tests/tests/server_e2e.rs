@@ -10,12 +10,12 @@
 use std::time::Duration;
 
 use alignment_server::config::Settings;
-use alignment_server::engine::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine};
 use bytes::Bytes;
 use holoface_e2e::{
     RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
     refused_with, send_frame_on, write_framed,
 };
+use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine};
 use holoface_protocol::{
     CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
 };

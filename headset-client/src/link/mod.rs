@@ -12,7 +12,6 @@
 mod aligner;
 pub mod codec;
 pub mod policy;
-pub mod relay;
 pub mod session;
 
 use std::sync::atomic::{AtomicU64, Ordering};

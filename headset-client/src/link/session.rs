@@ -9,12 +9,12 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use alignment_server::{Fingerprint, pinned_client_config};
 use bytes::BytesMut;
 use holoface_protocol::{
     ClientHello, CloseCode, CropEncoding, DecodeError, FrameReply, FrameRequest, Message, PROTOCOL_VERSION,
     ReplyChannel, ServerWelcome, decode_framed, encode_framed,
 };
+use holoface_quic::{Fingerprint, pinned_client_config};
 use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream};
 
 /// Where and how to connect.
@@ -66,7 +66,7 @@ impl ConnectConfig {
 pub enum SessionError {
     /// TLS configuration failed.
     #[error("tls: {0}")]
-    Tls(#[from] alignment_server::tls::TlsError),
+    Tls(#[from] holoface_quic::TlsError),
     /// The UDP socket could not be opened.
     #[error("udp socket: {0}")]
     Io(#[from] std::io::Error),

@@ -21,13 +21,13 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use alignment_server::Fingerprint;
-use alignment_server::engine::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use anyhow::{Context, anyhow, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use hdrhistogram::Histogram;
 use holoface_e2e::{TestClient, client_endpoint_with, frame, hello};
+use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use holoface_protocol::{DropReason, ReplyOutcome};
+use holoface_quic::Fingerprint;
 
 const TOKEN: &str = "bench-token";
 

@@ -1,11 +1,13 @@
 //! Annotated face folders (`NAME.jpg` + `NAME.pts`, 68 points, 0-based) and the fixed validation split.
 //!
-//! This is the only place the client reads training or evaluation data; `models` stays IO-free.
+//! This is the only place the tools read training or evaluation data; `models` stays IO-free, and the
+//! headset runtime never sees annotations.
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use holoface_client::images::{list_images, read_gray};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::shape::parse_pts68;
@@ -55,52 +57,6 @@ pub fn default_data_root() -> PathBuf {
         return here;
     }
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
-}
-
-/// Image paths (`.jpg`, `.jpeg`, `.png`) under `root`, one level of subfolders deep, sorted by name.
-pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
-    let mut out = Vec::new();
-    let mut visit = |dir: &Path, prefix: &str| -> anyhow::Result<Vec<PathBuf>> {
-        let mut subdirs = Vec::new();
-        for entry in std::fs::read_dir(dir).with_context(|| format!("reading folder {}", dir.display()))? {
-            let path = entry?.path();
-            if path.is_dir() {
-                subdirs.push(path);
-                continue;
-            }
-            let ext = path
-                .extension()
-                .and_then(|e| e.to_str())
-                .map(str::to_ascii_lowercase);
-            if matches!(ext.as_deref(), Some("jpg" | "jpeg" | "png")) {
-                let stem = path
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default();
-                out.push((format!("{prefix}{stem}"), path));
-            }
-        }
-        Ok(subdirs)
-    };
-    let subdirs = visit(root, "")?;
-    for sub in subdirs {
-        let name = sub
-            .file_name()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        visit(&sub, &format!("{name}/"))?;
-    }
-    out.sort();
-    Ok(out)
-}
-
-/// Reads an image file as 8-bit grayscale.
-pub fn read_gray(path: &Path) -> anyhow::Result<GrayImage> {
-    let img = image::open(path)
-        .with_context(|| format!("decoding image {}", path.display()))?
-        .to_luma8();
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    Ok(GrayImage::from_vec(img.into_raw(), w, h)?)
 }
 
 /// Reads a 68-point `.pts` file.

@@ -1,8 +1,8 @@
 //! The inference engine: a trait, the ONNX Runtime implementation and (for
 //! tests only) a deterministic fake.
 //!
-//! The engine is synchronous and owned by one dedicated thread (see
-//! `server.rs`); the server copies each batch's crops into a preallocated
+//! The engine is synchronous and owned by one dedicated thread (the
+//! server's engine thread); the server copies each batch's crops into a preallocated
 //! [`BatchTensor`] (`[max_batch, 1, S, S]` u8) and the engine writes into
 //! caller-allocated [`LandmarkOut`]s.
 //!
@@ -19,9 +19,12 @@
 //! Everything is checked at load ([`validate_io`], [`ModelInfo::from_metadata`])
 //! with an error that names the offending tensor, dimension or key.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use holoface_protocol::limits::{MAX_LANDMARKS, MAX_NAME_LEN};
+
+pub use crate::error::EngineError;
+use crate::runtime::load_runtime;
 
 /// Name of the model's input tensor.
 pub const INPUT_PIXELS: &str = "pixels";
@@ -29,79 +32,6 @@ pub const INPUT_PIXELS: &str = "pixels";
 pub const OUTPUT_LANDMARKS: &str = "landmarks";
 /// Name of the face-probability output.
 pub const OUTPUT_FACE_PROB: &str = "face_prob";
-
-/// Loading or running the engine failed.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum EngineError {
-    /// The ONNX Runtime shared library is not where the config says.
-    #[error(
-        "ONNX Runtime library not found at {path} (set engine.ort_dylib / --ort-dylib or ORT_DYLIB_PATH; \
-         `make ort` puts it in .cache/onnxruntime/)"
-    )]
-    RuntimeMissing {
-        /// The path that was tried.
-        path: PathBuf,
-    },
-    /// The ONNX Runtime library exists but could not be loaded.
-    #[error("loading ONNX Runtime from {path}: {detail}")]
-    RuntimeLoad {
-        /// The library.
-        path: PathBuf,
-        /// The loader's message.
-        detail: String,
-    },
-    /// The model file does not exist.
-    #[error("model file not found: {path} (set engine.model / --model)")]
-    ModelMissing {
-        /// The path that was tried.
-        path: PathBuf,
-    },
-    /// The model's inputs or outputs break the contract.
-    #[error("model {tensor}: {problem}")]
-    BadModelIo {
-        /// The input or output concerned.
-        tensor: String,
-        /// What is wrong with it.
-        problem: String,
-    },
-    /// A metadata key is missing or unusable.
-    #[error("model metadata {key}: {problem}")]
-    BadMetadata {
-        /// The `metadata_props` key.
-        key: &'static str,
-        /// What is wrong with it.
-        problem: String,
-    },
-    /// The CUDA execution provider was requested but is not compiled in.
-    #[error("engine.cuda = true but holoface-server was built without the `cuda` feature")]
-    CudaNotCompiled,
-    /// A batch larger than the engine's maximum, or with a wrong output slice.
-    #[error("batch of {len} does not fit (max {max})")]
-    BatchTooLarge {
-        /// Frames in the batch.
-        len: usize,
-        /// The engine's limit.
-        max: usize,
-    },
-    /// A crop of the wrong size was pushed into a batch.
-    #[error("crop of {len} bytes, expected {expected}")]
-    CropSize {
-        /// Bytes given.
-        len: usize,
-        /// Bytes expected (S * S).
-        expected: usize,
-    },
-    /// ONNX Runtime reported an error.
-    #[error("ONNX Runtime: {0}")]
-    Ort(String),
-}
-
-impl From<ort::Error> for EngineError {
-    fn from(e: ort::Error) -> Self {
-        Self::Ort(e.to_string())
-    }
-}
 
 /// What the model is, from its metadata; the server sends most of it to
 /// clients in `ServerWelcome`.
@@ -401,6 +331,12 @@ pub trait InferenceEngine: Send {
     fn infer(&mut self, input: &BatchTensor, out: &mut [LandmarkOut]) -> Result<(), EngineError>;
 }
 
+impl std::fmt::Debug for dyn InferenceEngine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "InferenceEngine({} {})", self.info().name, self.info().version)
+    }
+}
+
 /// ONNX Runtime engine settings.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct OnnxOptions {
@@ -427,34 +363,6 @@ pub struct OnnxEngine {
     info: ModelInfo,
     max_batch: usize,
     _env: ort::environment::Environment,
-}
-
-/// The process's ONNX Runtime environment: ort allows one per process, ever,
-/// so it is created once and shared by every engine.
-static ENVIRONMENT: std::sync::Mutex<Option<ort::environment::Environment>> = std::sync::Mutex::new(None);
-
-/// Loads the ONNX Runtime library (once per process; later calls reuse the
-/// first library) and returns the shared environment. ONNX Runtime allows one
-/// environment per process; the client's face detector shares this one.
-pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
-    if !dylib.is_file() {
-        return Err(EngineError::RuntimeMissing {
-            path: dylib.to_path_buf(),
-        });
-    }
-    let mut slot = ENVIRONMENT
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
-    if let Some(env) = slot.as_ref() {
-        return Ok(env.clone());
-    }
-    let builder = ort::init_from(dylib).map_err(|e| EngineError::RuntimeLoad {
-        path: dylib.to_path_buf(),
-        detail: e.to_string(),
-    })?;
-    let env = builder.with_name("holoface-server").build()?;
-    *slot = Some(env.clone());
-    Ok(env)
 }
 
 fn spec_of(outlet: &ort::value::Outlet) -> TensorSpec {
@@ -658,6 +566,7 @@ impl InferenceEngine for FakeEngine {
 mod tests {
     use super::*;
     use std::collections::HashMap;
+    use std::path::Path;
 
     fn meta() -> HashMap<&'static str, String> {
         let shape: Vec<[f32; 2]> = (0..68).map(|i| [i as f32, 1.0]).collect();

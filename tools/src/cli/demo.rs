@@ -21,14 +21,14 @@ use holoface_models::metrics::{nme49, nme68};
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use crate::align::{Aligner, AnsweredBy};
-use crate::detect::{FaceDetector, shape_from_detection};
-use crate::link::relay::UdpRelay;
-use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
+use crate::args::RuntimeArgs;
 use crate::plot::Canvas;
+use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
-use crate::runtime::RuntimeArgs;
-use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use holoface_client::align::{Aligner, AnsweredBy};
+use holoface_client::detect::{FaceDetector, shape_from_detection};
+use holoface_client::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
+use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -60,7 +60,7 @@ pub struct Args {
     pub server_threads: usize,
     /// CANDIDE-3 model.
     #[command(flatten)]
-    pub candide: crate::runtime::CandideArg,
+    pub candide: crate::args::CandideArg,
     /// Output folder (frames.jsonl, strip.png, summary.json).
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
@@ -263,7 +263,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let t0 = Instant::now();
         let alignment = match session.prepare(&frame)? {
-            Prepared::Align { init, source } => Some(crate::align::align_from(
+            Prepared::Align { init, source } => Some(holoface_client::align::align_from(
                 &mut aligner,
                 &frame.image,
                 &init,

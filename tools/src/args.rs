@@ -1,35 +1,32 @@
-//! Where the runtime assets live (ONNX Runtime library, models) and how the CLI builds engines from them.
+//! The command-line options naming the runtime assets (same defaults and environment variables as
+//! `holoface_client::assets`) and how the tools build engines from them.
 
 use std::path::PathBuf;
 
-use alignment_server::engine::{OnnxEngine, OnnxOptions};
 use anyhow::Context;
 use clap::Args;
+use holoface_client::assets::{
+    CANDIDE_ENV, DAN_ENV, DEFAULT_CANDIDE, DEFAULT_DAN, DEFAULT_DETECTOR, DEFAULT_KRFWS, DETECTOR_ENV,
+    KRFWS_ENV,
+};
+use holoface_inference::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 
-use crate::align::{DanAligner, KrfwsAligner};
+use holoface_client::align::{DanAligner, KrfwsAligner};
 
 /// Paths and threads of the runtime assets; every path has an env override set by `make setup`.
 #[derive(Debug, Clone, Args)]
 pub struct RuntimeArgs {
     /// ONNX Runtime shared library (`make setup` fetches it from the pinned PyPI wheel).
-    #[arg(
-        long,
-        env = "ORT_DYLIB_PATH",
-        default_value = ".cache/onnxruntime/libonnxruntime.so.1.31.1"
-    )]
+    #[arg(long, env = ORT_DYLIB_ENV, default_value = DEFAULT_ORT_DYLIB)]
     pub ort_dylib: PathBuf,
     /// DAN model (ONNX).
-    #[arg(long, env = "HOLOFACE_DAN_MODEL", default_value = "models/assets/dan.onnx")]
+    #[arg(long, env = DAN_ENV, default_value = DEFAULT_DAN)]
     pub dan_model: PathBuf,
     /// Face detector model (BlazeFace short range, ONNX).
-    #[arg(
-        long,
-        env = "HOLOFACE_DETECTOR_MODEL",
-        default_value = ".cache/blazeface/face_detection_front_128x128.onnx"
-    )]
+    #[arg(long, env = DETECTOR_ENV, default_value = DEFAULT_DETECTOR)]
     pub detector: PathBuf,
     /// KRFWS model (the local aligner).
-    #[arg(long, env = "HOLOFACE_KRFWS_MODEL", default_value = "models/assets/krfws.bin")]
+    #[arg(long, env = KRFWS_ENV, default_value = DEFAULT_KRFWS)]
     pub krfws_model: PathBuf,
     /// ONNX Runtime intra-op threads for DAN.
     #[arg(long, default_value_t = 1)]
@@ -60,18 +57,16 @@ impl RuntimeArgs {
     }
 
     /// BlazeFace through ONNX Runtime (1 thread).
-    pub fn detector(&self) -> anyhow::Result<crate::detect::BlazeFace> {
-        crate::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
+    pub fn detector(&self) -> anyhow::Result<holoface_client::detect::BlazeFace> {
+        holoface_client::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
             .with_context(|| format!("loading the face detector {}", self.detector.display()))
     }
 
     /// KRFWS from its model file.
     pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
-        let bytes = std::fs::read(&self.krfws_model)
-            .with_context(|| format!("reading KRFWS model {}", self.krfws_model.display()))?;
-        let model = holoface_models::krfws::Krfws::from_bytes(&bytes)
-            .with_context(|| format!("loading KRFWS model {}", self.krfws_model.display()))?;
-        Ok(KrfwsAligner::new(model))
+        Ok(KrfwsAligner::new(holoface_client::assets::load_krfws(
+            &self.krfws_model,
+        )?))
     }
 }
 
@@ -79,25 +74,13 @@ impl RuntimeArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct CandideArg {
     /// CANDIDE-3 model (`.wfm`), resolved by the set-up command.
-    #[arg(
-        long,
-        env = "HOLOFACE_CANDIDE",
-        default_value = "../shared/data/candide3/candide3.wfm"
-    )]
+    #[arg(long, env = CANDIDE_ENV, default_value = DEFAULT_CANDIDE)]
     pub candide: PathBuf,
 }
 
 impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
-        load_face_model(&self.candide)
+        holoface_client::assets::load_face_model(&self.candide)
     }
-}
-
-/// Loads the CANDIDE-3 face model from a `.wfm` file.
-pub fn load_face_model(path: &std::path::Path) -> anyhow::Result<holoface_models::candide::FaceModel> {
-    let text = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let wfm = holoface_models::candide::Wfm::parse(&String::from_utf8_lossy(&text))
-        .with_context(|| format!("parsing {}", path.display()))?;
-    Ok(holoface_models::candide::FaceModel::from_wfm(&wfm)?)
 }

@@ -5,9 +5,9 @@ use holoface_models::candide::{FaceModel, Intrinsics};
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Vec3;
 
-use crate::align::AnsweredBy;
 use crate::plot::Canvas;
-use crate::session::FrameResult;
+use holoface_client::align::AnsweredBy;
+use holoface_client::session::FrameResult;
 
 /// Length of the drawn pose axes, metres.
 const AXIS_M: f64 = 0.05;
@@ -55,8 +55,8 @@ pub fn annotate(
                 }
             }
             let first = match u.landmark_set {
-                crate::align::LandmarkSet::Ibug68 => 0,
-                crate::align::LandmarkSet::Inner51 => 17,
+                holoface_client::align::LandmarkSet::Ibug68 => 0,
+                holoface_client::align::LandmarkSet::Inner51 => 17,
             };
             for p in &u.landmarks[first..] {
                 cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);

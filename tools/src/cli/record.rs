@@ -9,7 +9,7 @@ use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
 
-use crate::source::open_source;
+use holoface_client::source::open_source;
 
 /// How full frames are stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -43,34 +43,34 @@ pub struct Args {
     /// `jpeg:Q`): the tracker runs locally (detector, KRFWS) and each frame's 112x112 crop is stored with
     /// its crop-to-image similarity. Frames without a face are skipped. The load tester replays these.
     #[arg(long)]
-    pub crops: Option<crate::link::CropCodec>,
+    pub crops: Option<holoface_client::link::CropCodec>,
     /// CANDIDE-3 model.
     #[command(flatten)]
-    pub candide: crate::runtime::CandideArg,
+    pub candide: crate::args::CandideArg,
     /// Runtime assets (for `--crops`).
     #[command(flatten)]
-    pub runtime: crate::runtime::RuntimeArgs,
+    pub runtime: crate::args::RuntimeArgs,
 }
 
 /// Cuts the client's crop of each frame by running the tracker locally.
 struct CropCutter {
-    codec: crate::link::CropCodec,
-    session: crate::session::TrackerSession,
-    local: crate::align::KrfwsAligner,
+    codec: holoface_client::link::CropCodec,
+    session: holoface_client::session::TrackerSession,
+    local: holoface_client::align::KrfwsAligner,
     mean: [holoface_models::geometry::Point2; 68],
     crop: holoface_models::crop::Crop112,
 }
 
 impl CropCutter {
-    fn new(codec: crate::link::CropCodec, args: &Args) -> anyhow::Result<Self> {
+    fn new(codec: holoface_client::link::CropCodec, args: &Args) -> anyhow::Result<Self> {
         let mean = holoface_models::shape::dan_mean_shape();
         Ok(Self {
             codec,
-            session: crate::session::TrackerSession::new(
+            session: holoface_client::session::TrackerSession::new(
                 Box::new(args.runtime.detector()?),
                 args.candide.load()?,
                 mean,
-                crate::session::SessionOptions::default(),
+                holoface_client::session::SessionOptions::default(),
             ),
             local: args.runtime.krfws_aligner()?,
             mean,
@@ -79,8 +79,8 @@ impl CropCutter {
     }
 
     /// The crop payload of `f`, or `None` when no face is tracked.
-    fn cut(&mut self, f: &crate::source::SourceFrame) -> anyhow::Result<Option<FramePayload>> {
-        use crate::session::{Frame, Prepared};
+    fn cut(&mut self, f: &holoface_client::source::SourceFrame) -> anyhow::Result<Option<FramePayload>> {
+        use holoface_client::session::{Frame, Prepared};
         let frame = Frame {
             timestamp_us: f.timestamp_us,
             image: f.image.view(),
@@ -91,11 +91,11 @@ impl CropCutter {
             self.session.complete(&frame, None);
             return Ok(None);
         };
-        let sim = crate::align::crop_from_image(&init, &self.mean)?;
+        let sim = holoface_client::align::crop_from_image(&init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
         let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;
-        let a = crate::align::align_from(&mut self.local, &frame.image, &init, source)?;
+        let a = holoface_client::align::align_from(&mut self.local, &frame.image, &init, source)?;
         self.session.complete(&frame, Some(a));
         Ok(Some(FramePayload::Crop {
             image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],

@@ -9,10 +9,10 @@ use clap::{Args as ClapArgs, ValueEnum};
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use crate::align::Aligner;
-use crate::runtime::RuntimeArgs;
-use crate::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
-use crate::source::open_source;
+use crate::args::RuntimeArgs;
+use holoface_client::align::Aligner;
+use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use holoface_client::source::open_source;
 
 /// Local aligner for `track`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -44,7 +44,7 @@ pub struct Args {
     pub aligner: TrackAligner,
     /// CANDIDE-3 model.
     #[command(flatten)]
-    pub candide: crate::runtime::CandideArg,
+    pub candide: crate::args::CandideArg,
     /// Disable headset-motion compensation of the tracking initialisation.
     #[arg(long)]
     pub no_motion_compensation: bool,
@@ -72,14 +72,14 @@ pub struct Args {
     pub deadline_ms: u64,
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
     #[arg(long, default_value = "jpeg:75")]
-    pub crop_encoding: crate::link::CropCodec,
+    pub crop_encoding: holoface_client::link::CropCodec,
     /// Runtime assets.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
 }
 
 fn remote_aligner(args: &Args) -> anyhow::Result<Box<dyn Aligner>> {
-    use crate::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, RemoteLink};
+    use holoface_client::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, RemoteLink};
     let server = args.server.context("--aligner remote needs --server ADDR")?;
     let fingerprint = args
         .fingerprint
@@ -140,7 +140,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let t_prepare = t0.elapsed();
         let t1 = Instant::now();
         let alignment = match prepared {
-            Prepared::Align { init, source } => Some(crate::align::align_from(
+            Prepared::Align { init, source } => Some(holoface_client::align::align_from(
                 &mut *aligner,
                 &frame.image,
                 &init,

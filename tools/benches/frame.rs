@@ -10,7 +10,7 @@
 //! start tracking. Needs `make setup` (the env vars the Makefile exports) and `../shared/data`; skips
 //! otherwise.
 //!
-//! `make bench` or `cargo bench -p holoface-client --bench frame`
+//! `make bench` or `cargo bench -p holoface-tools --bench frame`
 #![allow(clippy::unwrap_used)] // bench setup; a panic is a failed run
 
 use std::hint::black_box;
@@ -18,11 +18,10 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
 use holoface_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, crop_from_image};
-use holoface_client::data::{VALIDATION_SPLIT, default_data_root, read_gray, read_pts};
+use holoface_client::assets::load_face_model;
 use holoface_client::detect::BlazeFace;
+use holoface_client::images::read_gray;
 use holoface_client::link::CropCodec;
-use holoface_client::render::PlanarScene;
-use holoface_client::runtime::load_face_model;
 use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
 use holoface_models::candide::Intrinsics;
 use holoface_models::crop::{Crop112, crop_bilinear};
@@ -30,6 +29,8 @@ use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::shape::dan_mean_shape;
+use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
+use holoface_tools::render::PlanarScene;
 
 const K: Intrinsics = Intrinsics {
     fx: 500.0,

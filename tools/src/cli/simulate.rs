@@ -22,7 +22,7 @@ use serde_json::json;
 pub struct Args {
     /// CANDIDE-3 model.
     #[command(flatten)]
-    pub candide: crate::runtime::CandideArg,
+    pub candide: crate::args::CandideArg,
     /// Sequence length in seconds.
     #[arg(long, default_value_t = 20.0)]
     pub seconds: f64,

@@ -30,11 +30,11 @@ use holoface_models::metrics::nme49;
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use crate::align::Aligner;
+use crate::args::RuntimeArgs;
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
-use crate::runtime::RuntimeArgs;
-use crate::session::{Frame, FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
+use holoface_client::align::Aligner;
+use holoface_client::session::{Frame, FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
 
 /// Aligner for the measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -71,7 +71,7 @@ pub struct Args {
     pub aligner: LossAligner,
     /// CANDIDE-3 model.
     #[command(flatten)]
-    pub candide: crate::runtime::CandideArg,
+    pub candide: crate::args::CandideArg,
     /// JSON report.
     #[arg(long, default_value = "runs/tracking-losses.json")]
     pub out: PathBuf,
@@ -229,7 +229,7 @@ impl Runner {
         let prepared = self.session.prepare(frame)?;
         let (alignment, init) = match prepared {
             Prepared::Align { init, source } => (
-                Some(crate::align::align_from(
+                Some(holoface_client::align::align_from(
                     &mut *self.aligner,
                     &frame.image,
                     &init,
@@ -247,7 +247,7 @@ impl Runner {
 
 /// Writes a sequence's MP4, pose sidecar and truth file.
 struct SequenceExport {
-    video: crate::video::Mp4Writer,
+    video: holoface_client::video::Mp4Writer,
     poses: std::io::BufWriter<std::fs::File>,
     truth: std::io::BufWriter<std::fs::File>,
 }
@@ -262,7 +262,7 @@ impl SequenceExport {
             ))
         };
         Ok(Self {
-            video: crate::video::Mp4Writer::create(
+            video: holoface_client::video::Mp4Writer::create(
                 &dir.join("sequence.mp4"),
                 FRAME_W,
                 FRAME_H,
@@ -282,7 +282,7 @@ impl SequenceExport {
         truth: &[Point2; 68],
     ) -> anyhow::Result<()> {
         self.video.push(image)?;
-        crate::poses::write_line(&mut self.poses, i, cam, Some(&K), Some(t_us))?;
+        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&K), Some(t_us))?;
         let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
         serde_json::to_writer(&mut self.truth, &json!({"frame": i, "landmarks_px": lm}))?;
         self.truth.write_all(b"\n")?;

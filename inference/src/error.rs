@@ -1,0 +1,76 @@
+//! The one error type of loading and running an engine.
+
+use std::path::PathBuf;
+
+/// Loading or running the engine failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum EngineError {
+    /// The ONNX Runtime shared library is not where the config says.
+    #[error(
+        "ONNX Runtime library not found at {path} (set engine.ort_dylib / --ort-dylib or ORT_DYLIB_PATH; \
+         `make ort` puts it in .cache/onnxruntime/)"
+    )]
+    RuntimeMissing {
+        /// The path that was tried.
+        path: PathBuf,
+    },
+    /// The ONNX Runtime library exists but could not be loaded.
+    #[error("loading ONNX Runtime from {path}: {detail}")]
+    RuntimeLoad {
+        /// The library.
+        path: PathBuf,
+        /// The loader's message.
+        detail: String,
+    },
+    /// The model file does not exist.
+    #[error("model file not found: {path} (set engine.model / --model)")]
+    ModelMissing {
+        /// The path that was tried.
+        path: PathBuf,
+    },
+    /// The model's inputs or outputs break the contract.
+    #[error("model {tensor}: {problem}")]
+    BadModelIo {
+        /// The input or output concerned.
+        tensor: String,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// A metadata key is missing or unusable.
+    #[error("model metadata {key}: {problem}")]
+    BadMetadata {
+        /// The `metadata_props` key.
+        key: &'static str,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// The CUDA execution provider was requested but is not compiled in.
+    #[error("the CUDA execution provider was requested but this build has no `cuda` feature")]
+    CudaNotCompiled,
+    /// A batch larger than the engine's maximum, or with a wrong output slice.
+    #[error("batch of {len} does not fit (max {max})")]
+    BatchTooLarge {
+        /// Frames in the batch.
+        len: usize,
+        /// The engine's limit.
+        max: usize,
+    },
+    /// A crop of the wrong size was pushed into a batch.
+    #[error("crop of {len} bytes, expected {expected}")]
+    CropSize {
+        /// Bytes given.
+        len: usize,
+        /// Bytes expected (S * S).
+        expected: usize,
+    },
+    /// ONNX Runtime reported an error.
+    #[error("ONNX Runtime: {0}")]
+    Ort(String),
+}
+
+impl From<ort::Error> for EngineError {
+    fn from(e: ort::Error) -> Self {
+        Self::Ort(e.to_string())
+    }
+}

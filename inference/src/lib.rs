@@ -1,0 +1,18 @@
+//! HoloFace inference: what the alignment server and the headset client share to run ONNX models.
+//!
+//! * [`engine`]: the [`InferenceEngine`] trait (the DAN model contract), [`OnnxEngine`] (ort,
+//!   `load-dynamic`), model-contract validation; `FakeEngine` under `cfg(test)` / the `test-util` feature.
+//! * [`runtime`]: where the ONNX Runtime library is found ([`runtime::default_ort_dylib`]) and the one
+//!   process-wide ONNX Runtime environment ([`runtime::load_runtime`]) that every session in a process shares
+//!   (the server's engines, the client's face detector).
+//!
+//! No IO besides loading the library and the model files; no async runtime, no network.
+#![deny(missing_docs)]
+
+pub mod engine;
+pub mod error;
+pub mod runtime;
+
+pub use engine::{BatchTensor, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine, OnnxOptions};
+pub use error::EngineError;
+pub use runtime::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

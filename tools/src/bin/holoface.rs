@@ -1,0 +1,9 @@
+//! The `holoface` command line; see `holoface --help`.
+
+use clap::Parser;
+
+fn main() -> anyhow::Result<()> {
+    let cli = holoface_tools::cli::Cli::parse();
+    holoface_tools::cli::init_logging(&cli.log);
+    holoface_tools::cli::run(cli)
+}
