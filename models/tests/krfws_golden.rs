@@ -42,10 +42,16 @@ fn data_root() -> PathBuf {
 
 /// The validation faces: grey image and ground truth.
 fn validation_faces(root: &std::path::Path) -> Vec<(GrayImage, [Point2; 68])> {
+    validation_faces_of(root, &["afw", "helen", "lfpw"])
+}
+
+/// The validation faces of some subsets only.
+fn validation_faces_of(root: &std::path::Path, subsets: &[&str]) -> Vec<(GrayImage, [Point2; 68])> {
     include_str!("../splits/val.txt")
         .lines()
         .map(str::trim)
         .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .filter(|l| l.split_once('/').is_some_and(|(sub, _)| subsets.contains(&sub)))
         .map(|name| {
             let img = image::open(root.join(format!("{name}.jpg"))).unwrap().to_luma8();
             let (w, h) = (img.width() as usize, img.height() as usize);
@@ -230,7 +236,9 @@ fn committed_model_reproduces_its_validation_nme() {
     let m = model();
     let mut scratch = KrfwsScratch::new();
     let mut out = [Point2::default(); N_POINTS];
-    let faces = validation_faces(&root);
+    // The committed model's recorded number covers the split it was trained against: AFW + HELEN (101
+    // faces); LFPW's 67 joined the split later.
+    let faces = validation_faces_of(&root, &["afw", "helen"]);
     let mut sum = 0.0;
     for (img, gt) in &faces {
         let init = m.init_from_box(&Rect::bounding(gt).unwrap());

@@ -1,6 +1,7 @@
 //! `holoface eval`: the single-image pipeline (detect, place the mean shape, align) over an annotated folder,
 //! with 68- and 49-point errors normalised by the outer eye corners, AUC@0.08, failure rate and a CED plot.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -120,10 +121,49 @@ struct AlignerReport {
     nme68: Option<SummaryJson>,
     nme49: SummaryJson,
     ms_per_face: f64,
+    /// The same numbers per subset (the name's first folder: `afw`, `helen`, `lfpw`), when there are several.
+    subsets: BTreeMap<String, SubsetReport>,
     /// The wire encoding DAN's crops went through, and the mean frame-request size it gave.
     crop_encoding: Option<String>,
     mean_request_bytes: Option<f64>,
     per_image: Vec<PerImage>,
+}
+
+#[derive(Debug, Serialize)]
+struct SubsetReport {
+    images: usize,
+    nme68: Option<SummaryJson>,
+    nme49: SummaryJson,
+}
+
+/// The subset of a sample name (`afw/123` -> `afw`); a flat folder's names have none.
+fn subset_of(name: &str) -> Option<&str> {
+    name.split_once('/').map(|(sub, _)| sub)
+}
+
+/// Per-subset summaries of per-image errors (`e68`, `e49` in sample order), when there is more than one subset.
+fn by_subset(names: &[&str], e68: &[f64], e49: &[f64], has68: bool) -> BTreeMap<String, SubsetReport> {
+    let mut groups: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    for (i, n) in names.iter().enumerate() {
+        if let Some(sub) = subset_of(n) {
+            groups.entry(sub).or_default().push(i);
+        }
+    }
+    if groups.len() < 2 {
+        return BTreeMap::new();
+    }
+    groups
+        .into_iter()
+        .map(|(sub, idx)| {
+            let pick = |e: &[f64]| idx.iter().map(|&i| e[i]).collect::<Vec<_>>();
+            let report = SubsetReport {
+                images: idx.len(),
+                nme68: has68.then(|| summarise(&pick(e68)).into()),
+                nme49: summarise(&pick(e49)).into(),
+            };
+            (sub.to_owned(), report)
+        })
+        .collect()
 }
 
 /// Runs `holoface eval`.
@@ -265,6 +305,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 String::new()
             }
         );
+        let names: Vec<&str> = samples.iter().map(|s| s.name.as_str()).collect();
+        let subsets = by_subset(&names, &e68, &e49, has68);
+        for (sub, r) in &subsets {
+            println!(
+                "{:<6}   {sub:<6} images={} NME49={:.2}%{}",
+                aligner.name(),
+                r.images,
+                100.0 * r.nme49.mean,
+                r.nme68
+                    .as_ref()
+                    .map_or_else(String::new, |s| format!(" NME68={:.2}%", 100.0 * s.mean))
+            );
+        }
         curves.push(Curve {
             label: aligner.name().to_owned(),
             errors: e49.clone(),
@@ -277,6 +330,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             nme68: has68.then(|| summarise(&e68).into()),
             nme49: s49.into(),
             ms_per_face: ms,
+            subsets,
             crop_encoding: dan.as_ref().and(args.crop_encoding).map(|c| c.to_string()),
             mean_request_bytes: dan.as_ref().and_then(|d| d.mean_request_bytes()),
             per_image,
@@ -296,4 +350,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
     println!("wrote {} and {}", args.out.display(), args.plot.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn subsets_split_the_errors_by_folder() {
+        let names = ["afw/a", "afw/b", "lfpw/c"];
+        let e = [0.02, 0.04, 0.10];
+        let r = by_subset(&names, &e, &e, true);
+        assert_eq!(r.len(), 2);
+        assert_eq!(r["afw"].images, 2);
+        assert!((r["afw"].nme49.mean - 0.03).abs() < 1e-12);
+        assert!((r["lfpw"].nme68.as_ref().map(|s| s.mean).unwrap_or(0.0) - 0.10).abs() < 1e-12);
+        // One folder (or a flat one): nothing to split.
+        assert!(by_subset(&["x", "y"], &e[..2], &e[..2], true).is_empty());
+        assert!(by_subset(&["afw/x"], &e[..1], &e[..1], false).is_empty());
+    }
 }
