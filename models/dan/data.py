@@ -70,8 +70,30 @@ def positive_init(canon: np.ndarray, pts: np.ndarray, rng: np.random.Generator) 
     return p + c + t
 
 
-def negative_init(canon: np.ndarray, img: np.ndarray, pts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """An initial shape whose crop does not hold a trackable face: background or gross misalignment."""
+# Near-miss negatives (harder than the gross ones below, still clearly apart from the positives' clip above):
+# translation as a fraction of the shape's width/height, scale factors, rotation in degrees.
+NEAR_T, NEAR_S_UP, NEAR_S_DOWN, NEAR_R = (0.65, 1.0), (1.9, 2.6), (0.35, 0.5), (80.0, 110.0)
+
+
+def near_miss_init(canon: np.ndarray, pts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A face at a wrong offset, scale or rotation just outside what the aligner is trained to recover."""
+    base = g.fit_to_box(canon, gt_box(pts))
+    kind = rng.random()
+    if kind < 0.5:
+        return perturb(base, rng, rng.uniform(*NEAR_T), rng.normal(0, 10), rng.uniform(0.8, 1.25))
+    if kind < 0.8:
+        ds = rng.uniform(*NEAR_S_UP) if rng.random() < 0.5 else rng.uniform(*NEAR_S_DOWN)
+        return perturb(base, rng, rng.uniform(0, 0.25), rng.normal(0, 10), ds)
+    r = rng.uniform(*NEAR_R) * (1 if rng.random() < 0.5 else -1)
+    return perturb(base, rng, rng.uniform(0, 0.25), r, rng.uniform(0.8, 1.25))
+
+
+def negative_init(canon: np.ndarray, img: np.ndarray, pts: np.ndarray, rng: np.random.Generator,
+                  hard: float = 0.0) -> np.ndarray:
+    """An initial shape whose crop does not hold a trackable face: background or gross misalignment, or with
+    probability `hard` a near miss (`near_miss_init`)."""
+    if hard > 0 and rng.random() < hard:
+        return near_miss_init(canon, pts, rng)
     base = g.fit_to_box(canon, gt_box(pts))
     kind = rng.random()
     if kind < 0.45:
@@ -107,6 +129,20 @@ def photometric(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(np.floor(x + 0.5), 0, 255).astype(np.uint8)
 
 
+def occlude(crop: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Paint one rectangle (side 15-45 % of the crop) of flat grey or noise over the crop: hands, microphones,
+    hair and glasses hide parts of real faces. The landmark targets stay, so the net learns to infer them."""
+    c = crop.copy()
+    w, h = (rng.uniform(0.15, 0.45, 2) * g.CROP).astype(int)
+    x0 = int(rng.uniform(0, g.CROP - w))
+    y0 = int(rng.uniform(0, g.CROP - h))
+    if rng.random() < 0.5:
+        c[y0:y0 + h, x0:x0 + w] = rng.integers(0, 256)
+    else:
+        c[y0:y0 + h, x0:x0 + w] = rng.integers(0, 256, (h, w))
+    return c
+
+
 def procedural_negative(rng: np.random.Generator) -> np.ndarray:
     """Flat, gradient or noise texture: no face at all."""
     v, u = np.mgrid[0:g.CROP, 0:g.CROP].astype(np.float32)
@@ -116,8 +152,12 @@ def procedural_negative(rng: np.random.Generator) -> np.ndarray:
     return np.clip(x, 0, 255).astype(np.uint8)
 
 
-def make_sample(face: Face, canon: np.ndarray, rng: np.random.Generator, positive: bool):
-    """Returns (crop uint8 112x112, landmarks in crop px (68x2), is_face)."""
+def make_sample(face: Face, canon: np.ndarray, rng: np.random.Generator, positive: bool,
+                occlusion: float = 0.0, hard: float = 0.0):
+    """Returns (crop uint8 112x112, landmarks in crop px (68x2), is_face).
+
+    `occlusion`: probability of an occluding rectangle (`occlude`); `hard`: fraction of negatives that are
+    near misses (`near_miss_init`)."""
     img, pts = face.img, face.pts
     if rng.random() < 0.5:
         img = img[:, ::-1]
@@ -127,9 +167,11 @@ def make_sample(face: Face, canon: np.ndarray, rng: np.random.Generator, positiv
     else:
         if rng.random() < 0.1:
             return photometric(procedural_negative(rng), rng), np.zeros((68, 2)), 0
-        init = negative_init(canon, img, pts, rng)
+        init = negative_init(canon, img, pts, rng, hard)
     sim = g.best_fit(init, canon)
     crop = g.warp_crop(np.ascontiguousarray(img), sim)
+    if occlusion > 0 and rng.random() < occlusion:
+        crop = occlude(crop, rng)
     return photometric(crop, rng), g.apply(sim, pts), int(positive)
 
 

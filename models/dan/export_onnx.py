@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import geometry as g  # noqa: E402
 from net import Dan, DanExport  # noqa: E402
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -35,6 +36,10 @@ def main() -> None:
     ap.add_argument("--version", default="0.1.0")
     ap.add_argument("--name", default="holoface-dan")
     ap.add_argument("--threshold", type=float, default=0.5, help="face-probability threshold shipped in metadata")
+    ap.add_argument("--mirror", action="store_true", help="mirror test-time augmentation in the graph (2x cost)")
+    ap.add_argument("--training-data", default="faces68/train (300-W re-annotation of AFW + HELEN + LFPW), "
+                    "1844 faces, validation split models/splits/val.txt (168 faces) excluded",
+                    help="the training-data note stored in the metadata")
     args = ap.parse_args()
 
     canon = np.loadtxt(os.path.join(REPO, "models", "assets", "mean_shape_68.txt"), comments="#")
@@ -49,7 +54,7 @@ def main() -> None:
         net.load_state_dict(ck["model"])
         metrics, steps = ck.get("metrics", {}), ck["step"]
     net = net.eval().float().to(memory_format=torch.contiguous_format)
-    model = DanExport(net).eval()
+    model = DanExport(net, mirror=args.mirror, swap=g.MIRROR_68.tolist()).eval()
 
     rng = np.random.default_rng(0)
     probe = torch.from_numpy(rng.integers(0, 256, (4, 1, 112, 112), dtype=np.uint8))
@@ -79,7 +84,8 @@ def main() -> None:
         "holoface.crop_size": "112",
         "holoface.mean_shape": json.dumps([[round(float(x), 6), round(float(y), 6)] for x, y in canon]),
         "holoface.face_threshold": str(args.threshold),
-        "holoface.training_data": "faces68/train (300-W re-annotation of AFW + HELEN), 1106 faces, validation split models/splits/val.txt excluded",
+        "holoface.training_data": args.training_data,
+        "holoface.mirror_tta": "true" if args.mirror else "false",
         "holoface.training_steps": str(steps),
         "holoface.validation": json.dumps(metrics),
         "holoface.licence": "research use only (as the 300-W annotations it was trained on)",

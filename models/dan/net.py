@@ -72,12 +72,27 @@ class Dan(nn.Module):
 
 
 class DanExport(nn.Module):
-    """The exported graph: uint8 pixels in, landmarks and face probability out."""
+    """The exported graph: uint8 pixels in, landmarks and face probability out.
 
-    def __init__(self, net: Dan):
+    With `mirror` (test-time augmentation), the net also runs on the horizontally mirrored crop; its landmarks
+    are mapped back (68-point left/right swap, x -> CROP - 1 - x) and averaged with the direct ones, and the
+    two face probabilities are averaged. Twice the inference cost."""
+
+    def __init__(self, net: Dan, mirror: bool = False, swap: list[int] | None = None):
         super().__init__()
         self.net = net
+        self.mirror = mirror
+        if mirror and swap is None:
+            raise ValueError("mirror export needs the landmark swap")
+        self.register_buffer("swap", torch.tensor(swap if swap is not None else [], dtype=torch.long))
 
     def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lm, logits = self.net(pixels.float())
-        return lm, torch.softmax(logits, dim=1)[:, 1]
+        x = pixels.float()
+        lm, logits = self.net(x)
+        p = torch.softmax(logits, dim=1)[:, 1]
+        if not self.mirror:
+            return lm, p
+        lm_m, logits_m = self.net(torch.flip(x, dims=[3]))
+        lm_m = lm_m.index_select(1, self.swap)
+        lm_m = torch.stack([(CROP - 1) - lm_m[..., 0], lm_m[..., 1]], dim=-1)
+        return 0.5 * (lm + lm_m), 0.5 * (p + torch.softmax(logits_m, dim=1)[:, 1])
