@@ -10,7 +10,7 @@ use holoface_models::image::GrayView;
 use holoface_protocol::{FrameRequest, ReplyOutcome, ServerWelcome};
 
 use super::policy::{FallbackPolicy, Mode, PolicyConfig, Route};
-use super::{CropCodec, LinkEvent, RemoteLink, WaitError};
+use super::{Clock, CropCodec, Link, LinkEvent, RemoteLink, SystemClock, WaitError};
 use crate::align::{AlignError, Aligner, Alignment, AnsweredBy, crop_from_image, landmarks_from_crop};
 
 /// Settings of the linked aligner.
@@ -51,10 +51,13 @@ pub struct FrameReport {
     pub sent_bytes: usize,
 }
 
-/// Remote DAN over [`RemoteLink`] with a local aligner for fallback; see [`super::policy`].
-pub struct LinkedAligner<L> {
-    link: RemoteLink,
-    local: L,
+/// Remote DAN over a [`Link`] (in the headset: [`RemoteLink`]) with a local aligner `A` for fallback; see
+/// [`super::policy`]. Time comes from the clock `C`, so the whole fallback behaviour runs on made-up instants
+/// in tests.
+pub struct LinkedAligner<A, K = RemoteLink, C = SystemClock> {
+    link: K,
+    clock: C,
+    local: A,
     policy: FallbackPolicy,
     opts: LinkOptions,
     epoch: Instant,
@@ -65,7 +68,7 @@ pub struct LinkedAligner<L> {
     report: FrameReport,
 }
 
-impl<L> std::fmt::Debug for LinkedAligner<L> {
+impl<A, K: std::fmt::Debug, C> std::fmt::Debug for LinkedAligner<A, K, C> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("LinkedAligner")
             .field("link", &self.link)
@@ -74,15 +77,24 @@ impl<L> std::fmt::Debug for LinkedAligner<L> {
     }
 }
 
-impl<L: Aligner> LinkedAligner<L> {
-    /// Wraps a started link and the local aligner.
-    pub fn new(link: RemoteLink, local: L, opts: LinkOptions) -> Self {
+impl<A: Aligner> LinkedAligner<A> {
+    /// Wraps a started link and the local aligner; the system clock.
+    pub fn new(link: RemoteLink, local: A, opts: LinkOptions) -> Self {
+        Self::with_clock(link, local, opts, SystemClock)
+    }
+}
+
+impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
+    /// Wraps any link and clock.
+    pub fn with_clock(link: K, local: A, opts: LinkOptions, clock: C) -> Self {
+        let epoch = clock.now();
         Self {
             link,
+            clock,
             local,
             policy: FallbackPolicy::new(opts.policy),
             opts,
-            epoch: Instant::now(),
+            epoch,
             next_id: 1,
             crop: Crop112::default(),
             canonical: None,
@@ -92,7 +104,7 @@ impl<L: Aligner> LinkedAligner<L> {
     }
 
     /// The link (status, counters).
-    pub fn link(&self) -> &RemoteLink {
+    pub fn link(&self) -> &K {
         &self.link
     }
 
@@ -141,7 +153,7 @@ impl<L: Aligner> LinkedAligner<L> {
         self.next_id += 1;
         let req = FrameRequest {
             frame_id: id,
-            captured_at_us: self.epoch.elapsed().as_micros() as u64,
+            captured_at_us: self.clock.now().saturating_duration_since(self.epoch).as_micros() as u64,
             deadline_ms: u16::try_from(self.opts.deadline.as_millis()).unwrap_or(u16::MAX),
             crop,
         };
@@ -179,7 +191,8 @@ impl<L: Aligner> LinkedAligner<L> {
 
     fn settle_probes(&mut self, now: Instant) {
         let (policy, probes, deadline) = (&mut self.policy, &mut self.probes, self.opts.deadline);
-        self.link.drain(|ev| Self::on_event(policy, probes, deadline, ev));
+        self.link
+            .drain(&mut |ev| Self::on_event(policy, probes, deadline, ev));
         while let Some(&(_, sent)) = self.probes.front() {
             if now.saturating_duration_since(sent) <= self.opts.deadline {
                 break;
@@ -189,20 +202,31 @@ impl<L: Aligner> LinkedAligner<L> {
         }
     }
 
-    fn local(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
-        let a = self.local.align(image, init)?;
+    /// The local aligner's answer: on a detection frame its detection path (KRFWS: several starts), as a
+    /// headset without a link would run it; otherwise one tracked alignment.
+    fn local(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        detection: bool,
+    ) -> Result<Alignment, AlignError> {
+        let a = if detection {
+            self.local.align_detection(image, init)?
+        } else {
+            self.local.align(image, init)?
+        };
         self.report.answered_by = Some(a.answered_by);
         Ok(a)
     }
-}
 
-impl<L: Aligner> Aligner for LinkedAligner<L> {
-    fn name(&self) -> &'static str {
-        "dan-remote+local"
-    }
-
-    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
-        let now = Instant::now();
+    /// One frame: remote first when the policy routes there, the local aligner when it cannot answer.
+    fn align_frame(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        detection: bool,
+    ) -> Result<Alignment, AlignError> {
+        let now = self.clock.now();
         self.report = FrameReport::default();
         self.settle_probes(now);
         let status = self.link.status();
@@ -211,7 +235,7 @@ impl<L: Aligner> Aligner for LinkedAligner<L> {
             (Route::Remote, Some(welcome)) => match self.send_crop(image, init, &welcome) {
                 Some((sim, id)) => {
                     let (policy, probes, deadline) = (&mut self.policy, &mut self.probes, self.opts.deadline);
-                    let waited = self.link.wait_reply(id, now + deadline, |ev| {
+                    let waited = self.link.wait_reply(id, now + deadline, &mut |ev| {
                         Self::on_event(policy, probes, deadline, ev)
                     });
                     let remote = match waited {
@@ -230,7 +254,7 @@ impl<L: Aligner> Aligner for LinkedAligner<L> {
                             }
                         },
                         Err(WaitError::Deadline | WaitError::Stopped) => {
-                            self.policy.on_miss(Instant::now());
+                            self.policy.on_miss(self.clock.now());
                             None
                         }
                         // The policy already saw the Down event.
@@ -244,11 +268,11 @@ impl<L: Aligner> Aligner for LinkedAligner<L> {
                         }
                         None => {
                             self.report.fell_back = true;
-                            self.local(image, init)
+                            self.local(image, init, detection)
                         }
                     }
                 }
-                None => self.local(image, init),
+                None => self.local(image, init, detection),
             },
             (Route::Local { probe: true }, Some(welcome)) => {
                 // At most `max_in_flight` probes outstanding: a server slower than the frame rate would
@@ -258,11 +282,327 @@ impl<L: Aligner> Aligner for LinkedAligner<L> {
                 {
                     self.probes.push_back((id, now));
                 }
-                self.local(image, init)
+                self.local(image, init, detection)
             }
-            _ => self.local(image, init),
+            _ => self.local(image, init, detection),
         };
         self.report.mode = Some(self.policy.mode());
         result
+    }
+}
+
+impl<A: Aligner, K: Link, C: Clock> Aligner for LinkedAligner<A, K, C> {
+    fn name(&self) -> &'static str {
+        "dan-remote+local"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        self.align_frame(image, init, false)
+    }
+
+    /// A detection frame: DAN when the link answers (its crop does not depend on the start), else the local
+    /// aligner's detection path, so a headset without a link answers detection frames as a local-only one.
+    fn align_detection(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> Result<Alignment, AlignError> {
+        self.align_frame(image, init, true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::align::{Confidence, LandmarkSet};
+
+    /// A local aligner that records which path it was asked for.
+    #[derive(Default)]
+    struct Recorder {
+        tracked: usize,
+        detection: usize,
+    }
+
+    impl Recorder {
+        fn answer(init: &[Point2; 68]) -> Alignment {
+            Alignment {
+                landmarks: *init,
+                set: LandmarkSet::Inner51,
+                confidence: Confidence::PredictedError(0.01),
+                accepted: true,
+                answered_by: AnsweredBy::Krfws,
+            }
+        }
+    }
+
+    impl Aligner for Recorder {
+        fn name(&self) -> &'static str {
+            "recorder"
+        }
+        fn align(&mut self, _: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+            self.tracked += 1;
+            Ok(Self::answer(init))
+        }
+        fn align_detection(
+            &mut self,
+            _: &GrayView<'_>,
+            init: &[Point2; 68],
+        ) -> Result<Alignment, AlignError> {
+            self.detection += 1;
+            Ok(Self::answer(init))
+        }
+    }
+
+    /// A made-up clock that only moves when told to.
+    struct FakeClock(std::cell::Cell<Instant>);
+
+    impl Clock for FakeClock {
+        fn now(&self) -> Instant {
+            self.0.get()
+        }
+    }
+
+    /// How the scripted server answers the next frame it is sent.
+    #[derive(Clone, Copy)]
+    enum Answer {
+        /// Landmarks this long after the frame was sent.
+        After(Duration),
+        /// No answer.
+        Silent,
+    }
+
+    /// A link whose server answers from a script, on the shared fake clock: a sent frame's reply becomes
+    /// due at send time + its delay; `wait_reply` and `drain` hand out the replies that are due.
+    struct FakeLink {
+        clock: std::rc::Rc<FakeClock>,
+        up: Option<Arc<ServerWelcome>>,
+        script: std::cell::RefCell<VecDeque<Answer>>,
+        pending: std::cell::RefCell<Vec<(u64, Instant)>>,
+        sent: std::cell::Cell<usize>,
+    }
+
+    impl FakeLink {
+        fn welcome() -> Arc<ServerWelcome> {
+            Arc::new(ServerWelcome {
+                version: holoface_protocol::PROTOCOL_VERSION,
+                model_id: "fake".into(),
+                model_version: "0".into(),
+                landmark_count: 68,
+                crop_size: 112,
+                mean_shape: holoface_models::shape::dan_mean_shape()
+                    .iter()
+                    .map(|p| [p.x, p.y])
+                    .collect(),
+                face_threshold: 0.5,
+                encoding: holoface_protocol::CropEncoding::Raw,
+                reply_channel: holoface_protocol::ReplyChannel::Datagram,
+                max_in_flight: 1,
+                max_frame_age_ms: 100,
+            })
+        }
+
+        /// The server's answer: the mean shape in crop pixels (the initial shape, mapped back).
+        fn reply(frame_id: u64) -> holoface_protocol::FrameReply {
+            holoface_protocol::FrameReply {
+                frame_id,
+                outcome: ReplyOutcome::Landmarks {
+                    landmarks: holoface_models::shape::dan_mean_shape()
+                        .iter()
+                        .map(|p| [p.x, p.y])
+                        .collect(),
+                    face_prob: 0.9,
+                    queue_us: 0,
+                    infer_us: 0,
+                },
+            }
+        }
+    }
+
+    impl Link for FakeLink {
+        fn status(&self) -> super::super::LinkStatus {
+            match &self.up {
+                Some(w) => super::super::LinkStatus::Up(Arc::clone(w)),
+                None => super::super::LinkStatus::Connecting { last_error: None },
+            }
+        }
+        fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
+            self.sent.set(self.sent.get() + 1);
+            if let Some(Answer::After(d)) = self.script.borrow_mut().pop_front() {
+                self.pending
+                    .borrow_mut()
+                    .push((req.frame_id, self.clock.now() + d));
+            }
+            Ok(())
+        }
+        fn wait_reply(
+            &self,
+            frame_id: u64,
+            deadline: Instant,
+            _: &mut dyn FnMut(LinkEvent),
+        ) -> Result<(holoface_protocol::FrameReply, Instant), WaitError> {
+            let mut pending = self.pending.borrow_mut();
+            match pending
+                .iter()
+                .position(|&(id, due)| id == frame_id && due <= deadline)
+            {
+                Some(i) => {
+                    let (_, due) = pending.remove(i);
+                    self.clock.0.set(due.max(self.clock.now()));
+                    Ok((Self::reply(frame_id), due))
+                }
+                None => {
+                    self.clock.0.set(deadline);
+                    Err(WaitError::Deadline)
+                }
+            }
+        }
+        fn drain(&self, each: &mut dyn FnMut(LinkEvent)) {
+            let now = self.clock.now();
+            let mut pending = self.pending.borrow_mut();
+            let (due, later): (Vec<_>, Vec<_>) = pending.iter().partition(|&&(_, at)| at <= now);
+            *pending = later;
+            for (id, at) in due {
+                each(LinkEvent::Reply(Self::reply(id), at));
+            }
+        }
+    }
+
+    impl Clock for std::rc::Rc<FakeClock> {
+        fn now(&self) -> Instant {
+            self.0.get()
+        }
+    }
+
+    type Linked = LinkedAligner<Recorder, FakeLink, std::rc::Rc<FakeClock>>;
+
+    fn linked(up: bool, script: &[Answer]) -> (Linked, std::rc::Rc<FakeClock>) {
+        let clock = std::rc::Rc::new(FakeClock(std::cell::Cell::new(Instant::now())));
+        let link = FakeLink {
+            clock: std::rc::Rc::clone(&clock),
+            up: up.then(FakeLink::welcome),
+            script: std::cell::RefCell::new(script.iter().copied().collect()),
+            pending: std::cell::RefCell::new(Vec::new()),
+            sent: std::cell::Cell::new(0),
+        };
+        let opts = LinkOptions::default();
+        (
+            LinkedAligner::with_clock(link, Recorder::default(), opts, std::rc::Rc::clone(&clock)),
+            clock,
+        )
+    }
+
+    /// A face-sized initial shape in a 200x200 image.
+    fn frame() -> (Vec<u8>, [Point2; 68]) {
+        let init = holoface_models::shape::dan_mean_shape().map(|p| Point2::new(p.x + 40.0, p.y + 40.0));
+        (vec![100_u8; 200 * 200], init)
+    }
+
+    const FRAME: Duration = Duration::from_millis(33);
+
+    /// Frames at 30 fps until the server answers one; how many the local aligner answered before it (each
+    /// with a probe to the server).
+    fn run_until_remote(
+        a: &mut Linked,
+        clock: &FakeClock,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> usize {
+        for n in 0..100 {
+            let r = a.align(image, init).unwrap();
+            clock.0.set(clock.now() + FRAME);
+            if r.answered_by == AnsweredBy::RemoteDan {
+                assert_eq!(a.policy().mode(), Mode::Remote);
+                return n;
+            }
+            assert_eq!(r.answered_by, AnsweredBy::Krfws, "frame {n} before the switch");
+        }
+        panic!("never switched to the server");
+    }
+
+    #[test]
+    fn probes_earn_the_remote_path_and_a_timely_reply_is_the_answer() {
+        let (mut a, clock) = linked(true, &[Answer::After(Duration::from_millis(5)); 64]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let n = run_until_remote(&mut a, &clock, &image, &init);
+        // Hold-off of 1 s at 33 ms per frame, and at least 10 timely probes: about 31 frames.
+        assert!((30..=34).contains(&n), "switched after {n} frames");
+        assert_eq!(a.link().sent.get(), n + 1);
+        let t0 = clock.now();
+        let r = a.align(&image, &init).unwrap();
+        assert_eq!(r.answered_by, AnsweredBy::RemoteDan);
+        assert_eq!(clock.now() - t0, Duration::from_millis(5));
+        let rep = a.last_report();
+        assert_eq!(
+            (rep.remote_rtt_us, rep.fell_back, rep.mode),
+            (Some(5_000), false, Some(Mode::Remote))
+        );
+        // The server's crop-pixel landmarks are the mean shape: mapped back, they are the initial shape.
+        assert!(r.landmarks.iter().zip(&init).all(|(p, q)| p.dist(*q) < 1e-3));
+        assert_eq!(a.local.tracked, n);
+    }
+
+    #[test]
+    fn missed_deadlines_are_answered_locally_and_three_in_a_row_fall_back() {
+        let ok = Answer::After(Duration::from_millis(5));
+        let late = Answer::After(Duration::from_millis(50));
+        let mut script = vec![ok; 40];
+        let (mut a, clock) = linked(true, &[]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        a.link.script.borrow_mut().extend(script.drain(..));
+        let n = run_until_remote(&mut a, &clock, &image, &init);
+        a.link.script.borrow_mut().clear();
+        a.link
+            .script
+            .borrow_mut()
+            .extend([late, Answer::Silent, late, ok]);
+        for i in 0..3 {
+            let t0 = clock.now();
+            let r = a.align(&image, &init).unwrap();
+            assert_eq!(r.answered_by, AnsweredBy::Krfws, "miss {i}");
+            assert!(a.last_report().fell_back);
+            // Each waited exactly its deadline, then KRFWS answered the same frame.
+            assert_eq!(clock.now() - t0, LinkOptions::default().deadline);
+            clock.0.set(clock.now() + FRAME);
+        }
+        assert_eq!(a.policy().mode(), Mode::Local);
+        assert_eq!(a.local.tracked, n + 3);
+        // Local again: the next frame is answered at once (a probe goes out, nobody waits for it).
+        let t0 = clock.now();
+        let r = a.align(&image, &init).unwrap();
+        assert_eq!(r.answered_by, AnsweredBy::Krfws);
+        assert_eq!(clock.now(), t0);
+        assert!(!a.last_report().fell_back);
+    }
+
+    #[test]
+    fn without_a_link_detection_frames_take_the_local_detection_path() {
+        let (mut a, _) = linked(false, &[]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let d = a.align_detection(&image, &init).unwrap();
+        let t = a.align(&image, &init).unwrap();
+        assert_eq!(
+            (d.answered_by, t.answered_by),
+            (AnsweredBy::Krfws, AnsweredBy::Krfws)
+        );
+        assert_eq!((a.local.detection, a.local.tracked), (1, 1));
+        assert_eq!(a.link().sent.get(), 0);
+    }
+
+    #[test]
+    fn a_detection_frame_that_misses_falls_back_to_the_detection_path() {
+        let (mut a, clock) = linked(true, &[Answer::After(Duration::from_millis(5)); 40]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let n = run_until_remote(&mut a, &clock, &image, &init);
+        a.link.script.borrow_mut().clear();
+        a.link.script.borrow_mut().push_back(Answer::Silent);
+        let r = a.align_detection(&image, &init).unwrap();
+        assert_eq!(r.answered_by, AnsweredBy::Krfws);
+        assert!(a.last_report().fell_back);
+        assert_eq!((a.local.detection, a.local.tracked), (1, n));
     }
 }

@@ -247,6 +247,59 @@ impl RemoteLink {
     }
 }
 
+/// What [`LinkedAligner`] needs from a link: [`RemoteLink`] in the headset, a scripted link in unit tests.
+pub trait Link {
+    /// Where the link stands (the server's welcome when up).
+    fn status(&self) -> LinkStatus;
+    /// Queues a frame for sending (never blocks).
+    fn send(&self, req: FrameRequest) -> Result<(), WaitError>;
+    /// Waits until `deadline` for the reply to `frame_id`; every other event goes to `other`.
+    fn wait_reply(
+        &self,
+        frame_id: u64,
+        deadline: Instant,
+        other: &mut dyn FnMut(LinkEvent),
+    ) -> Result<(FrameReply, Instant), WaitError>;
+    /// Events that arrived since the last call (non-blocking).
+    fn drain(&self, each: &mut dyn FnMut(LinkEvent));
+}
+
+impl Link for RemoteLink {
+    fn status(&self) -> LinkStatus {
+        Self::status(self)
+    }
+    fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
+        Self::send(self, req)
+    }
+    fn wait_reply(
+        &self,
+        frame_id: u64,
+        deadline: Instant,
+        other: &mut dyn FnMut(LinkEvent),
+    ) -> Result<(FrameReply, Instant), WaitError> {
+        Self::wait_reply(self, frame_id, deadline, other)
+    }
+    fn drain(&self, each: &mut dyn FnMut(LinkEvent)) {
+        Self::drain(self, each);
+    }
+}
+
+/// Where the frame loop's time comes from: the system clock in the headset, a made-up one in tests.
+pub trait Clock {
+    /// The current instant.
+    fn now(&self) -> Instant;
+}
+
+/// [`Instant::now`].
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SystemClock;
+
+impl Clock for SystemClock {
+    fn now(&self) -> Instant {
+        Instant::now()
+    }
+}
+
 impl Drop for RemoteLink {
     fn drop(&mut self) {
         if let Some(tx) = self.shutdown.take() {
