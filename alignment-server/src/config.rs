@@ -29,6 +29,9 @@ pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
 /// Default model path (relative to the working directory).
 pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
 
+/// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).
+pub const MIN_IDLE_TIMEOUT_MS: u64 = 100;
+
 /// Configuration errors.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -39,6 +42,14 @@ pub enum ConfigError {
     /// The config file could not be read.
     #[error("reading config file {path}: {source}")]
     Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The access-tokens file could not be read.
+    #[error("reading tokens file {path}: {source}")]
+    TokensFile {
         /// The file.
         path: PathBuf,
         /// The I/O error.
@@ -95,10 +106,10 @@ pub struct QuicConfig {
     /// Also write the certificate's SHA-256 fingerprint to this file.
     #[arg(long, env = "HOLOFACE_FINGERPRINT_FILE")]
     pub fingerprint_file: Option<PathBuf>,
-    /// Close connections idle this long, ms [default: 10000].
+    /// Close connections idle this long, ms [default: 10000; at least 100].
     #[arg(long)]
     pub idle_timeout_ms: Option<u64>,
-    /// A client must send its ClientHello within this, ms [default: 5000].
+    /// A client must send its ClientHello within this, ms [default: 5000; at least 1].
     #[arg(long)]
     pub hello_timeout_ms: Option<u64>,
     /// Reply transport offered to clients [default: datagram].
@@ -136,7 +147,7 @@ pub struct LimitsConfig {
     /// Frames one client may have in flight (open frame streams) [default: 2].
     #[arg(long)]
     pub max_in_flight: Option<u16>,
-    /// Frames older than this (or their own deadline) are dropped, ms [default: 100].
+    /// Frames older than this (or their own deadline) are dropped, ms [default: 100; at least 1].
     #[arg(long)]
     pub max_frame_age_ms: Option<u32>,
     /// Bound on graceful shutdown, ms [default: 5000].
@@ -388,7 +399,7 @@ impl ServerConfig {
         };
         let mut tokens = self.auth.tokens.unwrap_or_default();
         if let Some(path) = &self.auth.tokens_file {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::TokensFile {
                 path: path.clone(),
                 source,
             })?;
@@ -416,6 +427,25 @@ impl ServerConfig {
                 t.len(),
                 holoface_protocol::limits::MAX_TOKEN_LEN
             )));
+        }
+        // Zero and too-small durations are refused, not silently raised: an operator who wrote 0 meant
+        // something (off? immediate?) that the server cannot do.
+        let idle_timeout_ms = q.idle_timeout_ms.unwrap_or(10_000);
+        if idle_timeout_ms < MIN_IDLE_TIMEOUT_MS {
+            return Err(invalid(format!(
+                "quic.idle_timeout_ms = {idle_timeout_ms}: must be at least {MIN_IDLE_TIMEOUT_MS} (a shorter idle \
+                 timeout closes healthy connections between keep-alives)"
+            )));
+        }
+        let hello_timeout_ms = q.hello_timeout_ms.unwrap_or(5_000);
+        if hello_timeout_ms == 0 {
+            return Err(invalid("quic.hello_timeout_ms = 0: must be at least 1".into()));
+        }
+        let max_frame_age_ms = self.limits.max_frame_age_ms.unwrap_or(100);
+        if max_frame_age_ms == 0 {
+            return Err(invalid(
+                "limits.max_frame_age_ms = 0: must be at least 1 (0 would expire every frame)".into(),
+            ));
         }
         let max_batch = self.batch.max_batch.unwrap_or(8);
         if !(1..=256).contains(&max_batch) {
@@ -446,16 +476,14 @@ impl ServerConfig {
             listen,
             tls,
             fingerprint_file: q.fingerprint_file,
-            idle_timeout: Duration::from_millis(q.idle_timeout_ms.unwrap_or(10_000).max(100)),
-            hello_timeout: Duration::from_millis(q.hello_timeout_ms.unwrap_or(5_000).max(1)),
+            idle_timeout: Duration::from_millis(idle_timeout_ms),
+            hello_timeout: Duration::from_millis(hello_timeout_ms),
             reply_channel: q.reply_channel.unwrap_or(ReplyMode::Datagram).into(),
             tokens,
             allow_anonymous,
             max_clients,
             max_in_flight,
-            max_frame_age: Duration::from_millis(u64::from(
-                self.limits.max_frame_age_ms.unwrap_or(100).max(1),
-            )),
+            max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
             shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
             max_frame_rate: self.limits.max_frame_rate.unwrap_or(240),
             batch: BatcherConfig {
@@ -675,6 +703,52 @@ mod tests {
         cfg.quic.cert = None;
         cfg.batch.max_batch = Some(0);
         assert!(cfg.resolve().unwrap_err().to_string().contains("max_batch"));
+    }
+
+    #[test]
+    fn zero_durations_are_refused_not_raised() {
+        let base = || {
+            let mut cfg = ServerConfig::default();
+            cfg.auth.allow_anonymous = Some(true);
+            cfg
+        };
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(0);
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(
+            e.contains("idle_timeout_ms = 0") && e.contains("at least 100"),
+            "{e}"
+        );
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(99);
+        assert!(cfg.resolve().is_err());
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(100);
+        assert_eq!(cfg.resolve().unwrap().idle_timeout, Duration::from_millis(100));
+        let mut cfg = base();
+        cfg.limits.max_frame_age_ms = Some(0);
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(e.contains("max_frame_age_ms = 0"), "{e}");
+        let mut cfg = base();
+        cfg.quic.hello_timeout_ms = Some(0);
+        assert!(
+            cfg.resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("hello_timeout_ms")
+        );
+    }
+
+    #[test]
+    fn a_missing_tokens_file_is_named_as_such() {
+        let mut cfg = ServerConfig::default();
+        cfg.auth.tokens_file = Some("/nonexistent/holoface-tokens".into());
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(
+            e.starts_with("reading tokens file /nonexistent/holoface-tokens"),
+            "{e}"
+        );
+        assert!(!e.contains("config file"), "{e}");
     }
 
     #[test]

@@ -576,8 +576,8 @@ struct ConnCtx {
     client: ClientId,
     shared: Arc<Shared>,
     sink: ReplySink,
-    /// Highest frame id seen + 1 (0 = none yet).
-    newest: AtomicU64,
+    /// Highest frame id seen (`None` before the first frame).
+    newest: std::sync::Mutex<Option<u64>>,
     read_timeout: Duration,
 }
 
@@ -728,7 +728,7 @@ async fn session(conn: &Connection, client: ClientId, shared: &Arc<Shared>) -> S
         client,
         shared: Arc::clone(shared),
         sink,
-        newest: AtomicU64::new(0),
+        newest: std::sync::Mutex::new(None),
         read_timeout: settings.hello_timeout.max(settings.max_frame_age),
     });
 
@@ -981,22 +981,45 @@ async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Result<(), Fault
     Ok(())
 }
 
+/// Where a frame's id stands against the newest id seen on its connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FrameOrder {
+    /// Newer than every frame so far (now the newest).
+    Newest,
+    /// The newest id again: a protocol violation.
+    Duplicate,
+    /// Older than the newest: superseded.
+    Older,
+}
+
+/// Classifies `id` and records it when it is the newest. Every `u64` is a valid id, `u64::MAX` included.
+fn order_frame(newest: &std::sync::Mutex<Option<u64>>, id: u64) -> FrameOrder {
+    let mut n = newest.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    match *n {
+        Some(prev) if id == prev => FrameOrder::Duplicate,
+        Some(prev) if id < prev => FrameOrder::Older,
+        _ => {
+            *n = Some(id);
+            FrameOrder::Newest
+        }
+    }
+}
+
 async fn align(ctx: &ConnCtx, req: FrameRequest) -> Result<FrameOutcome, Fault> {
     let metrics = &ctx.shared.metrics;
     let dropped = |reason| {
         metrics.count_drop(reason);
         Ok(FrameOutcome::Dropped(reason))
     };
-    let next = req.frame_id.saturating_add(1);
-    let prev = ctx.newest.fetch_max(next, Ordering::Relaxed);
-    if prev == next {
-        return Err(Fault::new(
-            CloseCode::ProtocolViolation,
-            format!("duplicate frame_id {}", req.frame_id),
-        ));
-    }
-    if prev > next {
-        return dropped(DropReason::Superseded);
+    match order_frame(&ctx.newest, req.frame_id) {
+        FrameOrder::Newest => {}
+        FrameOrder::Duplicate => {
+            return Err(Fault::new(
+                CloseCode::ProtocolViolation,
+                format!("duplicate frame_id {}", req.frame_id),
+            ));
+        }
+        FrameOrder::Older => return dropped(DropReason::Superseded),
     }
     let Some(pixels) = crop_pixels(&req.crop, ctx.shared.model.crop_size) else {
         debug!(client = ctx.client, frame_id = req.frame_id, "bad crop");
@@ -1178,6 +1201,21 @@ mod tests {
 
     use crate::batcher::BatcherConfig;
     use holoface_inference::engine::FakeEngine;
+
+    #[test]
+    fn frame_ids_order_across_the_whole_u64_range() {
+        let n = std::sync::Mutex::new(None);
+        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Newest);
+        // MAX - 1 after MAX is an older frame, not a duplicate.
+        assert_eq!(order_frame(&n, u64::MAX - 1), FrameOrder::Older);
+        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Duplicate);
+        let n = std::sync::Mutex::new(None);
+        assert_eq!(order_frame(&n, 0), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 0), FrameOrder::Duplicate);
+        assert_eq!(order_frame(&n, 5), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 3), FrameOrder::Older);
+        assert_eq!(order_frame(&n, 6), FrameOrder::Newest);
+    }
 
     fn submit(client: ClientId, seed: u8, at: Instant) -> (SchedMsg, oneshot::Receiver<FrameOutcome>) {
         let (tx, rx) = oneshot::channel();

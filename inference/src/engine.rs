@@ -388,6 +388,11 @@ fn spec_of(outlet: &ort::value::Outlet) -> TensorSpec {
 impl OnnxEngine {
     /// Loads the runtime and the model, and validates the model contract.
     pub fn load(opts: &OnnxOptions) -> Result<Self, EngineError> {
+        if opts.model.is_dir() {
+            return Err(EngineError::ModelIsDirectory {
+                path: opts.model.clone(),
+            });
+        }
         if !opts.model.is_file() {
             return Err(EngineError::ModelMissing {
                 path: opts.model.clone(),
@@ -691,6 +696,23 @@ mod tests {
         assert!(b.is_empty());
         b.push(&[9; 4]).unwrap();
         assert_eq!(b.as_slice(), &[9; 4]);
+    }
+
+    #[test]
+    fn directories_are_not_called_missing_files() {
+        let dir = std::env::temp_dir();
+        let opts = OnnxOptions {
+            model: dir.clone(),
+            ort_dylib: "/nonexistent/libonnxruntime.so".into(),
+            intra_threads: 1,
+            max_batch: 1,
+            cuda: false,
+            spin: false,
+        };
+        let e = OnnxEngine::load(&opts).unwrap_err().to_string();
+        assert!(e.contains("is a directory") && !e.contains("not found"), "{e}");
+        let e = load_runtime(&dir).unwrap_err().to_string();
+        assert!(e.contains("is a directory") && !e.contains("not found"), "{e}");
     }
 
     #[test]

@@ -15,6 +15,12 @@ pub enum EngineError {
         /// The path that was tried.
         path: PathBuf,
     },
+    /// A directory was given where the ONNX Runtime library belongs.
+    #[error("ONNX Runtime library path {path} is a directory, not libonnxruntime.so")]
+    RuntimeIsDirectory {
+        /// The path that was given.
+        path: PathBuf,
+    },
     /// The ONNX Runtime library exists but could not be loaded.
     #[error("loading ONNX Runtime from {path}: {detail}")]
     RuntimeLoad {
@@ -22,6 +28,12 @@ pub enum EngineError {
         path: PathBuf,
         /// The loader's message.
         detail: String,
+    },
+    /// A directory was given where the model file belongs.
+    #[error("model path {path} is a directory, not an .onnx file (set engine.model / --model to the file)")]
+    ModelIsDirectory {
+        /// The path that was given.
+        path: PathBuf,
     },
     /// The model file does not exist.
     #[error("model file not found: {path} (set engine.model / --model)")]

@@ -31,6 +31,11 @@ static ENVIRONMENT: std::sync::Mutex<Option<ort::environment::Environment>> = st
 /// first library) and returns the shared environment. ONNX Runtime allows one
 /// environment per process; every session of the process shares this one.
 pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
+    if dylib.is_dir() {
+        return Err(EngineError::RuntimeIsDirectory {
+            path: dylib.to_path_buf(),
+        });
+    }
     if !dylib.is_file() {
         return Err(EngineError::RuntimeMissing {
             path: dylib.to_path_buf(),
