@@ -163,12 +163,20 @@ speed-vs-dlib: setup venv-peer
 	$(CARGO) build --release -p holoface-tools
 	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
+# The shipped DAN's recipe (models/DAN_MODEL_CARD.md): phase 2 of the width-0.5 run, warm-started from the 0.2.0
+# weights (phase 1: steps 0-6,500 on AFW + HELEN). It resumes from runs/dan-w0.5/last.pt, else from the committed
+# slim checkpoint; when that one already ends the phase there is nothing to do. To train on, start a new phase:
+# DAN_PHASE='--phase-start 7000 --steps N --lr ...' (the slim checkpoint carries the step and the RNG state).
+DAN_PHASE ?= --phase-start 6500 --steps 7000 --lr 1e-4 --loss nme --neg-frac 0.3 --hard-neg 0.5
+DAN_THREADS ?= 2
+DAN_VERSION ?= 0.3.0
 train-dan: venv-train
-	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 --steps 6500 --threads 1 \
-	  --resume-from models/dan/checkpoints/dan-w0.5-last.pt
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 \
+	  --threads $(DAN_THREADS) --eval-every 100 $(DAN_PHASE) \
+	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-last.pt
 
 export-dan: venv-train
-	$(PY) models/dan/export_onnx.py --ckpt runs/dan-w0.5/best.pt --out models/assets/dan.onnx
+	$(PY) models/dan/export_onnx.py --ckpt runs/dan-w0.5/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)
 
 train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1

@@ -75,7 +75,7 @@ class DanExport(nn.Module):
     """The exported graph: uint8 pixels in, landmarks and face probability out.
 
     With `mirror` (test-time augmentation), the net also runs on the horizontally mirrored crop; its landmarks
-    are mapped back (68-point left/right swap, x -> CROP - 1 - x) and averaged with the direct ones, and the
+    are mapped back (68-point left/right swap, x -> CROP - x: the mirror axis is the mean shape's, x = 56) and averaged with the direct ones, and the
     two face probabilities are averaged. Twice the inference cost."""
 
     def __init__(self, net: Dan, mirror: bool = False, swap: list[int] | None = None):
@@ -92,7 +92,9 @@ class DanExport(nn.Module):
         p = torch.softmax(logits, dim=1)[:, 1]
         if not self.mirror:
             return lm, p
-        lm_m, logits_m = self.net(torch.flip(x, dims=[3]))
+        # Mirrored about the mean shape's axis x = CROP / 2 (u -> CROP - u; see train.mirror_crop).
+        xm = torch.nn.functional.pad(torch.flip(x, dims=[3]), (1, 0))[..., :CROP]
+        lm_m, logits_m = self.net(xm)
         lm_m = lm_m.index_select(1, self.swap)
-        lm_m = torch.stack([(CROP - 1) - lm_m[..., 0], lm_m[..., 1]], dim=-1)
+        lm_m = torch.stack([CROP - lm_m[..., 0], lm_m[..., 1]], dim=-1)
         return 0.5 * (lm + lm_m), 0.5 * (p + torch.softmax(logits_m, dim=1)[:, 1])

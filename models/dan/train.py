@@ -119,13 +119,21 @@ def roc_auc(pos: np.ndarray, neg: np.ndarray) -> float:
     return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
+def mirror_crop(x: torch.Tensor) -> torch.Tensor:
+    """The crop mirrored about the mean shape's own axis, x = CROP / 2 (its point mean; the shape is the
+    Procrustes mean of faces and their mirror images, so it is symmetric about that line): u -> CROP - u.
+    A plain `flip` mirrors about the grid's centre (CROP - 1) / 2 instead and shifts the face by a pixel. The
+    column that falls outside is dropped; the new column 0 is zero, as outside the image."""
+    return F.pad(torch.flip(x, dims=[3]), (1, 0))[..., : g.CROP]
+
+
 def mirror_predict(net, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Mirror test-time augmentation: the mean of the net on the crop and on its mirror image (landmarks
-    mapped back through the 68-point swap), and the mean face probability."""
+    mapped back through the 68-point swap and x -> CROP - x), and the mean face probability."""
     lm, logits = net(x)
-    lm_m, logits_m = net(torch.flip(x, dims=[3]))
+    lm_m, logits_m = net(mirror_crop(x))
     lm_m = lm_m[:, torch.from_numpy(g.MIRROR_68)]
-    lm_m = torch.stack([(g.CROP - 1) - lm_m[..., 0], lm_m[..., 1]], dim=-1)
+    lm_m = torch.stack([g.CROP - lm_m[..., 0], lm_m[..., 1]], dim=-1)
     p = 0.5 * (torch.softmax(logits, 1)[:, 1] + torch.softmax(logits_m, 1)[:, 1])
     return 0.5 * (lm + lm_m), p
 
@@ -167,6 +175,17 @@ def evaluate(net, val, channels_last, mirror=False):
     for sub in sorted(set(subsets)):
         m[f"val_nme68_corners_{sub}"] = float(e_corners[torch.from_numpy(subsets == sub)].mean())
     return m
+
+
+# Buffers that define the crop frame and the input normalisation: kept in fp32 in every checkpoint.
+EXACT_BUFFERS = ("mean_shape", "pix_mean", "pix_std")
+
+
+def slim_weights(model_state: dict) -> dict:
+    """The weights for a committed slim checkpoint: float parameters and batch-norm statistics in fp16 (half
+    the bytes in the repository; the rounding, about 5e-4 relative, is far below one optimiser step's change
+    and is undone by the first steps after a resume), the frame-defining buffers exact."""
+    return {k: (v.half() if v.is_floating_point() and k not in EXACT_BUFFERS else v) for k, v in model_state.items()}
 
 
 def native_bf16() -> bool:
@@ -295,6 +314,10 @@ def main() -> None:
              **evaluate(net, val, channels_last)})
     loss_fn = wing if args.loss == "wing" else nme
     end = min(args.steps, args.stop_at) if args.stop_at else args.steps
+    if step >= end:
+        print(f"step {step}: this phase ends at {end}, nothing to train (start a new phase with --phase-start "
+              f"{step} --steps N)", file=sys.stderr)
+        return
     bar = tqdm(total=end, initial=step, desc="DAN", file=sys.stderr, mininterval=10)
     t0, seen = time.time(), 0
     run_loss = []
@@ -338,6 +361,7 @@ def main() -> None:
             torch.save(state, last + ".tmp")
             os.replace(last + ".tmp", last)
             slim = {k: v for k, v in state.items() if k != "opt"}
+            slim["model"] = slim_weights(state["model"])
             torch.save(slim, os.path.join(args.out, "slim.pt.tmp"))
             os.replace(os.path.join(args.out, "slim.pt.tmp"), os.path.join(args.out, "slim.pt"))
             t0, seen = time.time(), 0
