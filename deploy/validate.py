@@ -104,7 +104,7 @@ def server_metric_names() -> set[str] | None:
 
 
 def is_internal_ip(host: str) -> bool:
-    """Mirror of alignment_server::internal::is_internal_addr."""
+    """Mirror of alignment_server::metrics_http::is_internal_addr."""
     ip = ipaddress.ip_address(host.strip("[]"))
     if ip.version == 4:
         nets = ["127.0.0.0/8", "10.0.0.0/8", "172.16.0.0/12", "192.168.0.0/16", "169.254.0.0/16"]

@@ -3,7 +3,7 @@
 //!
 //! It never reads a clock, sleeps or touches a socket: every call that depends
 //! on time takes `now`, and [`DynamicBatcher::poll_timeout`] tells the driver
-//! when it must call back. Call order for a driver (see `server.rs`):
+//! when it must call back. Call order for a driver (see `server/scheduler.rs`):
 //!
 //! 1. [`DynamicBatcher::push`] every frame as it arrives.
 //! 2. When the timer from [`DynamicBatcher::poll_timeout`] fires, call
@@ -23,9 +23,14 @@
 //!   (`max_queued`) sheds new frames with [`DropReason::Overloaded`].
 //! * **Deadlines**: a frame whose deadline has passed is dropped with
 //!   [`DropReason::Expired`] and never reaches the engine.
-//! * **When to fire**: a batch is formed when `max_batch` frames are queued,
-//!   or the oldest frame has waited `max_wait` (checked in `poll_batch`, so a
-//!   busy engine naturally accumulates a fuller batch).
+//! * **When to fire** ([`BatchPolicy`]): the driver asks for a batch only
+//!   when the engine is idle. Under [`BatchPolicy::WorkConserving`] (the
+//!   default) an idle engine takes whatever is queued at once, so a lone
+//!   headset pays no batching delay, and batches grow only while the engine is
+//!   busy (frames that arrive during an inference form the next batch). Under
+//!   [`BatchPolicy::MaxWait`] a partial batch waits until its oldest frame has
+//!   waited `max_wait` (fuller batches at the cost of latency). Either way a
+//!   batch fires as soon as `max_batch` frames are queued.
 //! * **Fairness**: batches are filled round-robin over clients with queued
 //!   frames, one frame per client per round; the rotation continues across
 //!   batches, so a client with a deep queue cannot starve others and an idle
@@ -39,13 +44,23 @@ use holoface_protocol::DropReason;
 /// Identifies a client (one QUIC connection) inside the server.
 pub type ClientId = u64;
 
+/// When an idle engine gets a partial batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BatchPolicy {
+    /// At once: the engine never idles while a frame waits; batches fill while it is busy.
+    #[default]
+    WorkConserving,
+    /// When the oldest queued frame has waited this long (or the batch is full).
+    MaxWait(Duration),
+}
+
 /// Batcher limits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BatcherConfig {
     /// Largest batch handed to the engine (>= 1).
     pub max_batch: usize,
-    /// Longest time the oldest queued frame waits for a fuller batch.
-    pub max_wait: Duration,
+    /// When a partial batch goes to an idle engine.
+    pub policy: BatchPolicy,
     /// Frames kept per client (>= 1); older ones are superseded.
     pub per_client_queue: usize,
     /// Frames kept in total; beyond it new frames are shed as overloaded.
@@ -56,7 +71,7 @@ impl Default for BatcherConfig {
     fn default() -> Self {
         Self {
             max_batch: 8,
-            max_wait: Duration::from_millis(2),
+            policy: BatchPolicy::WorkConserving,
             per_client_queue: 1,
             max_queued: 4096,
         }
@@ -211,17 +226,16 @@ impl<T> DynamicBatcher<T> {
         self.dropped.pop_front()
     }
 
-    /// A batch, if one is due at `now`: `max_batch` frames are queued or the
-    /// oldest has waited `max_wait`. Expired frames are dropped first.
+    /// A batch, if one is due at `now` (call it when the engine is idle): any
+    /// queued frame under [`BatchPolicy::WorkConserving`]; under
+    /// [`BatchPolicy::MaxWait`], `max_batch` frames queued or the oldest having
+    /// waited `max_wait`. Expired frames are dropped first.
     pub fn poll_batch(&mut self, now: Instant) -> Option<Batch<T>> {
         self.handle_timeout(now);
         if self.len == 0 {
             return None;
         }
-        let due = self.len >= self.cfg.max_batch
-            || self
-                .oldest_arrival()
-                .is_some_and(|t| t + self.cfg.max_wait <= now);
+        let due = self.len >= self.cfg.max_batch || self.flush_at().is_some_and(|t| t <= now);
         if !due {
             return None;
         }
@@ -253,7 +267,7 @@ impl<T> DynamicBatcher<T> {
     /// `max_wait` flush, [`Self::handle_timeout`] for the earliest deadline),
     /// or `None` when nothing is queued.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        let flush = self.oldest_arrival().map(|t| t + self.cfg.max_wait);
+        let flush = self.flush_at();
         let expiry = self
             .queues
             .values()
@@ -311,6 +325,15 @@ impl<T> DynamicBatcher<T> {
         self.dropped.push_back(Dropped { item, reason });
     }
 
+    /// When a partial batch becomes due (the oldest arrival under work-conserving batching).
+    fn flush_at(&self) -> Option<Instant> {
+        let wait = match self.cfg.policy {
+            BatchPolicy::WorkConserving => Duration::ZERO,
+            BatchPolicy::MaxWait(w) => w,
+        };
+        self.oldest_arrival().map(|t| t + wait)
+    }
+
     fn oldest_arrival(&self) -> Option<Instant> {
         self.queues
             .values()
@@ -349,10 +372,14 @@ mod tests {
         }
     }
 
+    /// `max_wait_ms` 0 = work-conserving.
     fn cfg(max_batch: usize, max_wait_ms: u64, per_client: usize) -> BatcherConfig {
         BatcherConfig {
             max_batch,
-            max_wait: MS * u32::try_from(max_wait_ms).unwrap(),
+            policy: match max_wait_ms {
+                0 => BatchPolicy::WorkConserving,
+                ms => BatchPolicy::MaxWait(MS * u32::try_from(ms).unwrap()),
+            },
             per_client_queue: per_client,
             max_queued: 1000,
         }
@@ -379,6 +406,29 @@ mod tests {
         assert_eq!(batch.items.len(), 3);
         assert_eq!(batch.formed_at, c.at(0));
         assert!(b.is_empty());
+        assert_eq!(b.poll_timeout(), None);
+    }
+
+    /// The idle-engine case: one headset's frame goes the moment it arrives, with no batching delay; while
+    /// the engine is busy (the driver does not ask), later frames accumulate into the next batch.
+    #[test]
+    fn work_conserving_sends_at_once_to_an_idle_engine_and_batches_while_busy() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 0, 1));
+        b.push(item(&c, 1, 1, 0, 100), c.at(0));
+        assert_eq!(b.poll_timeout(), Some(c.at(0)), "due now, not after a wait");
+        let first = b
+            .poll_batch(c.at(0))
+            .expect("an idle engine takes the lone frame at once");
+        assert_eq!(ids(&first), vec![(1, 1)]);
+        assert_eq!(first.formed_at, c.at(0));
+        // The engine is busy with `first` from 0 to 3 ms: three headsets' frames arrive meanwhile.
+        for (client, at) in [(1, 1), (2, 1), (3, 2)] {
+            b.push(item(&c, client, 2, at, 100), c.at(at));
+        }
+        let second = b.poll_batch(c.at(3)).expect("engine idle again at 3 ms");
+        assert_eq!(ids(&second), vec![(1, 2), (2, 2), (3, 2)]);
+        assert!(b.poll_batch(c.at(3)).is_none());
         assert_eq!(b.poll_timeout(), None);
     }
 
@@ -560,7 +610,7 @@ mod tests {
     fn zero_limits_are_raised() {
         let b: DynamicBatcher<()> = DynamicBatcher::new(BatcherConfig {
             max_batch: 0,
-            max_wait: Duration::ZERO,
+            policy: BatchPolicy::WorkConserving,
             per_client_queue: 0,
             max_queued: 0,
         });

@@ -20,8 +20,8 @@ use clap::{Args, Parser, ValueEnum};
 use holoface_protocol::ReplyChannel;
 use serde::{Deserialize, Serialize};
 
-use crate::batcher::BatcherConfig;
-use crate::internal::is_internal_addr;
+use crate::batcher::{BatchPolicy, BatcherConfig};
+use crate::metrics_http::is_internal_addr;
 use holoface_inference::OnnxOptions;
 
 /// Default QUIC listen address.
@@ -85,6 +85,16 @@ impl From<ReplyMode> for ReplyChannel {
             ReplyMode::Stream => Self::Stream,
         }
     }
+}
+
+/// When a partial batch goes to an idle engine (the TOML/CLI spelling of [`BatchPolicy`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BatchPolicyName {
+    /// At once: no batching delay for an idle engine; batches fill while it is busy (default).
+    WorkConserving,
+    /// After the oldest frame has waited `max_wait_us` (throughput over latency).
+    MaxWait,
 }
 
 /// `[quic]`: endpoint, TLS and handshake.
@@ -166,7 +176,10 @@ pub struct BatchConfig {
     /// Largest inference batch [default: 8].
     #[arg(long, env = "HOLOFACE_MAX_BATCH")]
     pub max_batch: Option<usize>,
-    /// Longest wait for a fuller batch, µs [default: 2000].
+    /// When a partial batch goes to an idle engine [default: work-conserving].
+    #[arg(long = "batch-policy", value_enum)]
+    pub policy: Option<BatchPolicyName>,
+    /// With `policy = "max-wait"`: longest wait for a fuller batch, µs [default: 2000].
     #[arg(long)]
     pub max_wait_us: Option<u64>,
     /// Queued frames kept per client; newer ones supersede older [default: 1].
@@ -305,7 +318,7 @@ impl LimitsConfig {
 }
 impl BatchConfig {
     fn merge(self, lo: Self) -> Self {
-        merge_fields!(self, lo, max_batch, max_wait_us, per_client_queue)
+        merge_fields!(self, lo, max_batch, policy, max_wait_us, per_client_queue)
     }
 }
 impl EngineConfig {
@@ -451,6 +464,21 @@ impl ServerConfig {
         if !(1..=256).contains(&max_batch) {
             return Err(invalid(format!("batch.max_batch = {max_batch}, allowed 1..=256")));
         }
+        let policy = match (
+            self.batch.policy.unwrap_or(BatchPolicyName::WorkConserving),
+            self.batch.max_wait_us,
+        ) {
+            (BatchPolicyName::WorkConserving, None) => BatchPolicy::WorkConserving,
+            (BatchPolicyName::WorkConserving, Some(us)) => {
+                return Err(invalid(format!(
+                    "batch.max_wait_us = {us} applies only to batch.policy = \"max-wait\" \
+                     (the default policy, work-conserving, never waits)"
+                )));
+            }
+            (BatchPolicyName::MaxWait, us) => {
+                BatchPolicy::MaxWait(Duration::from_micros(us.unwrap_or(2_000)))
+            }
+        };
         let max_clients = self.limits.max_clients.unwrap_or(64);
         if max_clients == 0 {
             return Err(invalid("limits.max_clients must be at least 1".into()));
@@ -488,7 +516,7 @@ impl ServerConfig {
             max_frame_rate: self.limits.max_frame_rate.unwrap_or(240),
             batch: BatcherConfig {
                 max_batch,
-                max_wait: Duration::from_micros(self.batch.max_wait_us.unwrap_or(2_000)),
+                policy,
                 per_client_queue: self.batch.per_client_queue.unwrap_or(1).max(1),
                 max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
             },
@@ -595,6 +623,7 @@ mod tests {
         tokens = ["from-file"]
         [batch]
         max_batch = 16
+        policy = "max-wait"
         max_wait_us = 500
         [engine]
         model = "/srv/dan.onnx"
@@ -623,9 +652,44 @@ mod tests {
         assert_eq!(cfg.limits.max_clients, Some(7));
         let s = cfg.resolve().unwrap();
         assert_eq!(s.batch.max_batch, 16);
+        assert_eq!(s.batch.policy, BatchPolicy::MaxWait(Duration::from_micros(500)));
         assert_eq!(s.reply_channel, ReplyChannel::Stream);
         assert_eq!(s.listen, "127.0.0.1:5000".parse().unwrap());
         assert_eq!(s.tokens, vec!["from-file".to_owned()]);
+    }
+
+    #[test]
+    fn batching_is_work_conserving_unless_max_wait_is_chosen() {
+        let resolve = |toml: &str| {
+            ServerConfig::parse_and_merge(
+                ["holoface-server", "--config", "s.toml", "--allow-anonymous"],
+                |_| Ok(toml.to_owned()),
+            )
+            .unwrap()
+            .resolve()
+        };
+        assert_eq!(resolve("").unwrap().batch.policy, BatchPolicy::WorkConserving);
+        assert_eq!(
+            resolve("[batch]\npolicy = \"max-wait\"").unwrap().batch.policy,
+            BatchPolicy::MaxWait(Duration::from_millis(2))
+        );
+        let err = resolve("[batch]\nmax_wait_us = 2000").unwrap_err().to_string();
+        assert!(err.contains("max_wait_us") && err.contains("max-wait"), "{err}");
+        let cli = ServerConfig::parse_and_merge(
+            [
+                "holoface-server",
+                "--allow-anonymous",
+                "--batch-policy",
+                "max-wait",
+                "--max-wait-us",
+                "700",
+            ],
+            |_| unreachable!("no config file"),
+        )
+        .unwrap()
+        .resolve()
+        .unwrap();
+        assert_eq!(cli.batch.policy, BatchPolicy::MaxWait(Duration::from_micros(700)));
     }
 
     #[test]

@@ -7,12 +7,18 @@
 //! * The engine ([`InferenceEngine`], [`OnnxEngine`]) lives in
 //!   `holoface-inference`, shared with the headset client.
 //! * [`server`]: the quinn driver: [`Server::bind`], [`Server::run`] with an
-//!   injected shutdown future, [`run`].
+//!   injected shutdown future, [`run`], [`shutdown_signal`]. Split by
+//!   responsibility: `server/mod.rs` (the server, its shared state, transport
+//!   settings and the accept loop), `lifecycle.rs` (systemd readiness,
+//!   signals), `auth.rs` (hello, version and token checks), `connection.rs`
+//!   (the per-connection task), `reply.rs` (the reply sink), `frame.rs` (one
+//!   frame stream), `rate_limit.rs`, `scheduler.rs` (the batcher's task) and
+//!   `engine_thread.rs` (the inference thread).
 //! * [`config`]: [`ServerConfig`] (TOML + CLI + env, CLI cannot clobber the
 //!   file) resolved into [`Settings`].
 //! * [`tls`]: the server's certificate (PEM files or self-signed); the
 //!   fingerprint clients pin is `holoface-quic`'s [`Fingerprint`].
-//! * [`metrics`], [`internal`]: Prometheus `/metrics` and `/health` on a
+//! * [`metrics`], [`metrics_http`]: Prometheus `/metrics` and `/health` on a
 //!   loopback/private listener.
 //!
 //! The library emits `tracing` events and never installs a subscriber.
@@ -20,12 +26,12 @@
 
 pub mod batcher;
 pub mod config;
-pub mod internal;
 pub mod metrics;
+pub mod metrics_http;
 pub mod server;
 pub mod tls;
 
-pub use batcher::{BatcherConfig, DynamicBatcher};
+pub use batcher::{BatchPolicy, BatcherConfig, DynamicBatcher};
 pub use config::{ServerConfig, Settings};
 pub use holoface_inference::{InferenceEngine, ModelInfo, OnnxEngine};
 pub use holoface_quic::Fingerprint;

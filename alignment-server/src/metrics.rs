@@ -1,6 +1,6 @@
 //! Server metrics: lock-free atomics updated by the session and batcher
 //! layers, rendered as Prometheus text by the internal listener
-//! ([`crate::internal`]).
+//! ([`crate::metrics_http`]).
 
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
@@ -241,7 +241,7 @@ impl Metrics {
             let _ = writeln!(
                 out,
                 "holoface_connections_closed_total{{code=\"{}\"}} {}",
-                code_label(code),
+                code.name(),
                 self.closes_for(code)
             );
         }
@@ -266,7 +266,7 @@ impl Metrics {
             let _ = writeln!(
                 out,
                 "holoface_frames_dropped_total{{reason=\"{}\"}} {}",
-                drop_label(*reason),
+                reason.name(),
                 self.drops_for(*reason)
             );
         }
@@ -307,32 +307,6 @@ impl Metrics {
             1e6,
         );
         out
-    }
-}
-
-/// Metric label for a drop reason.
-pub const fn drop_label(reason: DropReason) -> &'static str {
-    match reason {
-        DropReason::Superseded => "superseded",
-        DropReason::Expired => "expired",
-        DropReason::Overloaded => "overloaded",
-        DropReason::BadCrop => "bad_crop",
-        DropReason::ShuttingDown => "shutting_down",
-    }
-}
-
-/// Metric label for a close code.
-pub const fn code_label(code: CloseCode) -> &'static str {
-    match code {
-        CloseCode::NoError => "no_error",
-        CloseCode::BadVersion => "bad_version",
-        CloseCode::Unauthorized => "unauthorized",
-        CloseCode::Malformed => "malformed",
-        CloseCode::TooLarge => "too_large",
-        CloseCode::Overloaded => "overloaded",
-        CloseCode::ShuttingDown => "shutting_down",
-        CloseCode::Internal => "internal",
-        CloseCode::ProtocolViolation => "protocol_violation",
     }
 }
 

@@ -75,6 +75,11 @@ int main(int argc, char **argv) {
                    r.has_face, (int)r.answered_by, r.landmarks_px[2 * 30], r.landmarks_px[2 * 30 + 1],
                    r.world_position_m[0], r.world_position_m[1], r.world_position_m[2], r.weights[0]);
     }
+    /* No server configured: the link status says the local aligner answers. */
+    HfLinkStatus link;
+    if (hf_tracker_link_status(t, &link) != HF_STATUS_OK || link.state != HF_LINK_STATE_LOCAL) return 3;
+    if (hf_tracker_link_status(NULL, &link) != HF_STATUS_INVALID_HANDLE) return 3;
+    printf("link: state %d (local)\n", (int)link.state);
     /* Timestamps must increase in video mode. */
     HfStatus back = hf_tracker_process(t, px, w, h, w, 0, &cam, pose, &r);
     printf("old timestamp: status %d (%s)\n", (int)back, hf_last_error());

@@ -69,6 +69,83 @@ typedef enum HfAnsweredBy {
 } HfAnsweredBy;
 
 /**
+ * Where the link to the alignment server stands.
+ */
+typedef enum HfLinkState {
+  /**
+   * No server configured: the local aligner answers every frame.
+   */
+  HF_LINK_STATE_LOCAL = 0,
+  /**
+   * First connection attempt under way.
+   */
+  HF_LINK_STATE_CONNECTING = 1,
+  /**
+   * Connected: frames go to the server.
+   */
+  HF_LINK_STATE_UP = 2,
+  /**
+   * Down (see `failure`); retrying with backoff, frames answered locally meanwhile.
+   */
+  HF_LINK_STATE_RETRYING = 3,
+  /**
+   * Gave up (see `failure`: wrong token, certificate mismatch, protocol version); frames answered locally
+   * until the tracker is recreated with a fixed configuration.
+   */
+  HF_LINK_STATE_FAILED = 4,
+  /**
+   * The link was shut down.
+   */
+  HF_LINK_STATE_STOPPED = 5,
+} HfLinkState;
+
+/**
+ * Why the link is not up.
+ */
+typedef enum HfLinkFailure {
+  /**
+   * No failure.
+   */
+  HF_LINK_FAILURE_NONE = 0,
+  /**
+   * No answer from the server's address.
+   */
+  HF_LINK_FAILURE_UNREACHABLE = 1,
+  /**
+   * The server rejected the token.
+   */
+  HF_LINK_FAILURE_UNAUTHORIZED = 2,
+  /**
+   * The server's certificate does not match `server_fingerprint`.
+   */
+  HF_LINK_FAILURE_CERTIFICATE_MISMATCH = 3,
+  /**
+   * The server speaks another protocol version.
+   */
+  HF_LINK_FAILURE_BAD_VERSION = 4,
+  /**
+   * The server is at its client limit.
+   */
+  HF_LINK_FAILURE_SERVER_FULL = 5,
+  /**
+   * The server is shutting down.
+   */
+  HF_LINK_FAILURE_SHUTTING_DOWN = 6,
+  /**
+   * An established connection broke.
+   */
+  HF_LINK_FAILURE_CONNECTION_LOST = 7,
+  /**
+   * The server broke the protocol.
+   */
+  HF_LINK_FAILURE_PROTOCOL = 8,
+  /**
+   * A failure on this device (socket, TLS set-up).
+   */
+  HF_LINK_FAILURE_LOCAL = 9,
+} HfLinkFailure;
+
+/**
  * An opaque tracker.
  */
 typedef struct HfTracker HfTracker;
@@ -214,6 +291,24 @@ typedef struct HfResult {
   uint8_t mouth_open;
 } HfResult;
 
+/**
+ * The link's status: state, failure kind, and the failure message (NUL-terminated UTF-8, truncated).
+ */
+typedef struct HfLinkStatus {
+  /**
+   * State.
+   */
+  enum HfLinkState state;
+  /**
+   * Why it is not up (`HF_LINK_FAILURE_NONE` when up or never failed).
+   */
+  enum HfLinkFailure failure;
+  /**
+   * The failure message for logs; empty when there is none.
+   */
+  char message[256];
+} HfLinkStatus;
+
 #ifdef __cplusplus
 extern "C" {
 #endif // __cplusplus
@@ -253,6 +348,16 @@ enum HfStatus hf_tracker_process(struct HfTracker *tracker,
                                  const struct HfCamera *camera,
                                  const float *world_from_camera,
                                  struct HfResult *out);
+
+/**
+ * The tracker's link to the alignment server: `HF_LINK_STATE_LOCAL` without a server, else whether it is up
+ * and, when it is not, why (the message says it in words). Frames are answered locally while it is not up.
+ *
+ * # Safety
+ * `tracker` is any pointer (checked); `out` is NULL or points to writable memory for one `HfLinkStatus`.
+ */
+enum HfStatus hf_tracker_link_status(const struct HfTracker *tracker,
+                                     struct HfLinkStatus *out);
 
 /**
  * Frees a tracker. NULL, unknown and already-freed handles are ignored (and reported by `hf_last_error`).

@@ -18,9 +18,11 @@ use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
 use holoface_client::align::AnsweredBy;
-use holoface_client::session::{Frame, FrameResult, NoFaceReason};
+use holoface_client::frame::Frame;
+use holoface_client::link::{FailureKind, LinkState, LinkStatus};
+use holoface_client::session::{FrameResult, NoFaceReason};
 use holoface_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::Pose;
 
@@ -137,6 +139,107 @@ pub struct HfResult {
     pub brows_raised: u8,
     /// Mouth open (0/1).
     pub mouth_open: u8,
+}
+
+/// Where the link to the alignment server stands.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HfLinkState {
+    /// No server configured: the local aligner answers every frame.
+    Local = 0,
+    /// First connection attempt under way.
+    Connecting = 1,
+    /// Connected: frames go to the server.
+    Up = 2,
+    /// Down (see `failure`); retrying with backoff, frames answered locally meanwhile.
+    Retrying = 3,
+    /// Gave up (see `failure`: wrong token, certificate mismatch, protocol version); frames answered locally
+    /// until the tracker is recreated with a fixed configuration.
+    Failed = 4,
+    /// The link was shut down.
+    Stopped = 5,
+}
+
+/// Why the link is not up.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HfLinkFailure {
+    /// No failure.
+    None = 0,
+    /// No answer from the server's address.
+    Unreachable = 1,
+    /// The server rejected the token.
+    Unauthorized = 2,
+    /// The server's certificate does not match `server_fingerprint`.
+    CertificateMismatch = 3,
+    /// The server speaks another protocol version.
+    BadVersion = 4,
+    /// The server is at its client limit.
+    ServerFull = 5,
+    /// The server is shutting down.
+    ShuttingDown = 6,
+    /// An established connection broke.
+    ConnectionLost = 7,
+    /// The server broke the protocol.
+    Protocol = 8,
+    /// A failure on this device (socket, TLS set-up).
+    Local = 9,
+}
+
+/// The link's status: state, failure kind, and the failure message (NUL-terminated UTF-8, truncated).
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct HfLinkStatus {
+    /// State.
+    pub state: HfLinkState,
+    /// Why it is not up (`HF_LINK_FAILURE_NONE` when up or never failed).
+    pub failure: HfLinkFailure,
+    /// The failure message for logs; empty when there is none.
+    pub message: [c_char; 256],
+}
+
+fn link_failure(kind: Option<FailureKind>) -> HfLinkFailure {
+    match kind {
+        None => HfLinkFailure::None,
+        Some(FailureKind::Unreachable) => HfLinkFailure::Unreachable,
+        Some(FailureKind::Unauthorized) => HfLinkFailure::Unauthorized,
+        Some(FailureKind::CertificateMismatch) => HfLinkFailure::CertificateMismatch,
+        Some(FailureKind::BadVersion) => HfLinkFailure::BadVersion,
+        Some(FailureKind::ServerFull) => HfLinkFailure::ServerFull,
+        Some(FailureKind::ShuttingDown) => HfLinkFailure::ShuttingDown,
+        Some(FailureKind::ConnectionLost) => HfLinkFailure::ConnectionLost,
+        Some(FailureKind::Protocol) => HfLinkFailure::Protocol,
+        Some(_) => HfLinkFailure::Local,
+    }
+}
+
+fn link_status(status: Option<LinkStatus>) -> HfLinkStatus {
+    let mut out = HfLinkStatus {
+        state: HfLinkState::Local,
+        failure: HfLinkFailure::None,
+        message: [0; 256],
+    };
+    let Some(status) = status else { return out };
+    let failure = status.failure().cloned();
+    (out.state, out.failure) = match status.state() {
+        LinkState::Connecting => (HfLinkState::Connecting, HfLinkFailure::None),
+        LinkState::Up => (HfLinkState::Up, HfLinkFailure::None),
+        LinkState::Retrying(k) => (HfLinkState::Retrying, link_failure(Some(k))),
+        LinkState::Failed(k) => (HfLinkState::Failed, link_failure(Some(k))),
+        LinkState::Stopped => (HfLinkState::Stopped, HfLinkFailure::None),
+    };
+    if let Some(f) = failure.filter(|_| out.failure != HfLinkFailure::None) {
+        let text = f.to_string().replace('\0', " ");
+        // Truncate on a character boundary, keeping the NUL.
+        let mut end = text.len().min(out.message.len() - 1);
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        for (o, b) in out.message.iter_mut().zip(&text.as_bytes()[..end]) {
+            *o = *b as c_char;
+        }
+    }
+    out
 }
 
 /// An opaque tracker.
@@ -475,7 +578,7 @@ fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
             c.predicted_position_m = u.predicted_position.to_array();
             c.display_position_m = u.display.0.to_array();
             c.display_rotation_wxyz = q(u.display.1);
-            c.weights = u.fit.weights;
+            c.weights = u.fit.weights.0;
             c.smile = u8::from(u.attributes.smile);
             c.brows_raised = u8::from(u.attributes.brows_raised);
             c.mouth_open = u8::from(u.attributes.mouth_open);
@@ -490,6 +593,35 @@ fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
         }
     }
     c
+}
+
+/// The tracker's link to the alignment server: `HF_LINK_STATE_LOCAL` without a server, else whether it is up
+/// and, when it is not, why (the message says it in words). Frames are answered locally while it is not up.
+///
+/// # Safety
+/// `tracker` is any pointer (checked); `out` is NULL or points to writable memory for one `HfLinkStatus`.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_link_status(
+    tracker: *const HfTracker,
+    out: *mut HfLinkStatus,
+) -> HfStatus {
+    guard(|| {
+        if !registered(tracker) {
+            return fail(
+                HfStatus::InvalidHandle,
+                "hf_tracker_link_status: not a live tracker handle",
+            );
+        }
+        if out.is_null() {
+            return fail(HfStatus::NullPointer, "hf_tracker_link_status: out is NULL");
+        }
+        // SAFETY: registered handles are live boxes we created.
+        let t = unsafe { &*tracker };
+        let status = link_status(t.inner.link_status());
+        // SAFETY: `out` is non-NULL and writable per the contract.
+        unsafe { out.write(status) };
+        HfStatus::Ok
+    })
 }
 
 /// Frees a tracker. NULL, unknown and already-freed handles are ignored (and reported by `hf_last_error`).
@@ -619,6 +751,61 @@ mod tests {
     fn panics_become_status_codes() {
         assert_eq!(guard(|| panic!("boom")), HfStatus::Panic);
         assert!(last_error().contains("boom"));
+    }
+
+    #[test]
+    fn link_status_says_state_kind_and_message() {
+        use holoface_client::link::LinkFailure;
+        let local = link_status(None);
+        assert_eq!(
+            (local.state, local.failure, local.message[0]),
+            (HfLinkState::Local, HfLinkFailure::None, 0)
+        );
+        let failed = link_status(Some(LinkStatus::Failed(LinkFailure::new(
+            FailureKind::Unauthorized,
+            "connection: closed by peer",
+        ))));
+        assert_eq!(
+            (failed.state, failed.failure),
+            (HfLinkState::Failed, HfLinkFailure::Unauthorized)
+        );
+        // SAFETY: link_status always leaves a NUL in the buffer.
+        let msg = unsafe { CStr::from_ptr(failed.message.as_ptr()) }
+            .to_str()
+            .unwrap();
+        assert_eq!(msg, "unauthorized: connection: closed by peer");
+        // A long, multi-byte message is cut on a character boundary and stays NUL-terminated.
+        let long = link_status(Some(LinkStatus::Connecting {
+            last_error: Some(LinkFailure::new(FailureKind::Unreachable, "é".repeat(400))),
+        }));
+        assert_eq!(
+            (long.state, long.failure),
+            (HfLinkState::Retrying, HfLinkFailure::Unreachable)
+        );
+        // SAFETY: as above.
+        let msg = unsafe { CStr::from_ptr(long.message.as_ptr()) }.to_str().unwrap();
+        assert!(
+            msg.len() <= 255 && msg.starts_with("unreachable: é"),
+            "{}",
+            msg.len()
+        );
+        let up = link_status(Some(LinkStatus::Connecting { last_error: None }));
+        assert_eq!(
+            (up.state, up.failure),
+            (HfLinkState::Connecting, HfLinkFailure::None)
+        );
+    }
+
+    #[test]
+    fn link_status_of_a_bad_handle_is_an_error() {
+        let mut out = std::mem::MaybeUninit::<HfLinkStatus>::uninit();
+        let bogus = 0xdead_beef_usize as *const HfTracker;
+        for handle in [std::ptr::null(), bogus] {
+            // SAFETY: the handle is checked before any dereference.
+            let s = unsafe { hf_tracker_link_status(handle, out.as_mut_ptr()) };
+            assert_eq!(s, HfStatus::InvalidHandle);
+            assert!(last_error().contains("not a live tracker handle"));
+        }
     }
 
     #[test]

@@ -39,6 +39,31 @@ namespace HoloFace
         public byte smile, browsRaised, mouthOpen;
     }
 
+    public enum HfLinkState { Local = 0, Connecting = 1, Up = 2, Retrying = 3, Failed = 4, Stopped = 5 }
+    public enum HfLinkFailure
+    {
+        None = 0, Unreachable = 1, Unauthorized = 2, CertificateMismatch = 3, BadVersion = 4, ServerFull = 5,
+        ShuttingDown = 6, ConnectionLost = 7, Protocol = 8, Local = 9
+    }
+
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfLinkStatus
+    {
+        public HfLinkState state;
+        public HfLinkFailure failure;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 256)] public byte[] message; // NUL-terminated UTF-8
+
+        public string Message
+        {
+            get
+            {
+                if (message == null) return "";
+                int n = Array.IndexOf(message, (byte)0);
+                return System.Text.Encoding.UTF8.GetString(message, 0, n < 0 ? message.Length : n);
+            }
+        }
+    }
+
     public static class Native
     {
         const string Lib = "holoface"; // libholoface.so / holoface.dll in Assets/Plugins
@@ -48,6 +73,7 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_process(IntPtr tracker, byte[] pixels, uint width, uint height,
             uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, out HfResult result);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_link_status(IntPtr tracker, out HfLinkStatus status);
         [DllImport(Lib)] static extern IntPtr hf_last_error();
 
         public static string LastError() => Marshal.PtrToStringUTF8(hf_last_error());
@@ -83,6 +109,15 @@ namespace HoloFace
                 worldFromCamera, out var r);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             return r;
+        }
+
+        /// <summary>The link to the alignment server: Local without a server; Retrying/Failed say why frames are
+        /// answered on the headset (wrong token, certificate mismatch, unreachable...).</summary>
+        public HfLinkStatus LinkStatus()
+        {
+            var s = Native.hf_tracker_link_status(handle, out var st);
+            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            return st;
         }
 
         public void Dispose()

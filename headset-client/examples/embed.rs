@@ -8,9 +8,9 @@
 //! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
 //! `HOLOFACE_CANDIDE` (defaults: the paths `make setup` uses).
 
-use holoface_client::session::Frame;
+use holoface_client::frame::Frame;
 use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
@@ -46,7 +46,7 @@ fn main() -> anyhow::Result<()> {
     println!(
         "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
         face.fit.translation.to_array(),
-        face.fit.weights[0],
+        face.fit.weights[holoface_models::expression::Unit::JawDrop],
         r.answered_by
     );
 

@@ -8,6 +8,7 @@ use holoface_inference::{BatchTensor, EngineError, InferenceEngine, LandmarkOut}
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::{Point2, Similarity2};
 use holoface_models::image::GrayView;
+use serde::Serialize;
 use thiserror::Error;
 
 /// Which landmarks an alignment fills.
@@ -94,17 +95,27 @@ pub trait Aligner {
     }
 }
 
+/// Where the initial shape of a frame came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InitSource {
+    /// A fresh detection.
+    Detection,
+    /// The previous frame's landmarks (motion-compensated when enabled).
+    Tracking,
+}
+
 /// Aligns from a prepared initial shape: [`Aligner::align_detection`] after a detection,
 /// [`Aligner::align`] when tracking.
 pub fn align_from(
     aligner: &mut (impl Aligner + ?Sized),
     image: &GrayView<'_>,
     init: &[Point2; 68],
-    source: crate::session::InitSource,
+    source: InitSource,
 ) -> Result<Alignment, AlignError> {
     match source {
-        crate::session::InitSource::Detection => aligner.align_detection(image, init),
-        crate::session::InitSource::Tracking => aligner.align(image, init),
+        InitSource::Detection => aligner.align_detection(image, init),
+        InitSource::Tracking => aligner.align(image, init),
     }
 }
 
@@ -125,7 +136,7 @@ pub struct DanAligner<E> {
     crop: Crop112,
     batch: BatchTensor,
     out: Vec<LandmarkOut>,
-    wire: Option<crate::link::CropCodec>,
+    wire: Option<crate::codec::CropCodec>,
     wire_bytes: (u64, u64),
 }
 
@@ -165,7 +176,7 @@ impl<E: InferenceEngine> DanAligner<E> {
 
     /// Passes every crop through `codec` (encode, then decode as the server does) before inference, to
     /// measure the accuracy cost of a wire encoding in-process; `None` (the default) feeds the crop as is.
-    pub fn set_wire_codec(&mut self, codec: Option<crate::link::CropCodec>) {
+    pub fn set_wire_codec(&mut self, codec: Option<crate::codec::CropCodec>) {
         self.wire = codec;
     }
 
@@ -195,7 +206,7 @@ impl<E: InferenceEngine> Aligner for DanAligner<E> {
                     deadline_ms: 0,
                     crop,
                 };
-                let decoded = crate::link::CropCodec::decode(&req.crop).map_err(bad)?;
+                let decoded = crate::codec::CropCodec::decode(&req.crop).map_err(bad)?;
                 self.wire_bytes.0 += holoface_protocol::Message::FrameRequest(req).encoded_len() as u64;
                 self.wire_bytes.1 += 1;
                 self.batch.push(&decoded)?;

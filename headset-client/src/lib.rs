@@ -6,7 +6,10 @@
 
 pub mod align;
 pub mod assets;
+pub mod codec;
 pub mod detect;
+pub mod frame;
+pub mod frame_loop;
 pub mod images;
 pub mod link;
 pub mod poses;

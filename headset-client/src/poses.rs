@@ -21,11 +21,11 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::math3::Pose;
 use serde::Deserialize;
 
-use crate::source::{FrameSource, SourceFrame};
+use crate::frame::{FrameSource, OwnedFrame};
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -171,7 +171,7 @@ impl<S: FrameSource> WithPoses<S> {
 }
 
 impl<S: FrameSource> FrameSource for WithPoses<S> {
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+    fn next_frame(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         let Some(mut f) = self.inner.next_frame()? else {
             return Ok(None);
         };

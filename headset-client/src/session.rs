@@ -13,9 +13,9 @@
 //!
 //! The session never reads a clock: time comes from the frames' timestamps.
 
-use holoface_models::candide::{FaceModel, FitOptions, FitResult, Intrinsics, fit};
+use holoface_models::camera::Intrinsics;
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
 use holoface_models::geometry::Point2;
-use holoface_models::image::GrayView;
 use holoface_models::kalman::{Denoiser, KalmanParams, PositionPredictor};
 use holoface_models::math3::{Pose, Quat, Vec3};
 use holoface_models::pose::{
@@ -23,21 +23,10 @@ use holoface_models::pose::{
 };
 use serde::Serialize;
 
+pub use crate::align::InitSource;
 use crate::align::{Alignment, Confidence, LandmarkSet};
 use crate::detect::{DetectError, FaceDetector, shape_from_detection};
-
-/// One camera frame as the tracker sees it.
-#[derive(Clone, Copy, Debug)]
-pub struct Frame<'a> {
-    /// Capture time, microseconds on the frame source's clock.
-    pub timestamp_us: u64,
-    /// Grayscale pixels.
-    pub image: GrayView<'a>,
-    /// Camera intrinsics in pixels.
-    pub intrinsics: Intrinsics,
-    /// Camera-to-world transform at capture (identity when unknown).
-    pub world_from_camera: Pose,
-}
+use crate::frame::Frame;
 
 /// Tracker settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -67,16 +56,6 @@ impl Default for SessionOptions {
             motion_compensation: true,
         }
     }
-}
-
-/// Where the initial shape of a frame came from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum InitSource {
-    /// A fresh detection.
-    Detection,
-    /// The previous frame's landmarks (motion-compensated when enabled).
-    Tracking,
 }
 
 /// What `prepare` decided.
@@ -318,17 +297,14 @@ impl TrackerSession {
 
 #[cfg(test)]
 mod tests {
+    use holoface_models::image::GrayView;
+
     use super::*;
     use crate::detect::Detection;
     use holoface_models::candide::{Wfm, project_landmarks};
     use holoface_models::geometry::Rect;
 
-    const K: Intrinsics = Intrinsics {
-        fx: 500.0,
-        fy: 500.0,
-        cx: 160.0,
-        cy: 120.0,
-    };
+    const K: Intrinsics = Intrinsics::new(500.0, 500.0, 160.0, 120.0);
 
     fn model() -> FaceModel {
         let base = std::env::var_os("HOLOFACE_DATA").map_or_else(
@@ -363,7 +339,7 @@ mod tests {
         let gt = FitResult {
             rotation: Quat::IDENTITY,
             translation: Vec3::new(0.0, 0.0, z),
-            weights: [0.0; 5],
+            weights: holoface_models::expression::ExpressionWeights::NEUTRAL,
             rmse_px: 0.0,
             iterations: 0,
             converged: true,

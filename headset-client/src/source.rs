@@ -8,48 +8,14 @@ use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 use holoface_protocol::CropEncoding;
 use holoface_protocol::recording::{FramePayload, RecordingReader};
 
+use crate::frame::{FrameSource, OwnedFrame, default_intrinsics};
 use crate::images::{list_images, read_gray};
-
-/// One owned frame from a source.
-#[derive(Debug, Clone)]
-pub struct SourceFrame {
-    /// Index in the source.
-    pub index: usize,
-    /// Capture time in microseconds.
-    pub timestamp_us: u64,
-    /// Grayscale pixels.
-    pub image: GrayImage,
-    /// Camera intrinsics.
-    pub intrinsics: Intrinsics,
-    /// Camera-to-world pose.
-    pub world_from_camera: Pose,
-    /// Ground-truth landmarks when the source has them.
-    pub ground_truth: Option<Vec<holoface_models::geometry::Point2>>,
-}
-
-/// Intrinsics for a camera with a 60° horizontal field of view and the principal point at the centre, used
-/// when a source does not state its own.
-pub fn default_intrinsics(width: usize, height: usize) -> Intrinsics {
-    let f = 0.5 * width as f64 / (30f64.to_radians()).tan();
-    Intrinsics {
-        fx: f,
-        fy: f,
-        cx: 0.5 * (width as f64 - 1.0),
-        cy: 0.5 * (height as f64 - 1.0),
-    }
-}
-
-/// A sequence of frames.
-pub trait FrameSource {
-    /// The next frame, `Ok(None)` at the end.
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>>;
-}
 
 /// A folder of PNG/JPEG images in name order, at a fixed frame rate, identity pose.
 #[derive(Debug)]
@@ -80,7 +46,7 @@ impl ImageSequence {
 }
 
 impl FrameSource for ImageSequence {
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+    fn next_frame(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         let Some(path) = self.paths.get(self.next) else {
             return Ok(None);
         };
@@ -90,7 +56,7 @@ impl FrameSource for ImageSequence {
         let intrinsics = self
             .intrinsics
             .unwrap_or_else(|| default_intrinsics(image.width(), image.height()));
-        Ok(Some(SourceFrame {
+        Ok(Some(OwnedFrame {
             index,
             timestamp_us: (index as f64 * 1e6 / self.fps) as u64,
             image,
@@ -133,7 +99,7 @@ impl RecordedStream {
 }
 
 impl FrameSource for RecordedStream {
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+    fn next_frame(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         loop {
             let rec = self
                 .reader
@@ -175,7 +141,7 @@ impl FrameSource for RecordedStream {
             })?;
             let index = self.index;
             self.index += 1;
-            return Ok(Some(SourceFrame {
+            return Ok(Some(OwnedFrame {
                 index,
                 timestamp_us: rec.timestamp_us,
                 image,
@@ -227,10 +193,4 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
         )),
         None => inner,
     })
-}
-
-impl FrameSource for Box<dyn FrameSource> {
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
-        (**self).next_frame()
-    }
 }

@@ -3,8 +3,8 @@
 //!
 //! ```no_run
 //! use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
-//! use holoface_client::session::Frame;
-//! use holoface_models::candide::Intrinsics;
+//! use holoface_client::frame::Frame;
+//! use holoface_models::camera::Intrinsics;
 //! use holoface_models::image::GrayView;
 //! use holoface_models::math3::Pose;
 //!
@@ -32,7 +32,7 @@
 use std::net::SocketAddr;
 
 use std::sync::{Arc, Condvar, Mutex, PoisonError};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use holoface_models::shape::dan_mean_shape;
 use holoface_quic::Fingerprint;
@@ -40,8 +40,14 @@ use holoface_quic::Fingerprint;
 use crate::align::{AlignError, Aligner, AnsweredBy};
 pub use crate::assets::AssetPaths;
 use crate::detect::DetectError;
-use crate::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
-use crate::session::{FaceUpdate, Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use crate::frame::{Frame, OwnedFrame};
+use crate::frame_loop::StepError;
+pub use crate::frame_loop::Timings;
+use crate::link::{
+    Backoff, ConnectConfig, CropCodec, LinkOptions, LinkState, LinkStatus, LinkWatch, LinkedAligner,
+    RemoteLink,
+};
+use crate::session::{FaceUpdate, FrameResult, SessionOptions, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -90,6 +96,15 @@ pub struct TrackerOptions {
     pub session: SessionOptions,
 }
 
+impl From<StepError> for TrackerError {
+    fn from(e: StepError) -> Self {
+        match e {
+            StepError::Detect(e) => Self::Detect(e),
+            StepError::Align(e) => Self::Align(e),
+        }
+    }
+}
+
 /// Errors of the embedding API.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -116,17 +131,6 @@ pub enum TrackerError {
     },
 }
 
-/// Time spent per step of one frame.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Timings {
-    /// Detection or motion-compensated initialisation.
-    pub prepare: Duration,
-    /// The aligner (remote round trip or local).
-    pub align: Duration,
-    /// Verification, CANDIDE fit, world pose, filters, attributes.
-    pub complete: Duration,
-}
-
 /// The answer for one frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FaceResult {
@@ -138,6 +142,9 @@ pub struct FaceResult {
     pub answered_by: Option<AnsweredBy>,
     /// Time per step.
     pub timings: Timings,
+    /// With [`AlignerChoice::Remote`]: the link's state after this frame (`Retrying`/`Failed` say why
+    /// frames are answered locally). `None` with the local aligner.
+    pub link: Option<LinkState>,
 }
 
 impl FaceResult {
@@ -155,6 +162,7 @@ pub struct FaceTracker {
     mode: RunningMode,
     session: TrackerSession,
     aligner: Box<dyn Aligner + Send>,
+    link: Option<LinkWatch>,
     last_timestamp: Option<u64>,
 }
 
@@ -174,6 +182,7 @@ impl FaceTracker {
         let model = crate::assets::load_face_model(&a.candide).map_err(TrackerError::Assets)?;
         let krfws = crate::assets::load_krfws(&a.krfws).map_err(TrackerError::Assets)?;
         let local = crate::align::KrfwsAligner::new(krfws);
+        let mut watch = None;
         let aligner: Box<dyn Aligner + Send> = match &opts.aligner {
             AlignerChoice::Local => Box::new(local),
             AlignerChoice::Remote {
@@ -186,6 +195,7 @@ impl FaceTracker {
                 let mut cfg = ConnectConfig::new(*server, *fingerprint, token.clone());
                 cfg.encodings = vec![codec.encoding()];
                 let link = RemoteLink::start(cfg, Backoff::default())?;
+                watch = Some(link.watch());
                 let link_opts = LinkOptions {
                     deadline: *deadline,
                     codec: *codec,
@@ -199,8 +209,15 @@ impl FaceTracker {
             mode: opts.mode,
             session,
             aligner,
+            link: watch,
             last_timestamp: None,
         })
+    }
+
+    /// With [`AlignerChoice::Remote`]: the link's full status (the failure message included); `None` with
+    /// the local aligner.
+    pub fn link_status(&self) -> Option<LinkStatus> {
+        self.link.as_ref().map(LinkWatch::status)
     }
 
     /// Processes one frame. In `Image` mode every frame starts from a detection.
@@ -216,44 +233,15 @@ impl FaceTracker {
             }
             self.last_timestamp = Some(frame.timestamp_us);
         }
-        let t0 = Instant::now();
-        let prepared = self.session.prepare(frame)?;
-        let t1 = Instant::now();
-        let alignment = match prepared {
-            Prepared::Align { init, source } => Some(crate::align::align_from(
-                &mut *self.aligner,
-                &frame.image,
-                &init,
-                source,
-            )?),
-            Prepared::NoFace => None,
-        };
-        let t2 = Instant::now();
-        let outcome = self.session.complete(frame, alignment);
+        let step = crate::frame_loop::step(&mut self.session, &mut *self.aligner, frame)?;
         Ok(FaceResult {
             timestamp_us: frame.timestamp_us,
-            outcome,
-            answered_by: alignment.map(|a| a.answered_by),
-            timings: Timings {
-                prepare: t1 - t0,
-                align: t2 - t1,
-                complete: t2.elapsed(),
-            },
+            outcome: step.result,
+            answered_by: step.alignment.map(|a| a.answered_by),
+            timings: step.timings,
+            link: self.link.as_ref().map(|w| w.status().state()),
         })
     }
-}
-
-/// An owned frame for [`LiveTracker::push`].
-#[derive(Clone, Debug)]
-pub struct OwnedFrame {
-    /// Capture time, µs.
-    pub timestamp_us: u64,
-    /// Gray pixels.
-    pub image: holoface_models::image::GrayImage,
-    /// Camera intrinsics.
-    pub intrinsics: holoface_models::candide::Intrinsics,
-    /// Camera-to-world pose.
-    pub world_from_camera: holoface_models::math3::Pose,
 }
 
 struct LiveSlot {
@@ -308,13 +296,7 @@ impl LiveTracker {
                             None => return,
                         }
                     };
-                    let view = Frame {
-                        timestamp_us: frame.timestamp_us,
-                        image: frame.image.view(),
-                        intrinsics: frame.intrinsics,
-                        world_from_camera: frame.world_from_camera,
-                    };
-                    on_result(tracker.process(&view));
+                    on_result(tracker.process(&frame.view()));
                 }
             })?;
         Ok(Self {

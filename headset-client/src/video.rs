@@ -20,11 +20,11 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, anyhow, bail};
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
-use crate::source::{FrameSource, SourceFrame, default_intrinsics};
+use crate::frame::{FrameSource, OwnedFrame, default_intrinsics};
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;
@@ -240,7 +240,7 @@ impl Mp4Source {
 }
 
 impl FrameSource for Mp4Source {
-    fn next_frame(&mut self) -> anyhow::Result<Option<SourceFrame>> {
+    fn next_frame(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         self.fill()?;
         let Some(image) = self.ready.pop_front() else {
             return Ok(None);
@@ -254,7 +254,7 @@ impl FrameSource for Mp4Source {
         let intrinsics = self
             .intrinsics
             .unwrap_or_else(|| default_intrinsics(image.width(), image.height()));
-        Ok(Some(SourceFrame {
+        Ok(Some(OwnedFrame {
             index,
             timestamp_us,
             image,

@@ -4,8 +4,9 @@
 
 use std::path::Path;
 
+use holoface_client::frame::FrameSource;
 use holoface_client::poses::write_line;
-use holoface_client::source::{FrameSource, open_source};
+use holoface_client::source::open_source;
 use holoface_client::video::Mp4Writer;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
@@ -39,7 +40,7 @@ fn pose(i: usize) -> Pose {
     }
 }
 
-fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_client::source::SourceFrame>> {
+fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_client::frame::OwnedFrame>> {
     let mut out = Vec::new();
     while let Some(f) = src.next_frame()? {
         out.push(f);

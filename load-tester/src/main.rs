@@ -15,9 +15,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use clap::Parser;
 use hdrhistogram::Histogram;
-use holoface_client::link::session::{ConnectConfig, client_endpoint, connect, send_frame};
+use holoface_client::link::connection::{ConnectConfig, client_endpoint, connect, send_frame};
 use holoface_protocol::recording::{FramePayload, RecordingReader};
-use holoface_protocol::{Crop, DropReason, FrameRequest, ReplyOutcome};
+use holoface_protocol::{Crop, FrameRequest, ReplyOutcome};
 use holoface_tools::plot::{Series, series_plot_png};
 use serde_json::json;
 
@@ -180,16 +180,6 @@ impl Stats {
     }
 }
 
-fn drop_name(r: DropReason) -> &'static str {
-    match r {
-        DropReason::Superseded => "superseded",
-        DropReason::Expired => "expired",
-        DropReason::Overloaded => "overloaded",
-        DropReason::BadCrop => "bad_crop",
-        DropReason::ShuttingDown => "shutting_down",
-    }
-}
-
 fn rss_kib(pid: Option<u32>) -> Option<u64> {
     let path = pid.map_or_else(|| "/proc/self/status".to_owned(), |p| format!("/proc/{p}/status"));
     let text = std::fs::read_to_string(path).ok()?;
@@ -252,7 +242,7 @@ async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
                         });
                     }
                     ReplyOutcome::Dropped { reason } => {
-                        s.each(|c| *c.dropped.entry(drop_name(reason)).or_default() += 1);
+                        s.each(|c| *c.dropped.entry(reason.name()).or_default() += 1);
                     }
                 }
             }

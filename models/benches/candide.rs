@@ -13,18 +13,13 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
-use holoface_models::candide::{
-    FaceModel, FitOptions, FitResult, Intrinsics, N_UNITS, Wfm, fit, project_landmarks,
-};
+use holoface_models::camera::Intrinsics;
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, Wfm, fit, project_landmarks};
+use holoface_models::expression::{ExpressionWeights, Unit};
 use holoface_models::geometry::Point2;
 use holoface_models::math3::{Mat3, Quat, Vec3};
 
-const K: Intrinsics = Intrinsics {
-    fx: 500.0,
-    fy: 500.0,
-    cx: 320.0,
-    cy: 240.0,
-};
+const K: Intrinsics = Intrinsics::new(500.0, 500.0, 320.0, 240.0);
 
 fn model() -> Option<FaceModel> {
     let path = std::env::var_os("HOLOFACE_CANDIDE")
@@ -49,9 +44,9 @@ fn sequence(model: &FaceModel) -> Vec<[Point2; 68]> {
         .map(|i| {
             let t = i as f64 / 30.0;
             let rot = Mat3::rot_y(0.5 * (1.3 * t).sin()) * Mat3::rot_x(0.15 * (0.9 * t).sin());
-            let mut weights = [0.0; N_UNITS];
-            weights[0] = 0.3 * (0.7 * t).sin().max(0.0);
-            weights[1] = 0.2 * (1.1 * t).cos().max(0.0);
+            let mut weights = ExpressionWeights::NEUTRAL;
+            weights[Unit::JawDrop] = 0.3 * (0.7 * t).sin().max(0.0);
+            weights[Unit::LipStretcher] = 0.2 * (1.1 * t).cos().max(0.0);
             let truth = FitResult {
                 rotation: Quat::from_mat3(&rot),
                 translation: Vec3::new(0.05 * t.sin(), -0.02, 0.6 + 0.05 * t.cos()),

@@ -54,9 +54,11 @@ def perturb(shape: np.ndarray, rng: np.random.Generator, dt: float, dr_deg: floa
     return p + c + off
 
 
-def positive_init(canon: np.ndarray, pts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def positive_init(canon: np.ndarray, pts: np.ndarray, rng: np.random.Generator, spread: float = 1.0) -> np.ndarray:
+    """`spread` multiplies the sigmas (the clip limits stay): below 1 the net trains closer to the
+    face detector's and the tracker's initialisation errors."""
     init = g.fit_to_box(canon, gt_box(pts))
-    k = TRACK_SIGMA if rng.random() < TRACK_FRACTION else 1.0
+    k = (TRACK_SIGMA if rng.random() < TRACK_FRACTION else 1.0) * spread
     lo, hi = init.min(axis=0), init.max(axis=0)
     wh = hi - lo
     t = np.clip(rng.normal(0, SIGMA_T * k, 2), -POS_MAX_T, POS_MAX_T) * wh
@@ -153,17 +155,17 @@ def procedural_negative(rng: np.random.Generator) -> np.ndarray:
 
 
 def make_sample(face: Face, canon: np.ndarray, rng: np.random.Generator, positive: bool,
-                occlusion: float = 0.0, hard: float = 0.0):
+                occlusion: float = 0.0, hard: float = 0.0, spread: float = 1.0):
     """Returns (crop uint8 112x112, landmarks in crop px (68x2), is_face).
 
     `occlusion`: probability of an occluding rectangle (`occlude`); `hard`: fraction of negatives that are
-    near misses (`near_miss_init`)."""
+    near misses (`near_miss_init`); `spread`: multiplier of the positives' perturbation sigmas."""
     img, pts = face.img, face.pts
     if rng.random() < 0.5:
         img = img[:, ::-1]
         pts = g.mirror_points(pts, img.shape[1])
     if positive:
-        init = positive_init(canon, pts, rng)
+        init = positive_init(canon, pts, rng, spread)
     else:
         if rng.random() < 0.1:
             return photometric(procedural_negative(rng), rng), np.zeros((68, 2)), 0

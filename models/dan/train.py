@@ -58,13 +58,14 @@ def split(root: str) -> tuple[list[str], list[str]]:
     return [n for n in names if n not in val], sorted(val)
 
 
-def batch(faces, canon, rng, n, neg_frac, occlusion=0.0, hard=0.0):
+def batch(faces, canon, rng, n, neg_frac, occlusion=0.0, hard=0.0, spread=1.0):
     crops = np.empty((n, 1, g.CROP, g.CROP), np.uint8)
     lms = np.zeros((n, 68, 2), np.float32)
     lab = np.zeros(n, np.int64)
     for i in range(n):
         f = faces[rng.integers(len(faces))]
-        c, lm, y = D.make_sample(f, canon, rng, positive=rng.random() >= neg_frac, occlusion=occlusion, hard=hard)
+        c, lm, y = D.make_sample(f, canon, rng, positive=rng.random() >= neg_frac, occlusion=occlusion, hard=hard,
+                                   spread=spread)
         crops[i, 0], lms[i], lab[i] = c, lm, y
     return torch.from_numpy(crops), torch.from_numpy(lms), torch.from_numpy(lab)
 
@@ -208,6 +209,8 @@ def main() -> None:
     ap.add_argument("--stop-at", type=int, help="stop after this step (the schedule still runs to --steps)")
     ap.add_argument("--loss", choices=["nme", "wing"], default="nme", help="landmark loss: mean point error or wing")
     ap.add_argument("--occlusion", type=float, default=0.0, help="probability of an occluding rectangle per crop")
+    ap.add_argument("--spread", type=float, default=1.0,
+                    help="multiplier of the positives' perturbation sigmas (data.SIGMA_T/R/S)")
     ap.add_argument("--hard-neg", type=float, default=0.0, help="fraction of negatives that are near misses")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--lr", type=float, default=1e-3)
@@ -322,7 +325,7 @@ def main() -> None:
     t0, seen = time.time(), 0
     run_loss = []
     while step < end:
-        x, lm, y = batch(train, canon, rng, args.batch, args.neg_frac, args.occlusion, args.hard_neg)
+        x, lm, y = batch(train, canon, rng, args.batch, args.neg_frac, args.occlusion, args.hard_neg, args.spread)
         x, lm, y = x.to(dev), lm.to(dev), y.to(dev)
         if channels_last:
             x = x.contiguous(memory_format=torch.channels_last)

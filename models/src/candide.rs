@@ -18,6 +18,8 @@
 
 use thiserror::Error;
 
+use crate::camera::Intrinsics;
+use crate::expression::ExpressionWeights;
 use crate::geometry::Point2;
 use crate::math3::{Mat3, Quat, Vec3};
 
@@ -371,50 +373,11 @@ impl FaceModel {
             .map(|(p, du)| {
                 let mut q = *p;
                 for (u, d) in du.iter().enumerate() {
-                    q = q + d.scale(fit.weights[u]);
+                    q = q + d.scale(fit.weights.0[u]);
                 }
                 r * q + fit.translation
             })
             .collect()
-    }
-}
-
-/// Pinhole intrinsics in pixels.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Intrinsics {
-    /// Focal length along x.
-    pub fx: f64,
-    /// Focal length along y.
-    pub fy: f64,
-    /// Principal point x.
-    pub cx: f64,
-    /// Principal point y.
-    pub cy: f64,
-}
-
-impl Intrinsics {
-    /// Projects a camera-frame point; `None` behind the camera.
-    #[inline]
-    pub fn project(&self, p: Vec3) -> Option<Point2> {
-        if p.z <= 1e-6 {
-            return None;
-        }
-        Some(Point2::new(
-            (self.fx * p.x / p.z + self.cx) as f32,
-            (self.fy * p.y / p.z + self.cy) as f32,
-        ))
-    }
-    /// Unit ray through a pixel.
-    pub fn ray(&self, p: Point2) -> Vec3 {
-        let v = Vec3::new(
-            (f64::from(p.x) - self.cx) / self.fx,
-            (f64::from(p.y) - self.cy) / self.fy,
-            1.0,
-        );
-        v.normalized().unwrap_or(Vec3::new(0.0, 0.0, 1.0))
-    }
-    fn valid(&self) -> bool {
-        [self.fx, self.fy, self.cx, self.cy].iter().all(|v| v.is_finite()) && self.fx > 0.0 && self.fy > 0.0
     }
 }
 
@@ -447,8 +410,8 @@ pub struct FitResult {
     pub rotation: Quat,
     /// Head origin in the camera frame, metres.
     pub translation: Vec3,
-    /// Expression weights in [`FITTED_UNITS`] order.
-    pub weights: [f64; N_UNITS],
+    /// Expression weights.
+    pub weights: ExpressionWeights,
     /// Root-mean-square reprojection error over the correspondences, pixels.
     pub rmse_px: f64,
     /// Iterations run.
@@ -496,7 +459,7 @@ pub fn initial_guess(model: &FaceModel, k: &Intrinsics, lm: &[Point2]) -> Option
     Some(FitResult {
         rotation: rot,
         translation: centre - rm * mc,
-        weights: [0.0; N_UNITS],
+        weights: ExpressionWeights::NEUTRAL,
         rmse_px: f64::INFINITY,
         iterations: 0,
         converged: false,
@@ -566,7 +529,7 @@ pub fn fit(
     };
     let mut rm = cur.rotation.to_mat3();
     let mut cost = problem
-        .cost(&rm, cur.translation, &cur.weights)
+        .cost(&rm, cur.translation, &cur.weights.0)
         .unwrap_or(f64::INFINITY);
     if !cost.is_finite() {
         cur = initial_guess(model, k, landmarks).ok_or(CandideError::TooFewLandmarks {
@@ -574,7 +537,7 @@ pub fn fit(
         })?;
         rm = cur.rotation.to_mat3();
         cost = problem
-            .cost(&rm, cur.translation, &cur.weights)
+            .cost(&rm, cur.translation, &cur.weights.0)
             .unwrap_or(f64::INFINITY);
     }
     let mut lambda = 1e-3;
@@ -586,7 +549,7 @@ pub fn fit(
         let mut jtj = [[0.0f64; NP]; NP];
         let mut jtr = [0.0f64; NP];
         for (j, &(i, _)) in CORRESPONDENCES.iter().enumerate() {
-            let x = model.point(j, &cur.weights);
+            let x = model.point(j, &cur.weights.0);
             let rx = rm * x;
             let p = rx + cur.translation;
             let iz = 1.0 / p.z;
@@ -618,7 +581,7 @@ pub fn fit(
         }
         for un in 0..N_UNITS {
             jtj[6 + un][6 + un] += prior;
-            jtr[6 + un] += prior * cur.weights[un];
+            jtr[6 + un] += prior * cur.weights.0[un];
         }
         for a in 0..NP {
             for b in 0..a {
@@ -641,9 +604,9 @@ pub fn fit(
             let t = cur.translation + Vec3::new(delta[3], delta[4], delta[5]);
             let mut w = cur.weights;
             for un in 0..N_UNITS {
-                w[un] += delta[6 + un];
+                w.0[un] += delta[6 + un];
             }
-            match problem.cost(&rmn, t, &w) {
+            match problem.cost(&rmn, t, &w.0) {
                 Some(c) if c < cost => {
                     let rel = (cost - c) / cost.max(1e-300);
                     cur.rotation = rot;
@@ -668,7 +631,7 @@ pub fn fit(
             break;
         }
     }
-    let data_cost = cost - prior * cur.weights.iter().map(|x| x * x).sum::<f64>();
+    let data_cost = cost - prior * cur.weights.0.iter().map(|x| x * x).sum::<f64>();
     cur.rmse_px = (data_cost.max(0.0) / N_CORR as f64).sqrt() * norm;
     cur.iterations = iterations;
     cur.converged = converged;
@@ -717,7 +680,7 @@ fn solve_spd(mut a: [[f64; NP]; NP], mut b: [f64; NP]) -> Option<[f64; NP]> {
 pub fn project_landmarks(model: &FaceModel, k: &Intrinsics, fit: &FitResult, out: &mut [Point2; 68]) -> bool {
     let rm = fit.rotation.to_mat3();
     for (j, &(i, _)) in CORRESPONDENCES.iter().enumerate() {
-        match k.project(rm * model.point(j, &fit.weights) + fit.translation) {
+        match k.project(rm * model.point(j, &fit.weights.0) + fit.translation) {
             Some(p) => out[i] = p,
             None => return false,
         }

@@ -6,8 +6,10 @@
 //! caller-provided buffers.
 #![deny(missing_docs)]
 
+pub mod camera;
 pub mod candide;
 pub mod crop;
+pub mod expression;
 pub mod geometry;
 pub mod hog;
 pub mod image;
@@ -19,6 +21,7 @@ pub mod metrics;
 pub mod pose;
 pub mod shape;
 
+pub use camera::Intrinsics;
 pub use crop::{CROP_PIXELS, CROP_SIZE, Crop112, crop_bilinear};
 pub use geometry::{Point2, Similarity2};
 pub use image::{GrayImage, GrayView, ImageError};

@@ -1,6 +1,8 @@
 //! World pose of the head, expression attributes, and headset-motion-compensated landmark initialisation.
 
-use crate::candide::{FitResult, Intrinsics};
+use crate::camera::Intrinsics;
+use crate::candide::FitResult;
+use crate::expression::{ExpressionWeights, Unit};
 use crate::geometry::Point2;
 use crate::math3::{Mat3, Pose, Quat, Vec3};
 
@@ -102,8 +104,8 @@ impl Default for AttributeThresholds {
 }
 
 impl AttributeThresholds {
-    /// Next attribute state from weights (in `candide::FITTED_UNITS` order) and the previous state.
-    pub fn update(&self, weights: &[f64; 5], prev: Attributes) -> Attributes {
+    /// Next attribute state from the expression weights and the previous state.
+    pub fn update(&self, weights: &ExpressionWeights, prev: Attributes) -> Attributes {
         let hyst = |on: bool, value: f64, thr: f64| {
             if on {
                 value > thr - self.hysteresis
@@ -112,9 +114,9 @@ impl AttributeThresholds {
             }
         };
         Attributes {
-            mouth_open: hyst(prev.mouth_open, weights[0], self.mouth_open),
-            smile: hyst(prev.smile, weights[1], self.smile),
-            brows_raised: hyst(prev.brows_raised, -weights[2], self.brows_raised),
+            mouth_open: hyst(prev.mouth_open, weights[Unit::JawDrop], self.mouth_open),
+            smile: hyst(prev.smile, weights[Unit::LipStretcher], self.smile),
+            brows_raised: hyst(prev.brows_raised, -weights[Unit::BrowLowerer], self.brows_raised),
         }
     }
 }
@@ -162,14 +164,20 @@ mod tests {
     #[test]
     fn attributes_have_hysteresis() {
         let t = AttributeThresholds::default();
-        let a = t.update(&[0.5, 0.0, -0.3, 0.0, 0.0], Attributes::default());
+        let a = t.update(
+            &ExpressionWeights([0.5, 0.0, -0.3, 0.0, 0.0]),
+            Attributes::default(),
+        );
         assert!(a.mouth_open && a.brows_raised && !a.smile);
-        let b = t.update(&[0.37, 0.0, -0.17, 0.0, 0.0], a);
+        let b = t.update(&ExpressionWeights([0.37, 0.0, -0.17, 0.0, 0.0]), a);
         assert!(
             b.mouth_open && b.brows_raised,
             "stays on inside the hysteresis band"
         );
-        let c = t.update(&[0.37, 0.0, -0.17, 0.0, 0.0], Attributes::default());
+        let c = t.update(
+            &ExpressionWeights([0.37, 0.0, -0.17, 0.0, 0.0]),
+            Attributes::default(),
+        );
         assert!(
             !c.mouth_open && !c.brows_raised,
             "does not turn on below the threshold"

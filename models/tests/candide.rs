@@ -3,9 +3,11 @@
 
 use std::path::PathBuf;
 
+use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{
-    CORRESPONDENCES, FITTED_UNITS, FaceModel, FitOptions, FitResult, Intrinsics, Wfm, fit, project_landmarks,
+    CORRESPONDENCES, FITTED_UNITS, FaceModel, FitOptions, FitResult, Wfm, fit, project_landmarks,
 };
+use holoface_models::expression::ExpressionWeights;
 use holoface_models::geometry::Point2;
 use holoface_models::math3::{Quat, Vec3};
 
@@ -26,12 +28,7 @@ fn model() -> FaceModel {
     FaceModel::from_wfm(&Wfm::parse(&wfm_text()).unwrap()).unwrap()
 }
 
-const K: Intrinsics = Intrinsics {
-    fx: 600.0,
-    fy: 600.0,
-    cx: 320.0,
-    cy: 240.0,
-};
+const K: Intrinsics = Intrinsics::new(600.0, 600.0, 320.0, 240.0);
 
 #[test]
 fn wfm_parses_with_the_documented_counts() {
@@ -110,7 +107,7 @@ fn truth(yaw: f64, pitch: f64, roll: f64, t: Vec3, w: [f64; 5]) -> FitResult {
     FitResult {
         rotation: q,
         translation: t,
-        weights: w,
+        weights: ExpressionWeights(w),
         rmse_px: 0.0,
         iterations: 0,
         converged: true,
@@ -151,7 +148,7 @@ fn fit_recovers_pose_and_weights_from_noiseless_projections() {
         assert!(angle < 2.0, "rotation error {angle} deg");
         assert!(dt < 0.01, "translation error {dt} m");
         assert!(f.rmse_px < 0.05, "rmse {}", f.rmse_px);
-        for (a, b) in f.weights.iter().zip(gt.weights) {
+        for (a, b) in f.weights.0.iter().zip(gt.weights.0) {
             assert!(
                 (a - b).abs() < 0.05,
                 "weights {:?} vs {:?}",

@@ -68,6 +68,21 @@ impl CloseCode {
         Self::ProtocolViolation,
     ];
 
+    /// The snake_case name logs, metric labels and tools use for this code.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::NoError => "no_error",
+            Self::BadVersion => "bad_version",
+            Self::Unauthorized => "unauthorized",
+            Self::Malformed => "malformed",
+            Self::TooLarge => "too_large",
+            Self::Overloaded => "overloaded",
+            Self::ShuttingDown => "shutting_down",
+            Self::Internal => "internal",
+            Self::ProtocolViolation => "protocol_violation",
+        }
+    }
+
     /// The numeric code (what goes into QUIC and onto the wire).
     pub const fn as_u32(self) -> u32 {
         self as u32

@@ -143,6 +143,19 @@ wire_enum_u8!(
     }
 );
 
+impl DropReason {
+    /// The snake_case name logs, metric labels and tools use for this reason.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Superseded => "superseded",
+            Self::Expired => "expired",
+            Self::Overloaded => "overloaded",
+            Self::BadCrop => "bad_crop",
+            Self::ShuttingDown => "shutting_down",
+        }
+    }
+}
+
 /// First message from the client on the control stream.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ClientHello {

@@ -1,12 +1,11 @@
 //! End-to-end test support: start the real alignment server on loopback with
-//! the real ONNX model, and a small quinn client that speaks the HoloFace
-//! protocol (pinning the server's self-signed certificate).
-//!
-//! The client here is deliberately minimal and reusable by the load tester
-//! and the headset link: [`TestClient::connect`] does the handshake,
-//! [`TestClient::send_frame`] opens one stream per frame,
-//! [`TestClient::next_reply`] reads replies from whichever channel the
-//! server chose, [`TestClient::close_code`] reports how the server closed.
+//! the real ONNX model, and a test client built on the headset link's own
+//! connection code (`holoface_client::link::connection`: pinned TLS 1.3
+//! endpoint, handshake, frame streams, reply reader), with the raw access
+//! misbehaviour tests need: [`TestClient::connect`] does the handshake with any
+//! hello, [`TestClient::send_frame`] opens one stream per frame,
+//! [`TestClient::next_reply`] reads replies from whichever channel the server
+//! chose, [`TestClient::close_code`] reports how the server closed.
 //!
 //! Paths: the model is `$HOLOFACE_DAN_MODEL`, else `models/assets/dan.onnx`
 //! in the workspace; ONNX Runtime is `$ORT_DYLIB_PATH`, else
@@ -22,55 +21,22 @@ use alignment_server::Server;
 use alignment_server::config::Settings;
 use alignment_server::metrics::Metrics;
 use bytes::{Bytes, BytesMut};
+use holoface_client::link::connection::{self, Control, ReplyReader};
+use holoface_client::link::{ConnectConfig, LinkError};
 use holoface_protocol::{
-    ClientHello, CloseCode, Crop, CropEncoding, DecodeError, FrameReply, FrameRequest, Message,
-    PROTOCOL_VERSION, ReplyChannel, ServerWelcome, encode_framed,
+    ClientHello, CloseCode, Crop, CropEncoding, FrameReply, FrameRequest, Message, PROTOCOL_VERSION,
+    ServerWelcome, encode_framed,
 };
-use holoface_quic::{Fingerprint, pinned_client_config};
-use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream};
+use holoface_quic::Fingerprint;
+use quinn::{Connection, Endpoint, SendStream};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
 /// The token the test servers accept.
 pub const TEST_TOKEN: &str = "e2e-token";
 
-/// Client-side failures.
-#[derive(Debug, thiserror::Error)]
-pub enum ClientError {
-    /// Building the TLS config failed.
-    #[error("tls: {0}")]
-    Tls(#[from] holoface_quic::TlsError),
-    /// Creating the endpoint failed.
-    #[error("endpoint: {0}")]
-    Io(#[from] std::io::Error),
-    /// Connecting failed.
-    #[error("connect: {0}")]
-    Connect(#[from] quinn::ConnectError),
-    /// The connection failed or was closed.
-    #[error("connection: {0}")]
-    Connection(#[from] ConnectionError),
-    /// Writing a stream failed.
-    #[error("write: {0}")]
-    Write(#[from] quinn::WriteError),
-    /// Reading a stream failed.
-    #[error("read: {0}")]
-    Read(#[from] quinn::ReadError),
-    /// The stream was already closed.
-    #[error("closed stream: {0}")]
-    ClosedStream(#[from] quinn::ClosedStream),
-    /// The server sent something undecodable.
-    #[error("decode: {0}")]
-    Decode(#[from] DecodeError),
-    /// Encoding failed.
-    #[error("encode: {0}")]
-    Encode(#[from] holoface_protocol::EncodeError),
-    /// The server sent an unexpected message or ended a stream early.
-    #[error("protocol: {0}")]
-    Protocol(String),
-    /// Reading a framed message failed (the client library's reader).
-    #[error(transparent)]
-    Session(#[from] holoface_client::link::session::SessionError),
-}
+/// Client-side failures: the headset link's own error type.
+pub type ClientError = LinkError;
 
 /// The workspace root (parent of this crate).
 pub fn workspace_root() -> PathBuf {
@@ -189,7 +155,7 @@ impl RunningServer {
     }
 }
 
-/// A client endpoint on an ephemeral loopback port, pinning `fingerprint`.
+/// A client endpoint on an ephemeral port, pinning `fingerprint` (the headset link's own endpoint).
 pub fn client_endpoint(fingerprint: Fingerprint) -> Result<Endpoint, ClientError> {
     client_endpoint_with(fingerprint, None)
 }
@@ -200,14 +166,10 @@ pub fn client_endpoint_with(
     fingerprint: Fingerprint,
     keep_alive: Option<Duration>,
 ) -> Result<Endpoint, ClientError> {
-    let mut endpoint = Endpoint::client(SocketAddr::from(([127, 0, 0, 1], 0)))?;
-    let mut cfg = pinned_client_config(fingerprint)?;
-    let mut transport = quinn::TransportConfig::default();
-    transport.max_idle_timeout(quinn::IdleTimeout::try_from(Duration::from_secs(10)).ok());
-    transport.keep_alive_interval(keep_alive);
-    cfg.transport_config(Arc::new(transport));
-    endpoint.set_default_client_config(cfg);
-    Ok(endpoint)
+    let mut cfg = ConnectConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)), fingerprint, "");
+    cfg.idle_timeout = Duration::from_secs(10);
+    cfg.keep_alive = keep_alive;
+    connection::client_endpoint(&cfg)
 }
 
 /// A QUIC connection to the server, no HoloFace handshake yet.
@@ -244,13 +206,13 @@ pub fn frame(frame_id: u64, seed: u8, deadline_ms: u16) -> FrameRequest {
 }
 
 /// The application close code a connection ended with, if any (the client's own helper).
-pub use holoface_client::link::session::app_close_code;
+pub use holoface_client::link::connection::app_close_code;
 
 /// Sends one frame on its own stream of `conn` (usable from a task that
 /// does not own the [`TestClient`]).
 pub async fn send_frame_on(conn: &Connection, req: &FrameRequest) -> Result<(), ClientError> {
-    let bytes = Message::FrameRequest(req.clone()).to_bytes()?;
-    send_stream_bytes_on(conn, &bytes).await
+    connection::send_frame(conn, req).await?;
+    Ok(())
 }
 
 /// Sends `bytes` as one unidirectional stream of `conn`.
@@ -261,7 +223,8 @@ pub async fn send_stream_bytes_on(conn: &Connection, bytes: &[u8]) -> Result<(),
     Ok(())
 }
 
-/// A HoloFace client after a successful handshake.
+/// A HoloFace client after a successful handshake: the headset link's own connection code
+/// (`holoface_client::link::connection`), with the raw access misbehaviour tests need.
 #[derive(Debug)]
 pub struct TestClient {
     /// The client endpoint (kept alive with the connection).
@@ -270,11 +233,8 @@ pub struct TestClient {
     pub conn: Connection,
     /// What the server answered.
     pub welcome: ServerWelcome,
-    ctl_send: SendStream,
-    ctl_recv: RecvStream,
-    ctl_buf: BytesMut,
-    reply_stream: Option<RecvStream>,
-    reply_buf: BytesMut,
+    control: Control,
+    replies: ReplyReader,
 }
 
 /// Sends a framed message on a stream.
@@ -285,14 +245,10 @@ pub async fn write_framed(send: &mut SendStream, msg: &Message) -> Result<(), Cl
     Ok(())
 }
 
-async fn read_framed(recv: &mut RecvStream, buf: &mut BytesMut) -> Result<Message, ClientError> {
-    Ok(holoface_client::link::session::read_framed(recv, buf).await?)
-}
-
 impl TestClient {
     /// Connects, sends `hello` on a new control stream and waits for the
-    /// welcome. A server that closes instead gives `ClientError::Connection`
-    /// (see [`app_close_code`]) or `Read`.
+    /// welcome. A server that closes instead gives `ClientError::Link`
+    /// with the close code (see [`app_close_code`]).
     pub async fn connect(
         addr: SocketAddr,
         fingerprint: Fingerprint,
@@ -309,33 +265,19 @@ impl TestClient {
         hello: ClientHello,
     ) -> Result<Self, ClientError> {
         let conn = connect_raw(&endpoint, addr).await?;
-        let (mut ctl_send, mut ctl_recv) = conn.open_bi().await?;
-        write_framed(&mut ctl_send, &Message::ClientHello(hello)).await?;
-        let mut ctl_buf = BytesMut::new();
-        let welcome = match read_framed(&mut ctl_recv, &mut ctl_buf).await? {
-            Message::ServerWelcome(w) => w,
-            other => {
-                return Err(ClientError::Protocol(format!(
-                    "expected ServerWelcome, got {other:?}"
-                )));
-            }
-        };
+        let (conn, welcome, control, replies) = connection::handshake(conn, &hello).await?.split();
         Ok(Self {
             endpoint,
             conn,
             welcome,
-            ctl_send,
-            ctl_recv,
-            ctl_buf,
-            reply_stream: None,
-            reply_buf: BytesMut::new(),
+            control,
+            replies,
         })
     }
 
     /// Sends one frame on its own unidirectional stream.
     pub async fn send_frame(&self, req: &FrameRequest) -> Result<(), ClientError> {
-        let bytes = Message::FrameRequest(req.clone()).to_bytes()?;
-        self.send_stream_bytes(&bytes).await
+        send_frame_on(&self.conn, req).await
     }
 
     /// Sends arbitrary bytes as one frame stream (for misbehaviour tests).
@@ -345,24 +287,7 @@ impl TestClient {
 
     /// The next reply, from the channel the welcome announced.
     pub async fn next_reply(&mut self) -> Result<FrameReply, ClientError> {
-        let msg = match self.welcome.reply_channel {
-            ReplyChannel::Datagram => Message::decode(self.conn.read_datagram().await?)?,
-            ReplyChannel::Stream => {
-                if self.reply_stream.is_none() {
-                    self.reply_stream = Some(self.conn.accept_uni().await?);
-                }
-                match self.reply_stream.as_mut() {
-                    Some(s) => read_framed(s, &mut self.reply_buf).await?,
-                    None => return Err(ClientError::Protocol("no reply stream".into())),
-                }
-            }
-        };
-        match msg {
-            Message::FrameReply(r) => Ok(r),
-            other => Err(ClientError::Protocol(format!(
-                "expected FrameReply, got {other:?}"
-            ))),
-        }
+        self.replies.next().await
     }
 
     /// Sends one frame and waits for its reply (skipping replies to older frames).
@@ -378,13 +303,12 @@ impl TestClient {
 
     /// The next framed message on the control stream (e.g. `Goaway`).
     pub async fn next_control(&mut self) -> Result<Message, ClientError> {
-        read_framed(&mut self.ctl_recv, &mut self.ctl_buf).await
+        self.control.next_message().await
     }
 
     /// Writes raw bytes on the control stream (for misbehaviour tests).
     pub async fn send_control_bytes(&mut self, bytes: &[u8]) -> Result<(), ClientError> {
-        self.ctl_send.write_all(bytes).await?;
-        Ok(())
+        self.control.write_bytes(bytes).await
     }
 
     /// Sends a datagram to the server (clients must not; for tests).
@@ -411,14 +335,9 @@ pub async fn refused_with(
         // Closed during the handshake (e.g. the client cap).
         Err(e) => return app_close_code(&e),
     };
-    let (mut send, mut recv) = match conn.open_bi().await {
-        Ok(s) => s,
-        Err(e) => return app_close_code(&e),
-    };
-    let _ = write_framed(&mut send, &Message::ClientHello(hello)).await;
-    let mut buf = BytesMut::new();
-    if let Ok(Message::ServerWelcome(_)) = read_framed(&mut recv, &mut buf).await {
-        return None;
+    match connection::handshake(conn.clone(), &hello).await {
+        Ok(_) => None,
+        Err(LinkError::Connection(e)) => app_close_code(&e),
+        Err(_) => app_close_code(&conn.closed().await),
     }
-    app_close_code(&conn.closed().await)
 }

@@ -10,7 +10,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use holoface_client::align::{Aligner, AnsweredBy, KrfwsAligner};
-use holoface_client::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, Mode, RemoteLink};
+use holoface_client::link::{
+    Backoff, ConnectConfig, FailureKind, LinkOptions, LinkState, LinkStatus, LinkedAligner, Mode, RemoteLink,
+};
 use holoface_e2e::{TEST_TOKEN, workspace_root};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -268,4 +270,94 @@ fn lossy_delaying_relay_falls_back_and_recovers() {
         fwd > 0 && dropped > 0,
         "relay saw {fwd} forwarded, {dropped} dropped"
     );
+}
+
+/// Polls `link` until `done(status)` holds or `limit` passes; returns the last status.
+fn wait_status(link: &RemoteLink, limit: Duration, done: impl Fn(&LinkStatus) -> bool) -> LinkStatus {
+    let end = Instant::now() + limit;
+    loop {
+        let s = link.status();
+        if done(&s) || Instant::now() >= end {
+            return s;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn fast_backoff() -> Backoff {
+    Backoff {
+        initial: Duration::from_millis(50),
+        max: Duration::from_millis(200),
+    }
+}
+
+fn connect_failures(link: &RemoteLink) -> u64 {
+    link.counters()
+        .connect_failures
+        .load(std::sync::atomic::Ordering::Relaxed)
+}
+
+/// A wrong token or a certificate that is not the pinned one cannot be fixed by retrying: the link says
+/// why and stops (one attempt), instead of retrying forever as if the network were down.
+#[test]
+fn wrong_token_and_wrong_certificate_fail_once_with_the_reason() {
+    let id = identity("auth");
+    let server = ServerProcess::start(free_udp_port(), &id);
+    let other = server_fingerprint_of(&identity("other"));
+    let cases = [
+        (
+            ConnectConfig::new(server.addr, server.fingerprint, "not-the-token"),
+            FailureKind::Unauthorized,
+        ),
+        (
+            ConnectConfig::new(server.addr, other, TEST_TOKEN),
+            FailureKind::CertificateMismatch,
+        ),
+    ];
+    for (cfg, kind) in cases {
+        let link = RemoteLink::start(cfg, fast_backoff()).unwrap();
+        let status = wait_status(&link, Duration::from_secs(10), |s| {
+            matches!(s, LinkStatus::Failed(_))
+        });
+        assert_eq!(status.state(), LinkState::Failed(kind), "{status:?}");
+        assert!(!status.failure().unwrap().message.is_empty());
+        // Several backoff periods later: still the one attempt.
+        std::thread::sleep(Duration::from_millis(600));
+        assert_eq!(connect_failures(&link), 1, "{kind:?} was retried");
+        assert_eq!(link.status().state(), LinkState::Failed(kind));
+    }
+}
+
+/// Nothing listening: the link reports the server unreachable and keeps retrying (the network may come
+/// back), and a linked aligner answers every frame locally with that state in its report.
+#[test]
+fn unreachable_server_is_reported_and_retried() {
+    let mut cfg = ConnectConfig::new(
+        free_udp_port(),
+        server_fingerprint_of(&identity("none")),
+        TEST_TOKEN,
+    );
+    cfg.connect_timeout = Duration::from_millis(200);
+    let link = RemoteLink::start(cfg, fast_backoff()).unwrap();
+    let status = wait_status(&link, Duration::from_secs(10), has_failed_once);
+    assert_eq!(
+        status.state(),
+        LinkState::Retrying(FailureKind::Unreachable),
+        "{status:?}"
+    );
+    let failures = wait_status(&link, Duration::from_secs(10), |_| connect_failures(&link) >= 3);
+    assert!(connect_failures(&link) >= 3, "not retried: {failures:?}");
+
+    let (img, init) = face();
+    let mut a = LinkedAligner::new(link, krfws(), LinkOptions::default());
+    let out = a.align(&img.view(), &init).unwrap();
+    assert_eq!(out.answered_by, AnsweredBy::Krfws);
+    assert_eq!(
+        a.last_report().link,
+        Some(LinkState::Retrying(FailureKind::Unreachable))
+    );
+}
+
+fn has_failed_once(s: &LinkStatus) -> bool {
+    matches!(s, LinkStatus::Connecting { last_error: Some(_) })
 }

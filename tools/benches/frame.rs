@@ -20,10 +20,10 @@ use criterion::{Criterion, Throughput, criterion_group};
 use holoface_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, crop_from_image};
 use holoface_client::assets::load_face_model;
 use holoface_client::detect::BlazeFace;
+use holoface_client::frame::Frame;
 use holoface_client::images::read_gray;
 use holoface_client::link::CropCodec;
-use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
-use holoface_models::candide::Intrinsics;
+use holoface_client::session::{FrameResult, Prepared, SessionOptions, TrackerSession};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -31,13 +31,7 @@ use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::shape::dan_mean_shape;
 use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_tools::render::PlanarScene;
-
-const K: Intrinsics = Intrinsics {
-    fx: 500.0,
-    fy: 500.0,
-    cx: 319.5,
-    cy: 239.5,
-};
+use holoface_tools::render::SCENE_CAMERA;
 
 struct Setup {
     session: TrackerSession,
@@ -73,7 +67,7 @@ fn setup() -> Option<Setup> {
                 rotation: Mat3::rot_y(0.2 * (4.0 * t).sin()) * Mat3::rot_x(0.05 * (3.0 * t).sin()),
                 translation: Vec3::new(0.02 * t.sin(), 0.0, 0.0),
             };
-            let h = scene.homography(&K, &cam, &plane);
+            let h = scene.homography(&SCENE_CAMERA, &cam, &plane);
             let mut img = GrayImage::zeros(640, 480);
             scene.render(&h, &mut img, 90).unwrap();
             (img, cam, scene.landmarks_in(&h))
@@ -112,7 +106,7 @@ fn bench_frame(c: &mut Criterion) {
         let frame = Frame {
             timestamp_us: n as u64 * 33_333,
             image: img.view(),
-            intrinsics: K,
+            intrinsics: SCENE_CAMERA,
             world_from_camera: *cam,
         };
         let Prepared::Align { init, .. } = session.prepare(&frame).unwrap() else {

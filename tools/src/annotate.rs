@@ -1,7 +1,8 @@
 //! Annotated frames: the tracker's answer drawn over the camera image (landmarks, the fitted CANDIDE-3
 //! mesh, the head's pose axes, who answered). `holoface track --annotate DIR` writes one PNG per frame.
 
-use holoface_models::candide::{FaceModel, Intrinsics};
+use holoface_models::camera::Intrinsics;
+use holoface_models::candide::FaceModel;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Vec3;
 

@@ -1,6 +1,6 @@
 //! The `holoface` command-line tools and what only tools need: annotated data folders and the validation
 //! split ([`data`]), the synthetic headset renderer ([`render`]), plots ([`plot`]), annotated output
-//! ([`annotate`]), the fault-injecting UDP relay ([`relay`]) and the command-line asset options ([`args`]).
+//! ([`annotate`]), the fault-injecting UDP relay ([`relay`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]).
 //!
 //! The headset runtime they drive is `holoface-client`; the demo's in-process alignment server is
 //! `holoface-server`. A headset app depends on neither this crate nor the server.
@@ -13,3 +13,4 @@ pub mod data;
 pub mod plot;
 pub mod relay;
 pub mod render;
+pub mod stats;

@@ -7,13 +7,17 @@
 //! enough to exercise tracking under headset and head motion with exact ground truth.
 
 use anyhow::Context;
-use holoface_models::candide::Intrinsics;
+use holoface_models::camera::Intrinsics;
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Pose, Vec3};
 
 /// Distance between the eye centres of a life-size face, metres.
 const EYE_DISTANCE_M: f64 = 0.063;
+
+/// The synthetic headset camera of the demo, the tracking-losses scenes and the frame benchmark: 640x480,
+/// 500 px focal length, principal point at (320, 240).
+pub const SCENE_CAMERA: Intrinsics = Intrinsics::new(500.0, 500.0, 320.0, 240.0);
 
 /// A 3×3 homography (row-major) mapping photo pixels to image pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -164,12 +168,7 @@ mod tests {
         PlanarScene::life_size(photo, lm).unwrap()
     }
 
-    const K: Intrinsics = Intrinsics {
-        fx: 500.0,
-        fy: 500.0,
-        cx: 320.0,
-        cy: 240.0,
-    };
+    const K: Intrinsics = SCENE_CAMERA;
 
     #[test]
     fn homography_projects_plane_points_like_the_pinhole_camera() {

@@ -12,6 +12,17 @@ fn write_png(path: &Path, w: u32, h: u32) {
     image::save_buffer(path, &px, w, h, image::ExtendedColorType::L8).unwrap();
 }
 
+/// A temporary folder with `n` small textured frames that hold no face: `(folder, frames folder)`.
+fn faceless_frames(tag: &str, n: usize) -> (std::path::PathBuf, std::path::PathBuf) {
+    let d = tmp(tag);
+    let frames = d.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for i in 0..n {
+        write_png(&frames.join(format!("{i:03}.png")), 96, 72);
+    }
+    (d, frames)
+}
+
 fn pts68() -> String {
     (0..68).map(|i| format!("{} {}\n", 10 + i, 20 + i % 7)).collect()
 }
@@ -121,12 +132,7 @@ fn track_rejects_missing_bad_and_truncated_sources() {
 
 #[test]
 fn frames_without_faces_get_explicit_no_face_lines() {
-    let d = tmp("noface");
-    let frames = d.join("frames");
-    std::fs::create_dir_all(&frames).unwrap();
-    for i in 0..4 {
-        write_png(&frames.join(format!("{i:03}.png")), 96, 72);
-    }
+    let (d, frames) = faceless_frames("noface", 4);
     let out = d.join("track.jsonl");
     let (ok, text) = holoface(&[
         "track",
@@ -146,5 +152,48 @@ fn frames_without_faces_get_explicit_no_face_lines() {
         assert_eq!(l["frame"], i);
         assert_eq!(l["face"], false);
         assert_eq!(l["reason"], "not_detected");
+    }
+}
+
+/// `--aligner remote` with nobody at the server address: every frame is still answered (locally), each JSON
+/// line says where the link stands, and the run ends with a warning on stderr instead of silence.
+#[test]
+fn remote_tracking_without_a_server_says_so() {
+    let (d, frames) = faceless_frames("remote-down", 3);
+    let out = d.join("track.jsonl");
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let server = format!("127.0.0.1:{port}");
+    let fingerprint = "ab".repeat(32);
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        frames.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--aligner",
+        "remote",
+        "--server",
+        &server,
+        "--fingerprint",
+        &fingerprint,
+    ]);
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("warning: the alignment server link is not up"),
+        "{text}"
+    );
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3);
+    for l in &lines {
+        let state = l["link"]["state"].as_str().unwrap();
+        assert!(["connecting", "retrying"].contains(&state), "{l}");
     }
 }

@@ -49,6 +49,8 @@ pub struct FrameReport {
     pub remote_rtt_us: Option<u64>,
     /// HoloFace message bytes sent for this frame (the crop or the probe).
     pub sent_bytes: usize,
+    /// The link's state when the frame was routed (why it was answered locally, when it was).
+    pub link: Option<super::LinkState>,
 }
 
 /// Remote DAN over a [`Link`] (in the headset: [`RemoteLink`]) with a local aligner `A` for fallback; see
@@ -230,6 +232,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         self.report = FrameReport::default();
         self.settle_probes(now);
         let status = self.link.status();
+        self.report.link = Some(status.state());
         let welcome = status.welcome().cloned();
         let result = match (self.policy.route(now, welcome.is_some()), welcome) {
             (Route::Remote, Some(welcome)) => match self.send_crop(image, init, &welcome) {

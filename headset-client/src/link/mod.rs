@@ -1,18 +1,18 @@
 //! The remote link: crops to the alignment server over QUIC, with local fallback.
 //!
-//! * [`session`]: one connection (handshake, frame streams, replies), async; shared with the load tester.
+//! * [`connection`]: one connection (handshake, frame streams, replies), async; shared with the load tester.
 //! * [`RemoteLink`]: owns a background thread with a single-threaded tokio runtime that keeps a
 //!   connection up (reconnecting with exponential backoff) and gives the frame loop a blocking API:
 //!   [`RemoteLink::send`] and [`RemoteLink::wait_reply`] with a deadline.
 //! * [`policy`]: the IO-free fallback state machine (misses, hold-off, hysteresis).
 //! * [`LinkedAligner`]: an [`crate::align::Aligner`] that asks the server first and answers the **same
 //!   frame** with the local aligner when the reply misses its deadline or the link is down.
-//! * [`codec`]: raw / PNG / JPEG crops.
+//! * [`CropCodec`] (from [`crate::codec`]): raw / PNG / JPEG crops.
 
 mod aligner;
-pub mod codec;
+
+pub mod connection;
 pub mod policy;
-pub mod session;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, mpsc};
@@ -21,10 +21,10 @@ use std::time::{Duration, Instant};
 use holoface_protocol::{CloseCode, FrameReply, FrameRequest, ServerWelcome};
 use tokio::sync::{mpsc as tmpsc, oneshot};
 
+pub use crate::codec::CropCodec;
 pub use aligner::{FrameReport, LinkOptions, LinkedAligner};
-pub use codec::CropCodec;
+pub use connection::{ConnectConfig, FailureKind, LinkError, LinkFailure};
 pub use policy::{FallbackPolicy, Mode, PolicyConfig, Route};
-pub use session::{ConnectConfig, SessionError};
 
 /// Reconnection backoff: `initial`, doubling up to `max`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -50,12 +50,15 @@ pub enum LinkStatus {
     /// Connecting or waiting to retry; the last failure, if any.
     Connecting {
         /// Why the previous attempt or connection ended.
-        last_error: Option<String>,
+        last_error: Option<LinkFailure>,
     },
     /// Handshake done; frames may be sent.
     Up(Arc<ServerWelcome>),
-    /// The link thread has stopped (shut down, or the UDP socket could not be created).
-    Stopped(String),
+    /// The link gave up: retrying cannot help (wrong token, certificate mismatch, protocol version) or the
+    /// UDP socket could not be opened. Every frame is answered locally.
+    Failed(LinkFailure),
+    /// The link was shut down by its owner.
+    Stopped,
 }
 
 impl LinkStatus {
@@ -66,6 +69,42 @@ impl LinkStatus {
             _ => None,
         }
     }
+
+    /// The compact, copyable form for per-frame results and the C ABI.
+    pub fn state(&self) -> LinkState {
+        match self {
+            Self::Connecting { last_error: None } => LinkState::Connecting,
+            Self::Connecting { last_error: Some(f) } => LinkState::Retrying(f.kind),
+            Self::Up(_) => LinkState::Up,
+            Self::Failed(f) => LinkState::Failed(f.kind),
+            Self::Stopped => LinkState::Stopped,
+        }
+    }
+
+    /// Why the link is not up, if it has failed at least once.
+    pub fn failure(&self) -> Option<&LinkFailure> {
+        match self {
+            Self::Connecting { last_error } => last_error.as_ref(),
+            Self::Failed(f) => Some(f),
+            Self::Up(_) | Self::Stopped => None,
+        }
+    }
+}
+
+/// [`LinkStatus`] without the welcome and the message: what each frame's result carries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case", tag = "state", content = "failure")]
+pub enum LinkState {
+    /// First connection attempt under way.
+    Connecting,
+    /// Connected.
+    Up,
+    /// Down for this reason; retrying with backoff.
+    Retrying(FailureKind),
+    /// Gave up for this reason (see [`FailureKind::is_permanent`]).
+    Failed(FailureKind),
+    /// Shut down.
+    Stopped,
 }
 
 /// Something the link thread observed.
@@ -73,8 +112,8 @@ impl LinkStatus {
 pub enum LinkEvent {
     /// A reply and when it arrived.
     Reply(FrameReply, Instant),
-    /// The connection ended (a reconnect follows).
-    Down(Instant, String),
+    /// The connection ended (a reconnect follows unless the failure is permanent).
+    Down(Instant, LinkFailure),
 }
 
 /// Why [`RemoteLink::wait_reply`] returned without the reply.
@@ -85,7 +124,7 @@ pub enum WaitError {
     Deadline,
     /// The connection went down while waiting.
     #[error("link down: {0}")]
-    Down(String),
+    Down(LinkFailure),
     /// The link thread is gone.
     #[error("link stopped")]
     Stopped,
@@ -117,6 +156,10 @@ struct Shared {
 impl Shared {
     fn set(&self, s: LinkStatus) {
         *self.status.lock().unwrap_or_else(PoisonError::into_inner) = s;
+    }
+
+    fn get(&self) -> LinkStatus {
+        self.status.lock().unwrap_or_else(PoisonError::into_inner).clone()
     }
 }
 
@@ -166,7 +209,7 @@ impl RemoteLink {
                     &thread_shared,
                     shutdown_rx,
                 ));
-                thread_shared.set(LinkStatus::Stopped(end));
+                thread_shared.set(end);
             })?;
         Ok(Self {
             frames,
@@ -179,11 +222,15 @@ impl RemoteLink {
 
     /// The current status.
     pub fn status(&self) -> LinkStatus {
-        self.shared
-            .status
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        self.shared.get()
+    }
+
+    /// A handle that reads this link's status from anywhere (it stays valid after the link is moved into
+    /// a [`LinkedAligner`]).
+    pub fn watch(&self) -> LinkWatch {
+        LinkWatch {
+            shared: Arc::clone(&self.shared),
+        }
     }
 
     /// Counters since start.
@@ -244,6 +291,27 @@ impl RemoteLink {
         while let Ok(ev) = self.events.try_recv() {
             each(ev);
         }
+    }
+}
+
+/// Reads a [`RemoteLink`]'s status (see [`RemoteLink::watch`]); cheap to clone.
+#[derive(Clone)]
+pub struct LinkWatch {
+    shared: Arc<Shared>,
+}
+
+impl std::fmt::Debug for LinkWatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LinkWatch")
+            .field("status", &self.status())
+            .finish()
+    }
+}
+
+impl LinkWatch {
+    /// The link's current status.
+    pub fn status(&self) -> LinkStatus {
+        self.shared.get()
     }
 }
 
@@ -311,7 +379,9 @@ impl Drop for RemoteLink {
     }
 }
 
-/// The link thread: connect, serve, reconnect with backoff, until shut down. Returns why it stopped.
+/// The link thread: connect, serve, reconnect with backoff, until shut down or until a failure that
+/// retrying cannot fix. Returns the final status. Failures are logged at warn level when their kind changes
+/// (a link that keeps failing the same way is not logged on every retry).
 async fn supervise(
     cfg: ConnectConfig,
     backoff: Backoff,
@@ -319,18 +389,26 @@ async fn supervise(
     events: mpsc::Sender<LinkEvent>,
     shared: &Shared,
     mut shutdown: oneshot::Receiver<()>,
-) -> String {
-    let endpoint = match session::client_endpoint(&cfg) {
+) -> LinkStatus {
+    let endpoint = match connection::client_endpoint(&cfg) {
         Ok(e) => e,
-        Err(e) => return format!("cannot open the client endpoint: {e}"),
+        Err(e) => {
+            let failure = LinkFailure::new(
+                FailureKind::Local,
+                format!("cannot open the client endpoint: {e}"),
+            );
+            tracing::warn!(server = %cfg.server, error = %failure, "alignment server link failed; answering locally");
+            return LinkStatus::Failed(failure);
+        }
     };
     let mut delay = backoff.initial;
+    let mut last_kind = None;
     let stopped = loop {
         let attempt = tokio::select! {
-            _ = &mut shutdown => break "shut down".to_owned(),
-            r = session::connect(&endpoint, &cfg) => r,
+            _ = &mut shutdown => break LinkStatus::Stopped,
+            r = connection::connect(&endpoint, &cfg) => r,
         };
-        let why = match attempt {
+        let failure = match attempt {
             Ok(s) => {
                 delay = backoff.initial;
                 shared.counters.connects.fetch_add(1, Ordering::Relaxed);
@@ -367,26 +445,39 @@ async fn supervise(
                 match end {
                     None => {
                         conn.close(CloseCode::NoError.as_u32().into(), b"client shutting down");
-                        break "shut down".to_owned();
+                        break LinkStatus::Stopped;
                     }
-                    Some(why) => {
-                        tracing::warn!(%why, "link down");
-                        let _ = events.send(LinkEvent::Down(Instant::now(), why.clone()));
-                        why
+                    Some(failure) => {
+                        tracing::warn!(server = %cfg.server, error = %failure, "link down; answering locally");
+                        let _ = events.send(LinkEvent::Down(Instant::now(), failure.clone()));
+                        last_kind = Some(failure.kind);
+                        failure
                     }
                 }
             }
             Err(e) => {
                 shared.counters.connect_failures.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!(error = %e, retry_in = ?delay, "connect failed");
-                e.to_string()
+                let failure = LinkFailure::from(&e);
+                if last_kind == Some(failure.kind) {
+                    tracing::debug!(error = %failure, retry_in = ?delay, "connect failed again");
+                } else {
+                    tracing::warn!(server = %cfg.server, error = %failure, retry_in = ?delay,
+                        "cannot connect to the alignment server; answering locally");
+                }
+                last_kind = Some(failure.kind);
+                failure
             }
         };
+        if failure.kind.is_permanent() {
+            tracing::warn!(server = %cfg.server, error = %failure,
+                "giving up on the alignment server: retrying cannot fix this; answering locally");
+            break LinkStatus::Failed(failure);
+        }
         shared.set(LinkStatus::Connecting {
-            last_error: Some(why),
+            last_error: Some(failure),
         });
         tokio::select! {
-            _ = &mut shutdown => break "shut down".to_owned(),
+            _ = &mut shutdown => break LinkStatus::Stopped,
             () = tokio::time::sleep(delay) => {}
         }
         delay = (delay * 2).min(backoff.max);
@@ -397,26 +488,36 @@ async fn supervise(
     stopped
 }
 
-/// Serves one connection. `None` = shut down by us; `Some(reason)` = the connection ended.
+/// How an established connection ended: a timeout here is the connection going silent (idle timeout), not
+/// an unreachable server.
+fn established_failure(e: LinkError) -> LinkFailure {
+    let mut f = LinkFailure::from(e);
+    if f.kind == FailureKind::Unreachable {
+        f.kind = FailureKind::ConnectionLost;
+    }
+    f
+}
+
+/// Serves one connection. `None` = shut down by us; `Some(failure)` = the connection ended.
 async fn serve(
     conn: &quinn::Connection,
-    mut control: session::Control,
-    mut replies: session::ReplyReader,
+    mut control: connection::Control,
+    mut replies: connection::ReplyReader,
     frames: &mut tmpsc::UnboundedReceiver<FrameRequest>,
     events: &mpsc::Sender<LinkEvent>,
     shared: &Shared,
     shutdown: &mut oneshot::Receiver<()>,
-) -> Option<String> {
+) -> Option<LinkFailure> {
     let reader_events = events.clone();
     let mut reader = tokio::spawn(async move {
         loop {
             match replies.next().await {
                 Ok(r) => {
                     if reader_events.send(LinkEvent::Reply(r, Instant::now())).is_err() {
-                        return "frame loop gone".to_owned();
+                        return LinkFailure::new(FailureKind::Local, "frame loop gone");
                     }
                 }
-                Err(e) => return e.to_string(),
+                Err(e) => return established_failure(e),
             }
         }
     });
@@ -431,16 +532,18 @@ async fn serve(
                     let len = holoface_protocol::Message::FrameRequest(req.clone()).encoded_len();
                     shared.counters.payload_bytes.fetch_add(len as u64, Ordering::Relaxed);
                     tokio::spawn(async move {
-                        if let Err(e) = session::send_frame(&conn, &req).await {
+                        if let Err(e) = connection::send_frame(&conn, &req).await {
                             tracing::debug!(frame = req.frame_id, error = %e, "send failed");
                         }
                     });
                 }
                 None => break None,
             },
-            r = &mut reader => break Some(r.unwrap_or_else(|e| format!("reply reader failed: {e}"))),
-            c = control.next() => if let Err(e) = c { break Some(e.to_string()) },
-            e = conn.closed() => break Some(SessionError::from(e).to_string()),
+            r = &mut reader => break Some(r.unwrap_or_else(|e| {
+                LinkFailure::new(FailureKind::Local, format!("reply reader failed: {e}"))
+            })),
+            c = control.next() => if let Err(e) = c { break Some(established_failure(e)) },
+            e = conn.closed() => break Some(established_failure(LinkError::from(e))),
         }
     };
     reader.abort();

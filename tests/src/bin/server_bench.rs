@@ -26,7 +26,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use hdrhistogram::Histogram;
 use holoface_e2e::{TestClient, client_endpoint_with, frame, hello};
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
-use holoface_protocol::{DropReason, ReplyOutcome};
+use holoface_protocol::ReplyOutcome;
 use holoface_quic::Fingerprint;
 
 const TOKEN: &str = "bench-token";
@@ -49,6 +49,12 @@ struct Cli {
     /// ONNX Runtime intra-op spinning (server and raw baseline).
     #[arg(long, global = true)]
     spin: bool,
+    /// The server's batching policy (`work-conserving`, or `max-wait` with `--max-wait-us`).
+    #[arg(long, global = true, default_value = "work-conserving")]
+    batch_policy: String,
+    /// With `--batch-policy max-wait`: the wait, µs.
+    #[arg(long, global = true, default_value_t = 2000)]
+    max_wait_us: u64,
     /// Append one JSON line per result here.
     #[arg(long, global = true, default_value = "target/bench/server.jsonl")]
     out: PathBuf,
@@ -178,6 +184,9 @@ struct ServerChild {
 impl ServerChild {
     fn start(cli: &Cli, extra: &[String]) -> anyhow::Result<Self> {
         let mut cmd = Command::new(&cli.server_bin);
+        if cli.batch_policy == "max-wait" {
+            cmd.args(["--max-wait-us", &cli.max_wait_us.to_string()]);
+        }
         cmd.args(["--listen", "127.0.0.1:0", "--token", TOKEN, "--log-level", "warn"])
             .arg("--model")
             .arg(model(cli))
@@ -186,6 +195,7 @@ impl ServerChild {
             .args(["--intra-threads", &cli.threads.to_string()])
             .args(["--spin", if cli.spin { "true" } else { "false" }])
             .args(["--metrics-listen", "127.0.0.1:0"])
+            .args(["--batch-policy", &cli.batch_policy])
             .args(extra)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());
@@ -353,7 +363,7 @@ async fn throughput(
     record(
         cli,
         &serde_json::json!({
-            "bench": "throughput", "batch": batch, "threads": cli.threads, "spin": cli.spin, "clients": clients, "in_flight": in_flight,
+            "bench": "throughput", "policy": policy_label(cli), "batch": batch, "threads": cli.threads, "spin": cli.spin, "clients": clients, "in_flight": in_flight,
             "reply": reply.as_str(), "seconds": seconds,
             "raw_ort_img_s": raw, "raw_ort_before_img_s": raw_before, "raw_ort_after_img_s": raw_after,
             "raw_ort_ms_per_batch": raw_ms,
@@ -395,6 +405,9 @@ async fn latency(
         let offset = period.mul_f64(i as f64 / clients as f64);
         tasks.push(tokio::spawn(async move {
             let mut hist = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3)?;
+            // Per stage, from the reply's own timings: queue wait, inference, and the rest of the round trip
+            // (QUIC both ways, stream receive, crop check, scheduling, reply).
+            let mut stages = [us_histogram()?, us_histogram()?, us_histogram()?];
             let mut drops: HashMap<&'static str, u64> = HashMap::new();
             let mut sent_at: HashMap<u64, Instant> = HashMap::new();
             let mut ticker = tokio::time::interval_at(tokio::time::Instant::from_std(start + offset), period);
@@ -419,25 +432,34 @@ async fn latency(
                         let r = r?;
                         let Some(t) = sent_at.remove(&r.frame_id) else { continue };
                         match r.outcome {
-                            ReplyOutcome::Landmarks { .. } => {
-                                hist.record(u64::try_from(t.elapsed().as_micros()).unwrap_or(u64::MAX))?;
+                            ReplyOutcome::Landmarks { queue_us, infer_us, .. } => {
+                                let rtt = u64::try_from(t.elapsed().as_micros()).unwrap_or(u64::MAX);
+                                hist.record(rtt)?;
+                                let (q, i) = (u64::from(queue_us), u64::from(infer_us));
+                                for (h, v) in stages.iter_mut().zip([q, i, rtt.saturating_sub(q + i)]) {
+                                    h.record(v.max(1))?;
+                                }
                             }
                             ReplyOutcome::Dropped { reason } => {
-                                *drops.entry(drop_name(reason)).or_default() += 1;
+                                *drops.entry(reason.name()).or_default() += 1;
                             }
                         }
                     }
                 }
             }
-            Ok::<_, anyhow::Error>((hist, drops, sent, skipped))
+            Ok::<_, anyhow::Error>((hist, drops, sent, skipped, stages))
         }));
     }
     let mut all = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3)?;
+    let mut all_stages = [us_histogram()?, us_histogram()?, us_histogram()?];
     let mut drops: HashMap<&'static str, u64> = HashMap::new();
     let (mut sent, mut skipped) = (0, 0);
     for t in tasks {
-        let (h, d, s, k) = t.await??;
+        let (h, d, s, k, st) = t.await??;
         all.add(&h)?;
+        for (a, b) in all_stages.iter_mut().zip(&st) {
+            a.add(b)?;
+        }
         for (k2, v) in d {
             *drops.entry(k2).or_default() += v;
         }
@@ -449,16 +471,30 @@ async fn latency(
     record(
         cli,
         &serde_json::json!({
-            "bench": "latency", "spin": cli.spin, "clients": clients, "fps": fps, "batch": batch, "threads": cli.threads,
+            "bench": "latency", "policy": policy_label(cli), "spin": cli.spin, "clients": clients, "fps": fps, "batch": batch, "threads": cli.threads,
             "reply": reply.as_str(), "seconds": seconds, "deadline_ms": deadline_ms,
             "sent": sent, "aligned": all.len(), "skipped_ticks": skipped, "drops": drops,
             "p50_ms": ms(0.5), "p99_ms": ms(0.99), "p999_ms": ms(0.999), "max_ms": all.max() as f64 / 1e3,
+            "stages_p50_ms": stage_p50(&all_stages)?,
         }),
     )
 }
 
-const fn drop_name(r: DropReason) -> &'static str {
-    alignment_server::metrics::drop_label(r)
+fn us_histogram() -> anyhow::Result<Histogram<u64>> {
+    Ok(Histogram::new_with_bounds(1, 60_000_000, 3)?)
+}
+
+/// Median of each stage histogram (queue, inference, rest of the round trip), ms.
+fn stage_p50(stages: &[Histogram<u64>; 3]) -> anyhow::Result<serde_json::Value> {
+    let p50 = |i: usize| stages[i].value_at_quantile(0.5) as f64 / 1e3;
+    Ok(serde_json::json!({"queue": p50(0), "inference": p50(1), "rest_of_round_trip": p50(2)}))
+}
+
+fn policy_label(cli: &Cli) -> String {
+    match cli.batch_policy.as_str() {
+        "max-wait" => format!("max-wait {} us", cli.max_wait_us),
+        other => other.to_owned(),
+    }
 }
 
 async fn idle(cli: &Cli, connections: usize, hold_seconds: f64) -> anyhow::Result<()> {

@@ -11,9 +11,10 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use crate::render::SCENE_CAMERA;
+use crate::stats::percentile;
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
-use holoface_models::candide::Intrinsics;
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
@@ -27,8 +28,9 @@ use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
 use holoface_client::align::{Aligner, AnsweredBy};
 use holoface_client::detect::{FaceDetector, shape_from_detection};
+use holoface_client::frame::Frame;
 use holoface_client::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
-use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -69,12 +71,6 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-const K: Intrinsics = Intrinsics {
-    fx: 500.0,
-    fy: 500.0,
-    cx: 320.0,
-    cy: 240.0,
-};
 const FRAME_W: usize = 640;
 const FRAME_H: usize = 480;
 const PHOTO_DISTANCE_M: f64 = 0.6;
@@ -152,13 +148,6 @@ struct Record {
     sent_bytes: usize,
 }
 
-fn percentile(v: &mut [f64], p: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(((v.len() as f64 - 1.0) * p).round() as usize)
-        .copied()
-        .unwrap_or(f64::NAN)
-}
-
 /// Runs `holoface demo`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.frames == 0 || args.fps <= 0.0 {
@@ -232,7 +221,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for i in 0..args.frames {
         let t = i as f64 / args.fps;
         let pose = headset(t);
-        let h = scene.homography(&K, &pose, &photo_pose());
+        let h = scene.homography(&SCENE_CAMERA, &pose, &photo_pose());
         scene.render(&h, &mut image, 40)?;
         let truth = scene.landmarks_in(&h);
         if i == args.cut_at {
@@ -258,20 +247,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let frame = Frame {
             timestamp_us: (t * 1e6) as u64,
             image: image.view(),
-            intrinsics: K,
+            intrinsics: SCENE_CAMERA,
             world_from_camera: pose,
         };
         let t0 = Instant::now();
-        let alignment = match session.prepare(&frame)? {
-            Prepared::Align { init, source } => Some(holoface_client::align::align_from(
-                &mut aligner,
-                &frame.image,
-                &init,
-                source,
-            )?),
-            Prepared::NoFace => None,
-        };
-        let result = session.complete(&frame, alignment);
+        let step = holoface_client::frame_loop::step(&mut session, &mut aligner, &frame)?;
+        let (result, alignment) = (step.result, step.alignment);
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = aligner.last_report();
         let (answered_by, landmarks) = match (&result, alignment) {
@@ -308,7 +289,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 line["face"] = json!(true);
                 line["world_position_m"] = json!(u.world.position.to_array());
                 line["display_position_m"] = json!(u.display.0.to_array());
-                line["weights"] = json!(u.fit.weights);
+                line["weights"] = json!(u.fit.weights.0);
                 line["attributes"] = json!({
                     "smile": u.attributes.smile,
                     "brows_raised": u.attributes.brows_raised,
@@ -463,11 +444,11 @@ fn summarise(
             .filter(|r| r.answered_by == Some(AnsweredBy::Krfws))
             .count();
         let none = sel.iter().filter(|r| r.answered_by.is_none()).count();
-        let mut lat: Vec<f64> = sel.iter().map(|r| r.latency_ms).collect();
+        let lat: Vec<f64> = sel.iter().map(|r| r.latency_ms).collect();
         let (p50, p99, max) = (
-            percentile(&mut lat, 0.5),
-            percentile(&mut lat, 0.99),
-            percentile(&mut lat, 1.0),
+            percentile(&lat, 0.5),
+            percentile(&lat, 0.99),
+            percentile(&lat, 1.0),
         );
         let errs: Vec<f64> = sel.iter().filter_map(|r| r.nme49).collect();
         let nme = errs.iter().sum::<f64>() / errs.len().max(1) as f64;

@@ -4,10 +4,10 @@ use clap::{Parser, Subcommand};
 
 pub mod demo;
 pub mod eval;
-pub mod losses;
 pub mod record;
 pub mod simulate;
 pub mod track;
+pub mod tracking_losses;
 pub mod train_krfws;
 
 /// HoloFace: find, track and understand faces for AR headsets.
@@ -37,7 +37,7 @@ pub enum Command {
     Track(track::Args),
     /// Tracking losses with and without headset-motion compensation, on rendered sequences of the
     /// validation faces with a real aligner.
-    TrackingLosses(losses::Args),
+    TrackingLosses(tracking_losses::Args),
     /// Train the KRFWS local aligner and evaluate it on the validation split.
     TrainKrfws(train_krfws::Args),
 }
@@ -50,7 +50,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),
-        Command::TrackingLosses(args) => losses::run(args),
+        Command::TrackingLosses(args) => tracking_losses::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
     }
 }

@@ -79,24 +79,17 @@ impl CropCutter {
     }
 
     /// The crop payload of `f`, or `None` when no face is tracked.
-    fn cut(&mut self, f: &holoface_client::source::SourceFrame) -> anyhow::Result<Option<FramePayload>> {
-        use holoface_client::session::{Frame, Prepared};
-        let frame = Frame {
-            timestamp_us: f.timestamp_us,
-            image: f.image.view(),
-            intrinsics: f.intrinsics,
-            world_from_camera: f.world_from_camera,
-        };
-        let Prepared::Align { init, source } = self.session.prepare(&frame)? else {
-            self.session.complete(&frame, None);
+    fn cut(&mut self, f: &holoface_client::frame::OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
+        use holoface_client::session::Prepared;
+        let frame = f.view();
+        let step = holoface_client::frame_loop::step(&mut self.session, &mut self.local, &frame)?;
+        let Prepared::Align { init, .. } = step.prepared else {
             return Ok(None);
         };
         let sim = holoface_client::align::crop_from_image(&init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
         let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;
-        let a = holoface_client::align::align_from(&mut self.local, &frame.image, &init, source)?;
-        self.session.complete(&frame, Some(a));
         Ok(Some(FramePayload::Crop {
             image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],
             crop,

@@ -10,12 +10,15 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
-use holoface_models::candide::{FaceModel, FitOptions, FitResult, Intrinsics, fit, project_landmarks};
+use holoface_models::camera::Intrinsics;
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit, project_landmarks};
 use holoface_models::geometry::Point2;
 use holoface_models::kalman::{KalmanParams, PositionPredictor};
 use holoface_models::math3::{Mat3, Pose, Quat, Vec3};
 use holoface_models::pose::{compensate_headset_motion, world_pose};
 use serde_json::json;
+
+use crate::stats::percentile;
 
 /// Arguments of `holoface simulate`.
 #[derive(Debug, ClapArgs)]
@@ -62,12 +65,7 @@ impl Noise {
     }
 }
 
-const K: Intrinsics = Intrinsics {
-    fx: 600.0,
-    fy: 600.0,
-    cx: 320.0,
-    cy: 240.0,
-};
+const K: Intrinsics = Intrinsics::new(600.0, 600.0, 320.0, 240.0);
 
 /// Ground truth of one frame.
 struct Truth {
@@ -105,7 +103,7 @@ fn head_in_camera(tr: &Truth) -> FitResult {
     FitResult {
         rotation: Quat::from_mat3(&p.rotation),
         translation: p.translation,
-        weights: tr.weights,
+        weights: holoface_models::expression::ExpressionWeights(tr.weights),
         rmse_px: 0.0,
         iterations: 0,
         converged: true,
@@ -131,14 +129,6 @@ fn mean(v: &[f64]) -> f64 {
     } else {
         v.iter().sum::<f64>() / v.len() as f64
     }
-}
-
-fn percentile(v: &[f64], p: f64) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    s.get(((s.len() as f64 - 1.0) * p).round() as usize)
-        .copied()
-        .unwrap_or(f64::NAN)
 }
 
 /// Runs `holoface simulate`.
@@ -174,8 +164,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             trans.push((f.translation - gt.translation).norm() * 1e3);
             werr.push(
                 f.weights
+                    .0
                     .iter()
-                    .zip(&gt.weights)
+                    .zip(&gt.weights.0)
                     .map(|(a, b)| (a - b).abs())
                     .sum::<f64>()
                     / 5.0,

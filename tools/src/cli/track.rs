@@ -2,7 +2,6 @@
 
 use std::io::Write;
 use std::path::PathBuf;
-use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
@@ -10,8 +9,8 @@ use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::args::RuntimeArgs;
-use holoface_client::align::Aligner;
-use holoface_client::session::{Frame, FrameResult, Prepared, SessionOptions, TrackerSession};
+use holoface_client::align::{Aligner, AnsweredBy};
+use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
 use holoface_client::source::open_source;
 
 /// Local aligner for `track`.
@@ -78,7 +77,7 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-fn remote_aligner(args: &Args) -> anyhow::Result<Box<dyn Aligner>> {
+fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_client::link::LinkWatch)> {
     use holoface_client::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, RemoteLink};
     let server = args.server.context("--aligner remote needs --server ADDR")?;
     let fingerprint = args
@@ -90,26 +89,29 @@ fn remote_aligner(args: &Args) -> anyhow::Result<Box<dyn Aligner>> {
     let mut cfg = ConnectConfig::new(server, fingerprint, args.token.clone());
     cfg.encodings = vec![args.crop_encoding.encoding()];
     let link = RemoteLink::start(cfg, Backoff::default())?;
+    let watch = link.watch();
     let opts = LinkOptions {
         deadline: std::time::Duration::from_millis(args.deadline_ms),
         codec: args.crop_encoding,
         ..LinkOptions::default()
     };
-    Ok(Box::new(LinkedAligner::new(
-        link,
-        args.runtime.krfws_aligner()?,
-        opts,
-    )))
+    Ok((
+        Box::new(LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts)),
+        watch,
+    ))
 }
 
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let model = args.candide.load()?;
     let detector = args.runtime.detector()?;
-    let mut aligner: Box<dyn Aligner> = match args.aligner {
-        TrackAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
-        TrackAligner::Dan => Box::new(args.runtime.dan_aligner()?),
-        TrackAligner::Remote => remote_aligner(&args)?,
+    let (mut aligner, link): (Box<dyn Aligner>, _) = match args.aligner {
+        TrackAligner::Krfws => (Box::new(args.runtime.krfws_aligner()?), None),
+        TrackAligner::Dan => (Box::new(args.runtime.dan_aligner()?), None),
+        TrackAligner::Remote => {
+            let (aligner, watch) = remote_aligner(&args)?;
+            (aligner, Some(watch))
+        }
     };
     let opts = SessionOptions {
         motion_compensation: !args.no_motion_compensation,
@@ -127,35 +129,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = &args.annotate {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let (mut frames, mut faces) = (0usize, 0usize);
+    let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
-        let frame = Frame {
-            timestamp_us: sf.timestamp_us,
-            image: sf.image.view(),
-            intrinsics: sf.intrinsics,
-            world_from_camera: sf.world_from_camera,
-        };
-        let t0 = Instant::now();
-        let prepared = session.prepare(&frame)?;
-        let t_prepare = t0.elapsed();
-        let t1 = Instant::now();
-        let alignment = match prepared {
-            Prepared::Align { init, source } => Some(holoface_client::align::align_from(
-                &mut *aligner,
-                &frame.image,
-                &init,
-                source,
-            )?),
-            Prepared::NoFace => None,
-        };
-        let t_align = t1.elapsed();
-        let t2 = Instant::now();
-        let result = if matches!(prepared, Prepared::NoFace) {
-            session.complete(&frame, None)
-        } else {
-            session.complete(&frame, alignment)
-        };
-        let t_complete = t2.elapsed();
+        let frame = sf.view();
+        let step = holoface_client::frame_loop::step(&mut session, &mut *aligner, &frame)?;
+        let result = step.result;
+        let link_state = link.as_ref().map(|w| w.status().state());
+        if step
+            .alignment
+            .is_some_and(|a| a.answered_by == AnsweredBy::RemoteDan)
+        {
+            remote_frames += 1;
+        }
         frames += 1;
         if let Some(dir) = &args.annotate {
             let path = dir.join(format!("frame_{:06}.png", sf.index));
@@ -165,9 +150,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
         }
         let timings = json!({
-            "prepare_ms": t_prepare.as_secs_f64() * 1e3,
-            "align_ms": t_align.as_secs_f64() * 1e3,
-            "fit_pose_filter_ms": t_complete.as_secs_f64() * 1e3,
+            "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
+            "align_ms": step.timings.align.as_secs_f64() * 1e3,
+            "fit_pose_filter_ms": step.timings.complete.as_secs_f64() * 1e3,
         });
         let line = match result {
             FrameResult::Face(u) => {
@@ -191,15 +176,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                         "predicted_position_m": u.predicted_position.to_array(),
                         "display_position_m": u.display.0.to_array(),
                     },
-                    "weights": {
-                        "jaw_drop": u.fit.weights[0], "lip_stretcher": u.fit.weights[1], "brow_lowerer": u.fit.weights[2],
-                        "lip_corner_depressor": u.fit.weights[3], "eyes_closed": u.fit.weights[4],
-                    },
+                    "weights": u.fit.weights.iter()
+                        .map(|(unit, w)| (unit.name().to_owned(), json!(w)))
+                        .collect::<serde_json::Map<_, _>>(),
                     "attributes": {
                         "smile": u.attributes.smile, "brows_raised": u.attributes.brows_raised,
                         "mouth_open": u.attributes.mouth_open,
                     },
                     "timings": timings,
+                    "link": link_state,
                 })
             }
             FrameResult::NoFace(reason) => json!({
@@ -208,6 +193,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "face": false,
                 "reason": reason,
                 "timings": timings,
+                "link": link_state,
             }),
         };
         serde_json::to_writer(&mut out, &line)?;
@@ -219,5 +205,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "{frames} frames, {faces} with a face; wrote {}",
         args.out.display()
     );
+    if let Some(status) = link.as_ref().map(holoface_client::link::LinkWatch::status) {
+        if status.welcome().is_some() {
+            println!("{remote_frames} of {faces} faces aligned by the remote DAN");
+        } else {
+            let why = match (&status, status.failure()) {
+                (holoface_client::link::LinkStatus::Failed(f), _) => format!("gave up: {f}"),
+                (_, Some(f)) => format!("retrying: {f}"),
+                (_, None) => "still connecting".to_owned(),
+            };
+            eprintln!(
+                "warning: the alignment server link is not up ({why}); {remote_frames} of {faces} faces were \
+                 aligned remotely, the rest by the local aligner"
+            );
+        }
+    }
     Ok(())
 }

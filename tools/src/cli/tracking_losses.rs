@@ -20,9 +20,9 @@
 use std::io::Write;
 use std::path::PathBuf;
 
+use crate::render::SCENE_CAMERA;
 use anyhow::{Context, bail};
 use clap::{Args as ClapArgs, ValueEnum};
-use holoface_models::candide::Intrinsics;
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
@@ -34,7 +34,8 @@ use crate::args::RuntimeArgs;
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
 use holoface_client::align::Aligner;
-use holoface_client::session::{Frame, FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
+use holoface_client::frame::Frame;
+use holoface_client::session::{FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
 
 /// Aligner for the measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -85,12 +86,6 @@ pub struct Args {
 
 const FRAME_W: usize = 640;
 const FRAME_H: usize = 480;
-const K: Intrinsics = Intrinsics {
-    fx: 500.0,
-    fy: 500.0,
-    cx: 319.5,
-    cy: 239.5,
-};
 const FACE_DISTANCE_M: f64 = 0.6;
 const GOOD_NME: f64 = 0.08;
 
@@ -226,20 +221,12 @@ struct Runner {
 
 impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
-        let prepared = self.session.prepare(frame)?;
-        let (alignment, init) = match prepared {
-            Prepared::Align { init, source } => (
-                Some(holoface_client::align::align_from(
-                    &mut *self.aligner,
-                    &frame.image,
-                    &init,
-                    source,
-                )?),
-                Some(source),
-            ),
-            Prepared::NoFace => (None, None),
+        let step = holoface_client::frame_loop::step(&mut self.session, &mut *self.aligner, frame)?;
+        let init = match step.prepared {
+            Prepared::Align { source, .. } => Some(source),
+            Prepared::NoFace => None,
         };
-        let result = self.session.complete(frame, alignment);
+        let result = step.result;
         self.tally.record(&result, init, truth);
         Ok(())
     }
@@ -282,7 +269,7 @@ impl SequenceExport {
         truth: &[Point2; 68],
     ) -> anyhow::Result<()> {
         self.video.push(image)?;
-        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&K), Some(t_us))?;
+        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
         let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
         serde_json::to_writer(&mut self.truth, &json!({"frame": i, "landmarks_px": lm}))?;
         self.truth.write_all(b"\n")?;
@@ -355,14 +342,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for i in 0..frames {
             let t = i as f64 / args.fps;
             let cam = motion.headset(t);
-            let h = scene.homography(&K, &cam, &motion.head(t));
+            let h = scene.homography(&SCENE_CAMERA, &cam, &motion.head(t));
             scene.render(&h, &mut image, 90)?;
             let truth = scene.landmarks_in(&h);
             let t_us = (t * 1e6).round() as u64;
             let frame = Frame {
                 timestamp_us: t_us,
                 image: image.view(),
-                intrinsics: K,
+                intrinsics: SCENE_CAMERA,
                 world_from_camera: cam,
             };
             for r in &mut runners {

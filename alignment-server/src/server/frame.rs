@@ -1,0 +1,227 @@
+//! One frame stream: reading the `FrameRequest`, frame-id ordering, crop decoding and submission.
+
+use std::io::Cursor;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use bytes::Bytes;
+use holoface_protocol::limits::MAX_MESSAGE_LEN;
+use holoface_protocol::{
+    CloseCode, Crop, CropEncoding, DropReason, FrameReply, FrameRequest, Message, ReplyOutcome,
+};
+use quinn::{ReadToEndError, RecvStream};
+use tokio::sync::{mpsc, oneshot};
+use tracing::debug;
+
+use super::Shared;
+use super::code;
+use super::fault::Fault;
+use super::reply::ReplySink;
+use super::scheduler::{FrameJob, FrameOutcome, SchedMsg};
+use crate::batcher::ClientId;
+use crate::batcher::Pending;
+
+/// Per-connection state shared by its frame tasks.
+#[derive(Debug)]
+pub(super) struct ConnCtx {
+    pub(super) client: ClientId,
+    pub(super) shared: Arc<Shared>,
+    pub(super) sink: ReplySink,
+    /// Highest frame id seen (`None` before the first frame).
+    pub(super) newest: std::sync::Mutex<Option<u64>>,
+    pub(super) read_timeout: Duration,
+}
+
+/// Decodes a crop into `size` x `size` gray8 pixels.
+fn crop_pixels(crop: &Crop, size: usize) -> Option<Bytes> {
+    if usize::from(crop.width) != size || usize::from(crop.height) != size {
+        return None;
+    }
+    let format = match crop.encoding {
+        // The protocol decoder already checked len == width * height.
+        CropEncoding::Raw => return Some(crop.data.clone()),
+        CropEncoding::Png => image::ImageFormat::Png,
+        CropEncoding::Jpeg => image::ImageFormat::Jpeg,
+    };
+    let mut reader = image::ImageReader::with_format(Cursor::new(&crop.data[..]), format);
+    let mut limits = image::Limits::default();
+    let side = u32::try_from(size).ok()?;
+    limits.max_image_width = Some(side);
+    limits.max_image_height = Some(side);
+    limits.max_alloc = Some(4 * 1024 * 1024);
+    reader.limits(limits);
+    let img = reader.decode().ok()?.into_luma8();
+    (img.width() == side && img.height() == side).then(|| Bytes::from(img.into_raw()))
+}
+
+pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Result<(), Fault> {
+    let data = match tokio::time::timeout(ctx.read_timeout, recv.read_to_end(MAX_MESSAGE_LEN)).await {
+        Err(_) => {
+            let _ = recv.stop(code(CloseCode::NoError));
+            debug!(client = ctx.client, "frame stream not finished in time: ignored");
+            return Ok(());
+        }
+        Ok(Err(ReadToEndError::TooLong)) => {
+            return Err(Fault::new(
+                CloseCode::TooLarge,
+                format!("frame stream longer than {MAX_MESSAGE_LEN} bytes"),
+            ));
+        }
+        Ok(Err(ReadToEndError::Read(e))) => {
+            // Reset by the client (a stale frame it gave up on) or connection loss.
+            debug!(client = ctx.client, %e, "frame stream not read");
+            return Ok(());
+        }
+        Ok(Ok(d)) => d,
+    };
+    let req = match Message::decode(Bytes::from(data)) {
+        Ok(Message::FrameRequest(r)) => r,
+        Ok(other) => {
+            return Err(Fault::new(
+                CloseCode::ProtocolViolation,
+                format!(
+                    "a frame stream must carry a FrameRequest (got tag {})",
+                    other.tag()
+                ),
+            ));
+        }
+        Err(e) => return Err(Fault::decode(&e)),
+    };
+    let metrics = &ctx.shared.metrics;
+    metrics.frames_received.fetch_add(1, Ordering::Relaxed);
+    let frame_id = req.frame_id;
+    let outcome = align(&ctx, req).await?;
+    let outcome = match outcome {
+        FrameOutcome::Landmarks {
+            landmarks,
+            face_prob,
+            queue_us,
+            infer_us,
+        } => ReplyOutcome::Landmarks {
+            landmarks,
+            face_prob,
+            queue_us,
+            infer_us,
+        },
+        FrameOutcome::Dropped(reason) => ReplyOutcome::Dropped { reason },
+    };
+    ctx.sink.send(FrameReply { frame_id, outcome });
+    // The stream (and its flow-control credit) is released only now, so a
+    // client cannot have more than max_in_flight frames being worked on.
+    drop(recv);
+    Ok(())
+}
+
+/// Where a frame's id stands against the newest id seen on its connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FrameOrder {
+    /// Newer than every frame so far (now the newest).
+    Newest,
+    /// The newest id again: a protocol violation.
+    Duplicate,
+    /// Older than the newest: superseded.
+    Older,
+}
+
+/// Classifies `id` and records it when it is the newest. Every `u64` is a valid id, `u64::MAX` included.
+fn order_frame(newest: &std::sync::Mutex<Option<u64>>, id: u64) -> FrameOrder {
+    let mut n = newest.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    match *n {
+        Some(prev) if id == prev => FrameOrder::Duplicate,
+        Some(prev) if id < prev => FrameOrder::Older,
+        _ => {
+            *n = Some(id);
+            FrameOrder::Newest
+        }
+    }
+}
+
+async fn align(ctx: &ConnCtx, req: FrameRequest) -> Result<FrameOutcome, Fault> {
+    let metrics = &ctx.shared.metrics;
+    let dropped = |reason| {
+        metrics.count_drop(reason);
+        Ok(FrameOutcome::Dropped(reason))
+    };
+    match order_frame(&ctx.newest, req.frame_id) {
+        FrameOrder::Newest => {}
+        FrameOrder::Duplicate => {
+            return Err(Fault::new(
+                CloseCode::ProtocolViolation,
+                format!("duplicate frame_id {}", req.frame_id),
+            ));
+        }
+        FrameOrder::Older => return dropped(DropReason::Superseded),
+    }
+    let Some(pixels) = crop_pixels(&req.crop, ctx.shared.model.crop_size) else {
+        debug!(client = ctx.client, frame_id = req.frame_id, "bad crop");
+        return dropped(DropReason::BadCrop);
+    };
+    let settings = &ctx.shared.settings;
+    let budget = match req.deadline_ms {
+        0 => settings.max_frame_age,
+        ms => Duration::from_millis(u64::from(ms)).min(settings.max_frame_age),
+    };
+    let arrived = tokio::time::Instant::now().into_std();
+    let (tx, rx) = oneshot::channel();
+    let pending = Pending {
+        client: ctx.client,
+        frame_id: req.frame_id,
+        arrived,
+        expires: arrived + budget,
+        payload: FrameJob { pixels, reply: tx },
+    };
+    match ctx.shared.sched.try_send(SchedMsg::Submit(pending)) {
+        Ok(()) => {}
+        Err(mpsc::error::TrySendError::Full(_)) => return dropped(DropReason::Overloaded),
+        Err(mpsc::error::TrySendError::Closed(_)) => return dropped(DropReason::ShuttingDown),
+    }
+    Ok(rx
+        .await
+        .unwrap_or(FrameOutcome::Dropped(DropReason::ShuttingDown)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_ids_order_across_the_whole_u64_range() {
+        let n = std::sync::Mutex::new(None);
+        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Newest);
+        // MAX - 1 after MAX is an older frame, not a duplicate.
+        assert_eq!(order_frame(&n, u64::MAX - 1), FrameOrder::Older);
+        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Duplicate);
+        let n = std::sync::Mutex::new(None);
+        assert_eq!(order_frame(&n, 0), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 0), FrameOrder::Duplicate);
+        assert_eq!(order_frame(&n, 5), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 3), FrameOrder::Older);
+        assert_eq!(order_frame(&n, 6), FrameOrder::Newest);
+    }
+
+    #[test]
+    fn crops_are_checked_and_decoded() {
+        let raw = Crop::raw(4, 4, vec![9_u8; 16]);
+        assert_eq!(crop_pixels(&raw, 4).unwrap().len(), 16);
+        assert!(crop_pixels(&raw, 8).is_none(), "wrong size is a bad crop");
+        let mut png = Vec::new();
+        image::GrayImage::from_pixel(4, 4, image::Luma([7]))
+            .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        let crop = Crop {
+            encoding: CropEncoding::Png,
+            width: 4,
+            height: 4,
+            data: png.into(),
+        };
+        assert_eq!(&crop_pixels(&crop, 4).unwrap()[..], &[7_u8; 16]);
+        let garbage = Crop {
+            encoding: CropEncoding::Jpeg,
+            width: 4,
+            height: 4,
+            data: Bytes::from_static(b"not a jpeg"),
+        };
+        assert!(crop_pixels(&garbage, 4).is_none());
+    }
+}

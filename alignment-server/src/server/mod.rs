@@ -1,0 +1,366 @@
+//! The async driver: the quinn endpoint, one task per client connection, the
+//! batcher's scheduler task and the engine thread. The only module that
+//! knows about tokio and quinn.
+//!
+//! ```text
+//!  client conn task ──frame stream task──┐ Submit (bounded mpsc)
+//!  client conn task ──frame stream task──┼──────────────▶ scheduler task ──Batch──▶ engine thread
+//!                                        │                (DynamicBatcher)          (InferenceEngine)
+//!        ◀── reply (datagram / stream) ──┴── oneshot per frame ◀────────────────────────┘
+//! ```
+//!
+//! Per connection: the client opens the control stream (bidirectional) and
+//! sends a framed `ClientHello`; the server checks version then token
+//! (closing with `BadVersion` / `Unauthorized` before any inference), answers
+//! with a framed `ServerWelcome`, and from then on accepts one
+//! unidirectional stream per frame carrying exactly one unframed
+//! `FrameRequest`. Replies go out as one datagram each, or framed on one
+//! server-opened unidirectional stream, as the welcome says. On shutdown the
+//! server writes a framed `Goaway` on the control stream, answers what is in
+//! flight, and closes with `ShuttingDown`.
+//!
+//! Layout:
+//!
+//! * this module: [`Server`], [`ServerError`], [`run`], the state shared by
+//!   every connection, the QUIC transport configuration and the accept loop;
+//! * `lifecycle`: systemd readiness notification and [`shutdown_signal`];
+//! * `auth`: reading the `ClientHello`, the version and token checks;
+//! * `fault`: how a connection ends (close code and reason), shared by the
+//!   modules below;
+//! * `connection`: the per-connection task (handshake, welcome, frame loop,
+//!   graceful drain) and how a connection ends;
+//! * `reply`: the reply sink (datagrams or the reply stream);
+//! * `frame`: the per-connection state its frame streams share, and one frame
+//!   stream: ordering, crop decoding, submission;
+//! * `rate_limit`: the per-connection frame-rate token bucket;
+//! * `scheduler`: the task that owns the [`DynamicBatcher`];
+//! * `engine_thread`: the thread that runs the [`InferenceEngine`].
+
+mod auth;
+mod connection;
+mod engine_thread;
+mod fault;
+mod frame;
+mod lifecycle;
+mod rate_limit;
+mod reply;
+mod scheduler;
+
+pub use lifecycle::shutdown_signal;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use holoface_protocol::CloseCode;
+use holoface_protocol::limits::MAX_MESSAGE_LEN;
+use quinn::VarInt;
+use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::task::JoinSet;
+use tracing::{info, warn};
+
+use crate::batcher::{Batch, DynamicBatcher};
+use crate::config::{ServerConfig, Settings, TlsSource};
+use crate::metrics::Metrics;
+use crate::tls::{Fingerprint, ServerIdentity, TlsError};
+use crate::{config::ConfigError, metrics_http};
+use holoface_inference::{EngineError, InferenceEngine, ModelInfo, OnnxEngine};
+
+use connection::connection;
+use engine_thread::engine_loop;
+use lifecycle::notify_systemd_ready;
+use scheduler::{FrameJob, SchedMsg, scheduler_loop};
+
+/// Starting or running the server failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ServerError {
+    /// Bad configuration.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// TLS set-up failed.
+    #[error(transparent)]
+    Tls(#[from] TlsError),
+    /// The engine could not be loaded.
+    #[error(transparent)]
+    Engine(#[from] EngineError),
+    /// An I/O operation failed.
+    #[error("{context}: {source}")]
+    Io {
+        /// What was being done.
+        context: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// The engine thread stopped unexpectedly.
+    #[error("the engine thread failed: {0}")]
+    EngineThread(String),
+}
+
+fn io_err(context: impl Into<String>) -> impl FnOnce(std::io::Error) -> ServerError {
+    let context = context.into();
+    move |source| ServerError::Io { context, source }
+}
+
+/// State shared by every connection task.
+#[derive(Debug)]
+struct Shared {
+    settings: Settings,
+    model: ModelInfo,
+    metrics: Arc<Metrics>,
+    sched: mpsc::Sender<SchedMsg>,
+    stop: watch::Receiver<bool>,
+    next_client: AtomicU64,
+}
+
+/// A bound, not yet running, alignment server.
+#[derive(Debug)]
+pub struct Server {
+    endpoint: quinn::Endpoint,
+    fingerprint: Fingerprint,
+    metrics: Arc<Metrics>,
+    metrics_listener: Option<tokio::net::TcpListener>,
+    engine: Box<dyn InferenceEngine>,
+    settings: Settings,
+}
+
+/// Loads the engine and binds; then [`Server::run`] until `shutdown`.
+pub async fn run(config: ServerConfig, shutdown: impl Future<Output = ()>) -> Result<(), ServerError> {
+    Server::bind(config.resolve()?).await?.run(shutdown).await
+}
+
+impl Server {
+    /// Loads the ONNX engine (validating the model) and binds the endpoint.
+    pub async fn bind(settings: Settings) -> Result<Self, ServerError> {
+        let opts = settings.engine.clone();
+        let engine = tokio::task::spawn_blocking(move || OnnxEngine::load(&opts))
+            .await
+            .map_err(|e| ServerError::EngineThread(e.to_string()))??;
+        let info = engine.info();
+        info!(
+            model = %settings.engine.model.display(),
+            name = %info.name,
+            version = %info.version,
+            untrained = info.untrained,
+            intra_threads = settings.engine.intra_threads,
+            "model loaded"
+        );
+        if info.untrained {
+            warn!("the model is marked untrained (random weights): landmarks are meaningless");
+        }
+        Self::bind_with_engine(settings, Box::new(engine)).await
+    }
+
+    /// Binds with a given engine (tests and benchmarks use this with a fake
+    /// or preloaded engine).
+    pub async fn bind_with_engine(
+        settings: Settings,
+        engine: Box<dyn InferenceEngine>,
+    ) -> Result<Self, ServerError> {
+        let identity = match &settings.tls {
+            TlsSource::Files { cert, key } => ServerIdentity::from_pem_files(cert, key)?,
+            TlsSource::SelfSigned { names } => ServerIdentity::self_signed(names)?,
+        };
+        let fingerprint = identity.fingerprint;
+        if let Some(path) = &settings.fingerprint_file {
+            std::fs::write(path, format!("{fingerprint}\n"))
+                .map_err(io_err(format!("writing the fingerprint to {}", path.display())))?;
+        }
+        let mut server_config = quinn::ServerConfig::with_crypto(identity.quic_server_config()?);
+        server_config.transport_config(Arc::new(transport_config(&settings)));
+        let endpoint = quinn::Endpoint::server(server_config, settings.listen)
+            .map_err(io_err(format!("binding UDP {}", settings.listen)))?;
+        let metrics_listener = match settings.metrics_listen {
+            Some(addr) => Some(
+                tokio::net::TcpListener::bind(addr)
+                    .await
+                    .map_err(io_err(format!("binding the metrics listener {addr}")))?,
+            ),
+            None => None,
+        };
+        let metrics = Arc::new(Metrics::new(settings.batch.max_batch));
+        Ok(Self {
+            endpoint,
+            fingerprint,
+            metrics,
+            metrics_listener,
+            engine,
+            settings,
+        })
+    }
+
+    /// The UDP address the endpoint is bound to.
+    pub fn local_addr(&self) -> Result<SocketAddr, ServerError> {
+        self.endpoint
+            .local_addr()
+            .map_err(io_err("reading the local address"))
+    }
+
+    /// The metrics listener's address, if enabled.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_listener.as_ref().and_then(|l| l.local_addr().ok())
+    }
+
+    /// SHA-256 of the server certificate (what clients pin).
+    pub const fn fingerprint(&self) -> Fingerprint {
+        self.fingerprint
+    }
+
+    /// The live metrics.
+    pub fn metrics(&self) -> Arc<Metrics> {
+        Arc::clone(&self.metrics)
+    }
+
+    /// The model being served.
+    pub fn model(&self) -> &ModelInfo {
+        self.engine.info()
+    }
+
+    /// Serves clients until `shutdown` resolves, then drains: stop accepting,
+    /// let the in-flight batch finish, send `Goaway`, close every client with
+    /// `ShuttingDown`, and wait (bounded) for the endpoint to go idle.
+    pub async fn run(self, shutdown: impl Future<Output = ()>) -> Result<(), ServerError> {
+        let Self {
+            endpoint,
+            fingerprint,
+            metrics,
+            metrics_listener,
+            engine,
+            settings,
+        } = self;
+        let model = engine.info().clone();
+        let (stop_tx, stop_rx) = watch::channel(false);
+
+        // Engine thread, fed by the scheduler.
+        let (job_tx, job_rx) = std::sync::mpsc::sync_channel::<Batch<FrameJob>>(1);
+        let (done_tx, done_rx) = mpsc::unbounded_channel::<()>();
+        let engine_metrics = Arc::clone(&metrics);
+        let engine_thread = std::thread::Builder::new()
+            .name("holoface-engine".into())
+            .spawn(move || engine_loop(engine, &job_rx, &done_tx, &engine_metrics))
+            .map_err(io_err("starting the engine thread"))?;
+
+        let sched_capacity = settings
+            .max_clients
+            .saturating_mul(usize::from(settings.max_in_flight))
+            .clamp(16, 1 << 16);
+        let (sched_tx, sched_rx) = mpsc::channel(sched_capacity);
+        let scheduler = tokio::spawn(scheduler_loop(
+            DynamicBatcher::new(settings.batch),
+            sched_rx,
+            job_tx,
+            done_rx,
+            stop_rx.clone(),
+            Arc::clone(&metrics),
+        ));
+        let internal_task = metrics_listener.map(|l| {
+            if let Ok(addr) = l.local_addr() {
+                info!(%addr, "metrics and health on http://{addr}/metrics, /health");
+            }
+            tokio::spawn(metrics_http::serve(l, Arc::clone(&metrics), stop_rx.clone()))
+        });
+
+        let permits = Arc::new(Semaphore::new(settings.max_clients));
+        let shutdown_timeout = settings.shutdown_timeout;
+        let shared = Arc::new(Shared {
+            settings,
+            model,
+            metrics: Arc::clone(&metrics),
+            sched: sched_tx,
+            stop: stop_rx,
+            next_client: AtomicU64::new(1),
+        });
+        metrics.ready.store(true, Ordering::Relaxed);
+        notify_systemd_ready();
+        info!(
+            addr = %endpoint.local_addr().map_err(io_err("reading the local address"))?,
+            %fingerprint,
+            "alignment server ready; clients pin this certificate SHA-256 fingerprint"
+        );
+
+        let mut conns = JoinSet::new();
+        tokio::pin!(shutdown);
+        loop {
+            tokio::select! {
+                () = &mut shutdown => break,
+                incoming = endpoint.accept() => match incoming {
+                    Some(incoming) => {
+                        let permit = Arc::clone(&permits).try_acquire_owned().ok();
+                        conns.spawn(connection(incoming, permit, Arc::clone(&shared)));
+                    }
+                    None => break,
+                },
+                Some(_) = conns.join_next(), if !conns.is_empty() => {}
+            }
+        }
+
+        info!(
+            clients = conns.len(),
+            "shutting down: refusing new clients, draining"
+        );
+        metrics.draining.store(true, Ordering::Relaxed);
+        endpoint.set_server_config(None);
+        let _ = stop_tx.send(true);
+        let drained = tokio::time::timeout(shutdown_timeout, async {
+            while conns.join_next().await.is_some() {}
+        })
+        .await;
+        if drained.is_err() {
+            warn!(
+                left = conns.len(),
+                "shutdown timeout: aborting remaining connections"
+            );
+            conns.abort_all();
+        }
+        endpoint.close(
+            code(CloseCode::ShuttingDown),
+            CloseCode::ShuttingDown.reason().as_bytes(),
+        );
+        if tokio::time::timeout(shutdown_timeout, endpoint.wait_idle())
+            .await
+            .is_err()
+        {
+            warn!("endpoint did not go idle before the shutdown timeout");
+        }
+        drop(shared);
+        if tokio::time::timeout(shutdown_timeout, scheduler).await.is_err() {
+            warn!("scheduler did not stop before the shutdown timeout");
+        }
+        if let Some(task) = internal_task {
+            task.abort();
+        }
+        // The scheduler owned the job sender; the engine thread ends with it.
+        let joined = tokio::task::spawn_blocking(move || engine_thread.join()).await;
+        match joined {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) => return Err(ServerError::EngineThread("panicked".into())),
+            Err(e) => return Err(ServerError::EngineThread(e.to_string())),
+        }
+        info!("shutdown complete");
+        Ok(())
+    }
+}
+
+/// Per-frame stream receive window: one maximal message plus slack.
+const FRAME_STREAM_WINDOW: u32 = (MAX_MESSAGE_LEN + 8 * 1024) as u32;
+
+fn transport_config(settings: &Settings) -> quinn::TransportConfig {
+    let mut t = quinn::TransportConfig::default();
+    t.max_concurrent_bidi_streams(VarInt::from_u32(1));
+    t.max_concurrent_uni_streams(VarInt::from(u32::from(settings.max_in_flight)));
+    t.stream_receive_window(VarInt::from_u32(FRAME_STREAM_WINDOW));
+    t.receive_window(VarInt::from_u32(
+        FRAME_STREAM_WINDOW.saturating_mul(u32::from(settings.max_in_flight) + 1),
+    ));
+    t.datagram_receive_buffer_size(Some(16 * 1024));
+    t.datagram_send_buffer_size(64 * 1024);
+    if let Ok(idle) = quinn::IdleTimeout::try_from(settings.idle_timeout) {
+        t.max_idle_timeout(Some(idle));
+    }
+    t
+}
+
+const fn code(c: CloseCode) -> VarInt {
+    VarInt::from_u32(c.as_u32())
+}

@@ -1,0 +1,75 @@
+//! The frame loop, written once: [`TrackerSession::prepare`] -> an [`Aligner`] -> [`TrackerSession::complete`],
+//! timed per step. [`crate::tracker::FaceTracker`], the FFI and every command-line tool that tracks frames go
+//! through [`step`]; they differ only in which aligner they pass and what they do with the [`Step`].
+//!
+//! The session itself stays clock-free; this module reads the monotonic clock only to report [`Timings`].
+
+use std::time::{Duration, Instant};
+
+use crate::align::{AlignError, Aligner, Alignment, align_from};
+use crate::detect::DetectError;
+use crate::frame::Frame;
+use crate::session::{FrameResult, Prepared, TrackerSession};
+
+/// Time spent per step of one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Timings {
+    /// Detection or motion-compensated initialisation.
+    pub prepare: Duration,
+    /// The aligner (remote round trip or local).
+    pub align: Duration,
+    /// Verification, CANDIDE fit, world pose, filters, attributes.
+    pub complete: Duration,
+}
+
+/// One frame through the loop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Step {
+    /// What the session prepared: the initial shape and where it came from, or "no face".
+    pub prepared: Prepared,
+    /// What the aligner answered (`None` when nothing was aligned).
+    pub alignment: Option<Alignment>,
+    /// The frame's answer.
+    pub result: FrameResult,
+    /// Time per step.
+    pub timings: Timings,
+}
+
+/// Why a frame could not be processed (a "no face" is not an error: it is a [`FrameResult`]).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum StepError {
+    /// Face detection failed.
+    #[error(transparent)]
+    Detect(#[from] DetectError),
+    /// Alignment failed.
+    #[error(transparent)]
+    Align(#[from] AlignError),
+}
+
+/// Runs one frame: prepare, align with `aligner` (its detection variant after a detection), complete.
+pub fn step<A: Aligner + ?Sized>(
+    session: &mut TrackerSession,
+    aligner: &mut A,
+    frame: &Frame<'_>,
+) -> Result<Step, StepError> {
+    let t0 = Instant::now();
+    let prepared = session.prepare(frame)?;
+    let t1 = Instant::now();
+    let alignment = match prepared {
+        Prepared::Align { init, source } => Some(align_from(aligner, &frame.image, &init, source)?),
+        Prepared::NoFace => None,
+    };
+    let t2 = Instant::now();
+    let result = session.complete(frame, alignment);
+    Ok(Step {
+        prepared,
+        alignment,
+        result,
+        timings: Timings {
+            prepare: t1 - t0,
+            align: t2 - t1,
+            complete: t2.elapsed(),
+        },
+    })
+}
