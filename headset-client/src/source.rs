@@ -74,6 +74,8 @@ pub struct RecordedStream {
     intrinsics: Intrinsics,
     path: PathBuf,
     index: usize,
+    /// Crop records passed over (they are for the load tester, not for tracking).
+    crops: u64,
 }
 
 impl RecordedStream {
@@ -94,6 +96,7 @@ impl RecordedStream {
             intrinsics,
             path: path.to_path_buf(),
             index: 0,
+            crops: 0,
         })
     }
 }
@@ -105,7 +108,17 @@ impl FrameSource for RecordedStream {
                 .reader
                 .next_record()
                 .with_context(|| format!("reading {}", self.path.display()))?;
-            let Some(rec) = rec else { return Ok(None) };
+            let Some(rec) = rec else {
+                if self.index == 0 && self.crops > 0 {
+                    bail!(
+                        "{} holds {} face crops and no full frames (a `holoface record --crops` recording, made \
+                         for the load tester `holoface-load`); tracking needs full frames: record without --crops",
+                        self.path.display(),
+                        self.crops
+                    );
+                }
+                return Ok(None);
+            };
             let FramePayload::FullFrame {
                 width,
                 height,
@@ -113,6 +126,7 @@ impl FrameSource for RecordedStream {
                 data,
             } = rec.payload
             else {
+                self.crops += 1;
                 continue;
             };
             let (w, h) = (width as usize, height as usize);
@@ -193,4 +207,80 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
         )),
         None => inner,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use holoface_protocol::recording::{CameraIntrinsics, FrameRecord, RecordingHeader, RecordingWriter};
+
+    use super::*;
+
+    fn recording(name: &str, payloads: Vec<FramePayload>) -> PathBuf {
+        let path = std::env::temp_dir().join(format!("holoface-source-{name}-{}.hfrec", std::process::id()));
+        let header = RecordingHeader {
+            intrinsics: CameraIntrinsics {
+                fx: 100.0,
+                fy: 100.0,
+                cx: 8.0,
+                cy: 8.0,
+                width: 16,
+                height: 16,
+            },
+            source: "test".into(),
+            created_unix_ms: 0,
+        };
+        let mut w = RecordingWriter::new(File::create(&path).unwrap(), &header).unwrap();
+        for (k, payload) in payloads.into_iter().enumerate() {
+            w.write_record(&FrameRecord {
+                timestamp_us: k as u64 * 33_333,
+                camera_to_world: [
+                    1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+                ],
+                payload,
+                ground_truth: None,
+                face_present: None,
+            })
+            .unwrap();
+        }
+        w.finish().unwrap();
+        path
+    }
+
+    fn crop() -> FramePayload {
+        FramePayload::Crop {
+            image_from_crop: [1.0, 0.0, 0.0, 0.0],
+            crop: holoface_protocol::Crop::raw(112, 112, vec![7; 112 * 112]),
+        }
+    }
+
+    #[test]
+    fn a_crops_only_recording_is_an_error_not_zero_frames() {
+        let path = recording("crops", vec![crop(), crop()]);
+        let mut src = RecordedStream::open(&path).unwrap();
+        let err = src.next_frame().unwrap_err().to_string();
+        assert!(
+            err.contains("2 face crops and no full frames") && err.contains("--crops"),
+            "{err}"
+        );
+        std::fs::remove_file(path).ok();
+    }
+
+    #[test]
+    fn crops_between_full_frames_are_passed_over() {
+        let full = FramePayload::FullFrame {
+            width: 16,
+            height: 16,
+            encoding: CropEncoding::Raw,
+            data: vec![9; 256].into(),
+        };
+        let path = recording("mixed", vec![crop(), full, crop()]);
+        let mut src = RecordedStream::open(&path).unwrap();
+        let f = src.next_frame().unwrap().expect("the full frame");
+        assert_eq!((f.index, f.image.width(), f.timestamp_us), (0, 16, 33_333));
+        assert!(
+            src.next_frame().unwrap().is_none(),
+            "a clean end after a full frame"
+        );
+        std::fs::remove_file(path).ok();
+    }
 }
