@@ -151,9 +151,13 @@ pub struct AuthConfig {
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LimitsConfig {
-    /// Concurrent clients; more are closed with Overloaded [default: 64].
+    /// Concurrent authenticated clients; more are closed with Overloaded [default: 64].
     #[arg(long, env = "HOLOFACE_MAX_CLIENTS")]
     pub max_clients: Option<usize>,
+    /// Connections without an authenticated hello yet; at the limit the oldest is evicted, from half of it
+    /// unvalidated peers get a QUIC Retry [default: max(max_clients, 16)].
+    #[arg(long)]
+    pub max_pending: Option<usize>,
     /// Frames one client may have in flight (open frame streams) [default: 2].
     #[arg(long)]
     pub max_in_flight: Option<u16>,
@@ -309,6 +313,7 @@ impl LimitsConfig {
             self,
             lo,
             max_clients,
+            max_pending,
             max_in_flight,
             max_frame_age_ms,
             shutdown_timeout_ms,
@@ -510,6 +515,7 @@ impl ServerConfig {
             tokens,
             allow_anonymous,
             max_clients,
+            max_pending: self.limits.max_pending.unwrap_or(max_clients.max(16)).max(1),
             max_in_flight,
             max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
             shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
@@ -569,8 +575,10 @@ pub struct Settings {
     pub tokens: Vec<String>,
     /// Accept any token.
     pub allow_anonymous: bool,
-    /// Concurrent client cap.
+    /// Concurrent client cap (authenticated clients).
     pub max_clients: usize,
+    /// Budget of connections without an authenticated hello.
+    pub max_pending: usize,
     /// Per-client frames in flight.
     pub max_in_flight: u16,
     /// Server-side cap on a frame's age.

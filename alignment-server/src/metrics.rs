@@ -88,6 +88,12 @@ pub struct Metrics {
     pub auth_unauthorized: AtomicU64,
     /// Connections refused because the client cap was reached.
     pub rejected_overloaded: AtomicU64,
+    /// Connections without an authenticated hello yet (TLS under way or no hello).
+    pub pending_connections: AtomicI64,
+    /// Pending connections evicted for a newer one at the pending budget.
+    pub pending_evicted: AtomicU64,
+    /// Connection attempts answered with a QUIC Retry (address validation).
+    pub pending_retries: AtomicU64,
     /// Connections the server closed, by close code.
     pub closed_by_code: [AtomicU64; CloseCode::ALL.len()],
     /// Frame requests decoded.
@@ -131,6 +137,9 @@ impl Metrics {
             auth_bad_version: AtomicU64::new(0),
             auth_unauthorized: AtomicU64::new(0),
             rejected_overloaded: AtomicU64::new(0),
+            pending_connections: AtomicI64::new(0),
+            pending_evicted: AtomicU64::new(0),
+            pending_retries: AtomicU64::new(0),
             closed_by_code: std::array::from_fn(|_| AtomicU64::new(0)),
             frames_received: AtomicU64::new(0),
             frames_aligned: AtomicU64::new(0),
@@ -201,6 +210,12 @@ impl Metrics {
         );
         gauge(
             &mut out,
+            "holoface_pending_connections",
+            "Connections without an authenticated hello yet (they hold no client slot).",
+            self.pending_connections.load(Ordering::Relaxed),
+        );
+        gauge(
+            &mut out,
             "holoface_queued_frames",
             "Frames waiting in the batcher for inference (scale out when it stays above zero).",
             self.queued_frames.load(Ordering::Relaxed),
@@ -222,6 +237,18 @@ impl Metrics {
             "holoface_rejected_overloaded_total",
             "Connections refused at the client cap.",
             load(&self.rejected_overloaded),
+        );
+        counter(
+            &mut out,
+            "holoface_pending_evicted_total",
+            "Unauthenticated connections evicted for a newer one at the pending budget.",
+            load(&self.pending_evicted),
+        );
+        counter(
+            &mut out,
+            "holoface_pending_retries_total",
+            "Connection attempts answered with a QUIC Retry (address validation under pressure).",
+            load(&self.pending_retries),
         );
         let _ = writeln!(
             out,

@@ -469,3 +469,90 @@ async fn non_onnx_model_file_is_rejected() {
     let _ = std::fs::remove_file(&path);
     assert!(err.contains("ONNX Runtime"), "{err}");
 }
+
+/// The first datagram a QUIC client sends (its Initial), captured on a socket that never answers.
+async fn captured_initial(fingerprint: holoface_quic::Fingerprint) -> Vec<u8> {
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let endpoint = client_endpoint(fingerprint).unwrap();
+    let _connecting = endpoint.connect(sink.local_addr().unwrap(), "localhost").unwrap();
+    let mut buf = vec![0u8; 2048];
+    let (n, _) = within("the client's Initial", sink.recv_from(&mut buf))
+        .await
+        .unwrap();
+    buf.truncate(n);
+    buf
+}
+
+/// Issue 16, defect 1: unauthenticated connections cannot lock valid clients out. 300 connections finish the
+/// TLS handshake and never send a hello (re-opened all along while the valid client connects), and 70
+/// handshakes never get past their Initial packet; a valid client still connects and its frames are answered
+/// within their deadline, and the idle ones never took a client slot.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_and_half_open_connections_do_not_lock_out_a_valid_client() {
+    let mut s = settings();
+    s.max_clients = 10;
+    let server = RunningServer::start(s).await.unwrap();
+    let (addr, fp) = (server.addr, server.fingerprint);
+
+    // 70 half-open handshakes: the same Initial replayed from 70 sockets that never answer.
+    let initial = captured_initial(fp).await;
+    let mut half_open = Vec::new();
+    for _ in 0..70 {
+        let sock = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        sock.send_to(&initial, addr).await.unwrap();
+        half_open.push(sock);
+    }
+    // 300 idle connections (TLS done, no hello), then more of them, continuously, in the background.
+    let attack = tokio::spawn(async move {
+        let endpoint = client_endpoint(fp).unwrap();
+        let mut held = std::collections::VecDeque::new();
+        let mut opened = 0_usize;
+        loop {
+            if let Ok(Ok(c)) =
+                tokio::time::timeout(Duration::from_secs(2), connect_raw(&endpoint, addr)).await
+            {
+                held.push_back(c);
+                opened += 1;
+            }
+            if held.len() > 300 {
+                held.pop_front();
+            }
+            if opened >= 600 {
+                return opened;
+            }
+        }
+    });
+    // Let the first 300 pile up.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+
+    let mut good = within(
+        "a valid client's handshake",
+        TestClient::connect(addr, fp, hello(TEST_TOKEN)),
+    )
+    .await
+    .expect("a valid client connects despite the idle and half-open connections");
+    for id in 1..=5 {
+        let sent = std::time::Instant::now();
+        let reply = within("a reply", good.request(&frame(id, 3, DEADLINE_MS)))
+            .await
+            .unwrap();
+        assert!(
+            matches!(reply.outcome, ReplyOutcome::Landmarks { .. }),
+            "{reply:?}"
+        );
+        assert!(sent.elapsed() < Duration::from_millis(u64::from(DEADLINE_MS)));
+    }
+    let m = &server.metrics;
+    assert_eq!(
+        m.connected_clients.load(std::sync::atomic::Ordering::Relaxed),
+        1,
+        "only the authenticated client holds a client slot"
+    );
+    let evicted = m.pending_evicted.load(std::sync::atomic::Ordering::Relaxed);
+    let retries = m.pending_retries.load(std::sync::atomic::Ordering::Relaxed);
+    eprintln!("pending evicted {evicted}, retries {retries}");
+    assert!(evicted + retries > 0, "the pending budget was under pressure");
+    attack.abort();
+    drop(half_open);
+    server.shutdown().await.unwrap();
+}

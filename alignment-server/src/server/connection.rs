@@ -10,11 +10,12 @@ use holoface_protocol::{
     decode_framed, encode_framed,
 };
 use quinn::{Connection, Incoming, RecvStream, SendStream, VarInt};
-use tokio::sync::{OwnedSemaphorePermit, watch};
+use tokio::sync::watch;
 use tokio::task::{JoinHandle, JoinSet};
 use tracing::{debug, info, warn};
 
 use super::Shared;
+use super::admission::PendingSlot;
 use super::auth::{authorize, read_hello};
 use super::fault::{ConnectionEnd, Fault, close_conn};
 use super::frame::{ConnCtx, frame_task};
@@ -40,31 +41,38 @@ impl Drop for GaugeGuard<'_> {
     }
 }
 
-pub(super) async fn connection(
-    incoming: Incoming,
-    permit: Option<OwnedSemaphorePermit>,
-    shared: Arc<Shared>,
-) {
+/// One connection from its first packet: the TLS handshake and the hello run inside the pending budget
+/// (`slot`, bounded by the hello timeout and evictable by newer attempts); only an authenticated client takes a
+/// client slot.
+pub(super) async fn connection(incoming: Incoming, slot: PendingSlot, shared: Arc<Shared>) {
     let remote = incoming.remote_address();
-    let conn = match incoming.await {
-        Ok(c) => c,
-        Err(e) => {
-            debug!(%remote, %e, "handshake failed");
+    let tls = async {
+        match incoming.accept() {
+            Ok(connecting) => connecting.await,
+            Err(e) => Err(e),
+        }
+    };
+    let conn = tokio::select! {
+        r = tokio::time::timeout(shared.settings.hello_timeout, tls) => match r {
+            Ok(Ok(c)) => c,
+            Ok(Err(e)) => {
+                debug!(%remote, %e, "handshake failed");
+                return;
+            }
+            Err(_) => {
+                debug!(%remote, "TLS handshake not finished within the hello timeout; dropped");
+                return;
+            }
+        },
+        () = slot.evicted() => {
+            debug!(%remote, "half-open connection evicted for a newer one (pending budget full)");
             return;
         }
     };
     let metrics = &shared.metrics;
     metrics.connections_total.fetch_add(1, Ordering::Relaxed);
-    let Some(_permit) = permit else {
-        metrics.rejected_overloaded.fetch_add(1, Ordering::Relaxed);
-        metrics.count_close(CloseCode::Overloaded);
-        warn!(%remote, max_clients = shared.settings.max_clients, "client cap reached: closing with Overloaded");
-        close_conn(&conn, CloseCode::Overloaded, "client cap reached");
-        return;
-    };
-    let _gauge = GaugeGuard::new(&metrics.connected_clients);
     let client = shared.next_client.fetch_add(1, Ordering::Relaxed);
-    let end = serve_connection(&conn, client, &shared).await;
+    let end = serve_connection(&conn, client, &shared, slot).await;
     let _ = shared.sched.try_send(SchedMsg::Disconnect(client));
     match end {
         ConnectionEnd::Gone(why) => debug!(client, %remote, why, "client gone"),
@@ -90,14 +98,30 @@ const DRAIN_QUIET: Duration = Duration::from_millis(100);
 
 /// Serves one accepted connection: the hello and its checks, the welcome,
 /// then frames until the client leaves, misbehaves or the server stops.
-async fn serve_connection(conn: &Connection, client: ClientId, shared: &Arc<Shared>) -> ConnectionEnd {
+async fn serve_connection(
+    conn: &Connection,
+    client: ClientId,
+    shared: &Arc<Shared>,
+    slot: PendingSlot,
+) -> ConnectionEnd {
     let settings = &shared.settings;
     let mut stop = shared.stop.clone();
-    // 1. The control stream and the hello, within the hello timeout.
-    let (mut ctl_send, mut ctl_recv, hello) = match handshake(conn, shared, &mut stop).await {
+    // 1. The control stream and the hello, within the hello timeout (evictable while unauthenticated).
+    let (mut ctl_send, mut ctl_recv, hello) = match handshake(conn, shared, &mut stop, &slot).await {
         Ok(v) => v,
         Err(end) => return end,
     };
+    // Authenticated: leave the pending budget for a client slot.
+    let Some(_permit) = slot.promote() else {
+        shared.metrics.rejected_overloaded.fetch_add(1, Ordering::Relaxed);
+        warn!(
+            client,
+            max_clients = settings.max_clients,
+            "client cap reached: closing with Overloaded"
+        );
+        return Fault::new(CloseCode::Overloaded, "client cap reached").into();
+    };
+    let _gauge = GaugeGuard::new(&shared.metrics.connected_clients);
 
     // 2. Welcome.
     let (reply_channel, max_in_flight) = match send_welcome(conn, client, shared, &hello, &mut ctl_send).await
@@ -139,6 +163,7 @@ async fn handshake(
     conn: &Connection,
     shared: &Shared,
     stop: &mut watch::Receiver<bool>,
+    slot: &PendingSlot,
 ) -> Result<(SendStream, RecvStream, ClientHello), ConnectionEnd> {
     let settings = &shared.settings;
     let handshake = async {
@@ -159,6 +184,10 @@ async fn handshake(
             }
         },
         () = metrics_http::stopped(stop) => return Err(ConnectionEnd::Shutdown),
+        () = slot.evicted() => {
+            let f = Fault::new(CloseCode::Overloaded, "evicted: too many connections without a hello");
+            return Err(f.into());
+        }
     };
     authorize(&hello, settings, &shared.metrics)?;
     Ok((ctl_send, ctl_recv, hello))

@@ -36,6 +36,7 @@
 //! * `scheduler`: the task that owns the [`DynamicBatcher`];
 //! * `engine_thread`: the thread that runs the [`InferenceEngine`].
 
+mod admission;
 mod auth;
 mod connection;
 mod engine_thread;
@@ -56,9 +57,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use holoface_protocol::CloseCode;
 use holoface_protocol::limits::MAX_MESSAGE_LEN;
 use quinn::VarInt;
-use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::sync::{mpsc, watch};
 use tokio::task::JoinSet;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use crate::batcher::{Batch, DynamicBatcher};
 use crate::config::{ServerConfig, Settings, TlsSource};
@@ -67,6 +68,7 @@ use crate::tls::{Fingerprint, ServerIdentity, TlsError};
 use crate::{config::ConfigError, metrics_http};
 use holoface_inference::{EngineError, InferenceEngine, ModelInfo, OnnxEngine};
 
+use admission::{Admission, Admit};
 use connection::connection;
 use engine_thread::engine_loop;
 use lifecycle::notify_systemd_ready;
@@ -112,6 +114,7 @@ struct Shared {
     sched: mpsc::Sender<SchedMsg>,
     stop: watch::Receiver<bool>,
     next_client: AtomicU64,
+    admission: Arc<Admission>,
 }
 
 /// A bound, not yet running, alignment server.
@@ -261,7 +264,7 @@ impl Server {
             tokio::spawn(metrics_http::serve(l, Arc::clone(&metrics), stop_rx.clone()))
         });
 
-        let permits = Arc::new(Semaphore::new(settings.max_clients));
+        let admission = Admission::new(settings.max_clients, settings.max_pending, Arc::clone(&metrics));
         let shutdown_timeout = settings.shutdown_timeout;
         let shared = Arc::new(Shared {
             settings,
@@ -270,6 +273,7 @@ impl Server {
             sched: sched_tx,
             stop: stop_rx,
             next_client: AtomicU64::new(1),
+            admission,
         });
         metrics.ready.store(true, Ordering::Relaxed);
         notify_systemd_ready();
@@ -286,8 +290,20 @@ impl Server {
                 () = &mut shutdown => break,
                 incoming = endpoint.accept() => match incoming {
                     Some(incoming) => {
-                        let permit = Arc::clone(&permits).try_acquire_owned().ok();
-                        conns.spawn(connection(incoming, permit, Arc::clone(&shared)));
+                        let admit = shared
+                            .admission
+                            .on_incoming(incoming.remote_address_validated(), incoming.may_retry());
+                        match admit {
+                            Admit::Retry => {
+                                if let Err(e) = incoming.retry() {
+                                    debug!(error = %e, "retry failed; dropping the attempt");
+                                }
+                            }
+                            Admit::Accept => {
+                                let slot = shared.admission.enter();
+                                conns.spawn(connection(incoming, slot, Arc::clone(&shared)));
+                            }
+                        }
                     }
                     None => break,
                 },
