@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all c-example sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-krfws export-dan clean-venv
+.PHONY: all c-example sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
 
 all: test
 
@@ -175,8 +175,18 @@ train-dan: venv-train
 	  --threads $(DAN_THREADS) --eval-every 100 $(DAN_PHASE) \
 	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-last.pt
 
+# The lever being measured (BENCHMARKS.md, "Levers"): narrower training perturbations (--spread 0.6) from 0.3.0,
+# cosine over steps 7,000-8,100. It resumes from runs/dan-spread0.6/last.pt, else from the committed slim
+# checkpoint of this phase (step 7,500 or later); `make export-dan DAN_RUN=runs/dan-spread0.6` exports it.
+train-dan-spread: venv-train
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-spread0.6 --width 0.5 \
+	  --threads $(DAN_THREADS) --eval-every 100 \
+	  --phase-start 7000 --steps 8100 --lr 1e-4 --loss nme --neg-frac 0.3 --hard-neg 0.5 --spread 0.6 \
+	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-spread0.6.pt
+
+DAN_RUN ?= runs/dan-w0.5
 export-dan: venv-train
-	$(PY) models/dan/export_onnx.py --ckpt runs/dan-w0.5/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)
+	$(PY) models/dan/export_onnx.py --ckpt $(DAN_RUN)/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)
 
 train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1

@@ -556,3 +556,30 @@ async fn idle_and_half_open_connections_do_not_lock_out_a_valid_client() {
     drop(half_open);
     server.shutdown().await.unwrap();
 }
+
+/// A connection that finishes TLS and never sends its hello is closed `ProtocolViolation` at the hello
+/// timeout (and never held a client slot meanwhile).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_hello_within_the_hello_timeout_is_a_protocol_violation() {
+    let mut s = settings();
+    s.hello_timeout = Duration::from_millis(300);
+    let server = RunningServer::start(s).await.unwrap();
+    let endpoint =
+        holoface_e2e::client_endpoint_with(server.fingerprint, Some(Duration::from_millis(100))).unwrap();
+    let conn = connect_raw(&endpoint, server.addr).await.unwrap();
+    let started = std::time::Instant::now();
+    let code = holoface_e2e::app_close_code(&within("the hello timeout", conn.closed()).await);
+    assert_eq!(code, Some(CloseCode::ProtocolViolation));
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "closed at the 300 ms hello timeout"
+    );
+    assert_eq!(
+        server
+            .metrics
+            .connected_clients
+            .load(std::sync::atomic::Ordering::Relaxed),
+        0
+    );
+    server.shutdown().await.unwrap();
+}
