@@ -583,3 +583,46 @@ async fn no_hello_within_the_hello_timeout_is_a_protocol_violation() {
     );
     server.shutdown().await.unwrap();
 }
+
+/// Issue 16, defect 5: a client that ignores the Goaway and keeps opening frame streams cannot stretch the
+/// shutdown: its new streams are refused, it is closed with `ShuttingDown` (not 0), and `run` returns within
+/// the configured bound.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_is_bounded_and_closes_shutting_down_when_a_client_ignores_goaway() {
+    let mut s = settings();
+    s.shutdown_timeout = Duration::from_secs(2);
+    let server = RunningServer::start(s).await.unwrap();
+    let mut client = TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN))
+        .await
+        .unwrap();
+    assert!(
+        within("first reply", client.request(&frame(1, 5, DEADLINE_MS)))
+            .await
+            .is_ok()
+    );
+    let conn = client.conn.clone();
+    let stubborn = tokio::spawn(async move {
+        let mut id = 2;
+        while conn.close_reason().is_none() {
+            let _ = send_frame_on(&conn, &frame(id, 5, DEADLINE_MS)).await;
+            id += 1;
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        id
+    });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let started = std::time::Instant::now();
+    server.shutdown().await.unwrap();
+    let took = started.elapsed();
+    let code = within("the close", client.close_code()).await;
+    assert_eq!(code, Some(CloseCode::ShuttingDown));
+    assert!(
+        took <= Duration::from_millis(2_500),
+        "shutdown took {took:?} with a 2 s bound"
+    );
+    let sent = within("the stubborn sender stops", stubborn).await.unwrap();
+    eprintln!(
+        "shutdown took {took:?}; the client had opened {} frame streams",
+        sent - 2
+    );
+}

@@ -1,7 +1,7 @@
 //! The per-connection task: handshake, welcome, the frame loop and the graceful drain.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
@@ -14,7 +14,6 @@ use tokio::sync::watch;
 use tokio::task::{JoinHandle, JoinSet};
 use tracing::{debug, info, warn};
 
-use super::Shared;
 use super::admission::PendingSlot;
 use super::auth::{authorize, read_hello};
 use super::fault::{ConnectionEnd, Fault, close_conn};
@@ -22,6 +21,7 @@ use super::frame::{ConnCtx, frame_task};
 use super::rate_limit::RateLimit;
 use super::reply::{CLOSE_GRACE, max_reply_len, reply_sink};
 use super::scheduler::SchedMsg;
+use super::{Shared, code};
 use crate::batcher::ClientId;
 use crate::metrics_http;
 
@@ -90,11 +90,12 @@ pub(super) async fn connection(incoming: Incoming, slot: PendingSlot, shared: Ar
     }
 }
 
+/// After the Goaway, frame streams that arrive this long are still served (they were sent before the client
+/// could see it); later ones are refused.
+const GOAWAY_GRACE: Duration = Duration::from_millis(200);
+
 /// How often each connection's RTT and loss are sampled into the metrics.
 const STATS_PERIOD: Duration = Duration::from_secs(5);
-
-/// A draining connection stops accepting frame streams after this long without one.
-const DRAIN_QUIET: Duration = Duration::from_millis(100);
 
 /// Serves one accepted connection: the hello and its checks, the welcome,
 /// then frames until the client leaves, misbehaves or the server stops.
@@ -348,25 +349,47 @@ async fn drain_on_shutdown(
     if encode_framed(&goaway, &mut buf).is_ok() {
         let _ = tokio::time::timeout(Duration::from_millis(500), ctl_send.write_all(&buf)).await;
     }
+    // The whole drain fits the shutdown timeout: in-flight frames get until two close graces before it, the
+    // reply writer and the control stream one grace each.
     let deadline = ctx.shared.settings.shutdown_timeout;
-    // Frames the client sent before it saw the Goaway still get an
-    // answer (landmarks if already batched, else ShuttingDown): keep
-    // accepting until in-flight work is done and the link is quiet.
+    let frames_until = tokio::time::Instant::now() + deadline.saturating_sub(2 * CLOSE_GRACE);
+    // Frame streams the client opened before it saw the Goaway (arriving within `GOAWAY_GRACE`) are still
+    // answered: landmarks if batched in time, else Dropped{ShuttingDown} from the draining scheduler. Later
+    // ones are refused (`STOP_SENDING` with ShuttingDown) and the client's stream credit goes to zero, so a
+    // client that ignores the Goaway cannot keep the drain going.
+    conn.set_max_concurrent_uni_streams(VarInt::from_u32(0));
+    let serve_until = tokio::time::Instant::now() + GOAWAY_GRACE;
+    let refused = AtomicU64::new(0);
     let drain = async {
         loop {
+            let serving = tokio::time::Instant::now() < serve_until;
+            if !serving && frames.is_empty() {
+                break;
+            }
             tokio::select! {
                 Some(_) = frames.join_next(), if !frames.is_empty() => {}
                 stream = conn.accept_uni() => match stream {
-                    Ok(recv) => {
+                    Ok(recv) if tokio::time::Instant::now() < serve_until => {
                         frames.spawn(frame_task(recv, Arc::clone(&ctx)));
+                    }
+                    Ok(mut recv) => {
+                        let _ = recv.stop(code(CloseCode::ShuttingDown));
+                        refused.fetch_add(1, Ordering::Relaxed);
                     }
                     Err(_) => break,
                 },
-                () = tokio::time::sleep(DRAIN_QUIET), if frames.is_empty() => break,
+                () = tokio::time::sleep_until(serve_until), if serving => {}
             }
         }
     };
-    let _ = tokio::time::timeout(deadline, drain).await;
+    let _ = tokio::time::timeout_at(frames_until, drain).await;
+    let refused = refused.into_inner();
+    if refused > 0 {
+        debug!(
+            client = ctx.client,
+            refused, "frame streams refused after the Goaway"
+        );
+    }
     frames.abort_all();
     drop(ctx);
     if let Some(w) = writer {
