@@ -11,7 +11,8 @@
 //!    converts to a world pose, predicts it ahead with the Kalman filters, denoises, derives attributes,
 //!    and updates the tracking state. Every frame gets a [`FrameResult`]: a face or an explicit "no face".
 //!
-//! The session never reads a clock: time comes from the frames' timestamps.
+//! The session never reads a clock: time comes from the frames' timestamps. The three steps are driven in one
+//! place, [`crate::frame_loop::step`]; call that rather than writing the sequence out again.
 
 use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
