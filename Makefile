@@ -16,7 +16,7 @@ export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 CARGO ?= cargo
 
-.PHONY: all c-example sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
+.PHONY: all c-example csharp-example python-test mono sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
 
 all: test
 
@@ -109,7 +109,7 @@ deps-check:
 	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
 	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
 	@echo "holoface-protocol: no tokio, no quinn"
-	@for c in holoface-client holoface-ffi; do \
+	@for c in holoface-client holoface-ffi holoface-python; do \
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
@@ -140,7 +140,40 @@ c-example: setup $(SAMPLE_PGM)
 	target/c-example/track $(SAMPLE_PGM)
 	$(CARGO) run --locked --profile test -q -p holoface-client --example embed -- $(SAMPLE)
 
-test: deploy-check check deps-check unit c-example fuzz-build
+# The C# binding Unity uses (ffi/unity/HoloFace.cs), compiled unchanged with Mono's mcs next to a console check
+# (ffi/dotnet/TrackSample.cs) and run with mono against the same library.
+csharp-example: setup mono $(SAMPLE_PGM)
+	$(CARGO) build --locked --profile test -p holoface-ffi
+	mkdir -p target/dotnet
+	mcs -warnaserror -out:target/dotnet/track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs
+	LD_LIBRARY_PATH=$(abspath target/debug) mono target/dotnet/track.exe $(SAMPLE_PGM)
+
+# Mono from the Debian packages, pinned; installed only when mcs or mono is missing.
+MONO_VERSION := 6.8.0.105+dfsg-3.3+deb12u1
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+mono:
+	@if command -v mcs >/dev/null && command -v mono >/dev/null; then echo "mono: $$(mcs --version)"; else \
+	  echo "mcs/mono missing: installing mono-mcs and mono-runtime $(MONO_VERSION) from the Debian packages"; \
+	  pkgs="mono-mcs=$(MONO_VERSION) mono-runtime=$(MONO_VERSION)"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends $$pkgs >/dev/null || \
+	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $$pkgs >/dev/null; }; fi
+
+# The Python package (python/): build the abi3 wheel with maturin, install it into the venv, run pytest (which
+# compares it with the Rust CLI on the bundled sample). The dev profile reuses the test build's dependencies;
+# users build with `maturin build --release`.
+$(VENV)/.python-dev-installed: python/requirements-dev.txt $(VENV)/.eval-installed
+	$(PY) -m pip install --disable-pip-version-check -q -r python/requirements-dev.txt
+	touch $@
+
+python-test: setup $(VENV)/.python-dev-installed
+	$(CARGO) build --locked --profile test -q -p holoface-tools --bin holoface
+	rm -rf target/wheels
+	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels
+	$(PY) -m pip install --disable-pip-version-check -q --force-reinstall --no-deps target/wheels/holoface-*.whl
+	HOLOFACE_CLI=$(abspath target/debug/holoface) $(PY) -m pytest -q -p no:cacheprovider python/tests
+
+test: deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
 
 ## ---- fuzzing, benchmarks, training --------------------------------------------------------------
 FUZZ_SECONDS ?= 60

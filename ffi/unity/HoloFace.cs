@@ -105,6 +105,13 @@ namespace HoloFace
         /// <param name="worldFromCamera">Row-major 4x4 camera-to-world matrix (e.g. from the headset's locatable camera).</param>
         public HfResult Process(byte[] gray, int width, int height, ulong timestampUs, HfCamera camera, float[] worldFromCamera)
         {
+            if (handle == IntPtr.Zero) throw new ObjectDisposedException(nameof(FaceTracker));
+            // The C API reads width * height bytes and 16 floats: check here, where the array lengths are known.
+            if (gray == null) throw new ArgumentNullException(nameof(gray));
+            if (width <= 0 || height <= 0 || (long)width * height > gray.Length)
+                throw new ArgumentException($"image {width}x{height} needs {(long)width * height} bytes, got {gray.Length}", nameof(gray));
+            if (worldFromCamera != null && worldFromCamera.Length != 16)
+                throw new ArgumentException($"worldFromCamera needs 16 floats (row-major 4x4), got {worldFromCamera.Length}", nameof(worldFromCamera));
             var s = Native.hf_tracker_process(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
                 worldFromCamera, out var r);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
@@ -115,6 +122,7 @@ namespace HoloFace
         /// answered on the headset (wrong token, certificate mismatch, unreachable...).</summary>
         public HfLinkStatus LinkStatus()
         {
+            if (handle == IntPtr.Zero) throw new ObjectDisposedException(nameof(FaceTracker));
             var s = Native.hf_tracker_link_status(handle, out var st);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             return st;

@@ -1,0 +1,120 @@
+// Console check of the Unity binding (ffi/unity/HoloFace.cs, compiled unchanged next to this file) against
+// libholoface: tracks the face of a gray PGM over 30 video frames, then checks that a bad handle, a disposed
+// tracker, a short pixel buffer and an old timestamp are errors with a message, never a crash.
+//
+//   mcs -out:track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs && LD_LIBRARY_PATH=target/debug mono track.exe face.pgm
+//
+// Asset paths come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL, ...), as for the C example.
+// Exit status 0 = every check passed.
+using System;
+using System.IO;
+using System.Text;
+using HoloFace;
+
+static class TrackSample
+{
+    static int failures;
+
+    static void Check(bool ok, string what)
+    {
+        Console.WriteLine((ok ? "ok   " : "FAIL ") + what);
+        if (!ok) failures++;
+    }
+
+    static void Expect<T>(string what, Action action, string words) where T : Exception
+    {
+        try
+        {
+            action();
+            Check(false, what + ": no exception");
+        }
+        catch (T e)
+        {
+            Check(e.Message.Contains(words), what + ": " + e.GetType().Name + ": " + e.Message);
+        }
+    }
+
+    static byte[] ReadPgm(string path, out int width, out int height)
+    {
+        var bytes = File.ReadAllBytes(path);
+        // Header: "P5", width, height, maxval, each separated by whitespace, then one whitespace byte.
+        var fields = new string[4];
+        int pos = 0;
+        for (int f = 0; f < 4; f++)
+        {
+            while (pos < bytes.Length && char.IsWhiteSpace((char)bytes[pos])) pos++;
+            int start = pos;
+            while (pos < bytes.Length && !char.IsWhiteSpace((char)bytes[pos])) pos++;
+            fields[f] = Encoding.ASCII.GetString(bytes, start, pos - start);
+        }
+        pos++;
+        if (fields[0] != "P5" || fields[3] != "255") throw new InvalidDataException(path + ": not a binary 8-bit PGM");
+        width = int.Parse(fields[1]);
+        height = int.Parse(fields[2]);
+        if (bytes.Length - pos < width * height) throw new InvalidDataException(path + ": truncated");
+        var px = new byte[width * height];
+        Array.Copy(bytes, pos, px, 0, px.Length);
+        return px;
+    }
+
+    static int Main(string[] args)
+    {
+        if (args.Length != 1)
+        {
+            Console.Error.WriteLine("usage: mono track.exe face.pgm");
+            return 2;
+        }
+        int w, h;
+        var px = ReadPgm(args[0], out w, out h);
+        Console.WriteLine("image " + w + "x" + h);
+        var cam = new HfCamera { fx = 500, fy = 500, cx = w / 2.0, cy = h / 2.0 };
+        var pose = new float[] { 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1 };
+
+        // A handle that is not one of ours is rejected by the library, with a message.
+        HfResult r;
+        var s = Native.hf_tracker_process(new IntPtr(0x1000), px, (uint)w, (uint)h, (uint)w, 0, ref cam, pose, out r);
+        Check(s == HfStatus.InvalidHandle, "foreign handle: " + s + ": " + Native.LastError());
+        s = Native.hf_tracker_free(new IntPtr(0x1000));
+        Check(s == HfStatus.InvalidHandle, "free of a foreign handle: " + s);
+
+        int faces = 0;
+        var tracker = new FaceTracker();
+        for (int i = 0; i < 30; i++)
+        {
+            r = tracker.Process(px, w, h, (ulong)i * 33333, cam, pose);
+            if (r.hasFace == 1) faces++;
+            if (i % 10 == 0 || i == 29)
+                Console.WriteLine(string.Format("frame {0,2} face={1} by={2} nose(px)=({3:F1}, {4:F1}) head(m)=({5:F3}, {6:F3}, {7:F3})",
+                    i, r.hasFace, r.answeredBy, r.landmarksPx[60], r.landmarksPx[61],
+                    r.worldPositionM[0], r.worldPositionM[1], r.worldPositionM[2]));
+        }
+        Check(faces >= 25, faces + " of 30 frames with a face");
+        var link = tracker.LinkStatus();
+        Check(link.state == HfLinkState.Local && link.failure == HfLinkFailure.None, "link state without a server: " + link.state);
+
+        Expect<InvalidOperationException>("old timestamp", () => tracker.Process(px, w, h, 0, cam, pose), "not after the previous");
+        Expect<ArgumentException>("short pixel buffer", () => tracker.Process(new byte[10], w, h, 10000000, cam, pose), "needs");
+        Expect<ArgumentException>("3x3 pose", () => tracker.Process(px, w, h, 10000000, cam, new float[9]), "16 floats");
+        Expect<InvalidOperationException>("non-rigid pose",
+            () => tracker.Process(px, w, h, 10000000, cam, new float[16]), "rigid");
+        var badCam = new HfCamera { fx = 0, fy = 500, cx = 1, cy = 1 };
+        Expect<InvalidOperationException>("zero focal length", () => tracker.Process(px, w, h, 20000000, badCam, pose), "fx, fy > 0");
+        // The tracker still works after those errors.
+        r = tracker.Process(px, w, h, 30000000, cam, pose);
+        Check(r.hasFace == 1, "a frame after the errors has a face");
+
+        tracker.Dispose();
+        tracker.Dispose(); // twice is fine
+        Expect<ObjectDisposedException>("disposed tracker", () => tracker.Process(px, w, h, 40000000, cam, pose), "FaceTracker");
+        Expect<ObjectDisposedException>("disposed tracker's link", () => tracker.LinkStatus(), "FaceTracker");
+
+        Expect<InvalidOperationException>("missing model file", () =>
+        {
+            Environment.SetEnvironmentVariable("HOLOFACE_KRFWS_MODEL", "/nonexistent/krfws.bin");
+            using (new FaceTracker()) { }
+        }, "/nonexistent/krfws.bin");
+
+        Console.WriteLine(failures == 0 ? "all checks passed" : failures + " checks failed");
+        return failures == 0 ? 0 : 1;
+    }
+}

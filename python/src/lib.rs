@@ -1,0 +1,705 @@
+//! Python bindings of the headset client's task API ([`holoface_client::tracker`]): `FaceTracker(options)`,
+//! `process(image, timestamp_us, camera_to_world=None, intrinsics=None) -> FaceResult`, numpy in and out.
+//!
+//! Images are borrowed, not copied: a C-contiguous `uint8` array of shape `(height, width)` becomes the
+//! frame's pixels directly, and the GIL is released while the frame is processed (another Python thread can
+//! run meanwhile; the same tracker used from two threads at once raises instead of racing). Every error is a
+//! Python exception carrying the Rust message; nothing here panics on bad input.
+// PyO3's macros expand to unsafe code (the CPython ABI); this crate writes none of its own.
+#![allow(unsafe_code)]
+
+use std::path::PathBuf;
+use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+
+use holoface_client::align::AnsweredBy;
+use holoface_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
+use holoface_client::link::{CropCodec, LinkState};
+use holoface_client::session::{FaceUpdate, FrameResult};
+use holoface_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
+use holoface_models::camera::Intrinsics;
+use holoface_models::image::GrayView;
+use holoface_models::math3::{Pose, Quat, Vec3};
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayDescrMethods, PyArrayMethods, PyUntypedArray};
+use numpy::{PyUntypedArrayMethods, ToPyArray};
+use pyo3::exceptions::{PyException, PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+pyo3::create_exception!(
+    _holoface,
+    HoloFaceError,
+    PyException,
+    "Base class of holoface's errors."
+);
+pyo3::create_exception!(
+    _holoface,
+    AssetError,
+    HoloFaceError,
+    "A model file or the ONNX Runtime library could not be loaded (the message names it)."
+);
+pyo3::create_exception!(
+    _holoface,
+    ProcessingError,
+    HoloFaceError,
+    "Processing a frame failed (detector or aligner error, or a timestamp out of order)."
+);
+pyo3::create_exception!(
+    _holoface,
+    SourceError,
+    HoloFaceError,
+    "A frame source could not be opened or read (corrupt, truncated or missing file)."
+);
+
+/// Largest image side accepted (the C API's bound too).
+const MAX_SIDE: usize = 16_384;
+
+/// Tracker options; every field has the Rust API's default.
+#[pyclass(
+    module = "holoface",
+    name = "TrackerOptions",
+    get_all,
+    set_all,
+    from_py_object
+)]
+#[derive(Clone, Debug)]
+struct PyTrackerOptions {
+    /// "video" (track between frames; timestamps must increase) or "image" (detect every frame).
+    mode: String,
+    /// Alignment server "ip:port"; None = local KRFWS only.
+    server: Option<String>,
+    /// SHA-256 of the server certificate (64 hex digits, printed by holoface-server); required with server.
+    fingerprint: Option<String>,
+    /// Access token for the server.
+    token: String,
+    /// Per-frame deadline for the server's answer, milliseconds.
+    deadline_ms: u64,
+    /// Crop encoding on the wire: "raw", "png", "jpeg" or "jpeg:Q".
+    crop_encoding: String,
+    /// Prediction horizon, milliseconds.
+    lookahead_ms: f64,
+    /// Compensate headset motion when initialising from the previous frame.
+    motion_compensation: bool,
+    /// ONNX Runtime shared library (default: $ORT_DYLIB_PATH, then the set-up's path).
+    ort_dylib: Option<PathBuf>,
+    /// BlazeFace ONNX model (default: $HOLOFACE_DETECTOR_MODEL, then the set-up's path).
+    detector_model: Option<PathBuf>,
+    /// KRFWS model (default: $HOLOFACE_KRFWS_MODEL, then models/assets/krfws.bin).
+    krfws_model: Option<PathBuf>,
+    /// CANDIDE-3 .wfm (default: $HOLOFACE_CANDIDE, then ../shared/data/candide3/candide3.wfm).
+    candide: Option<PathBuf>,
+}
+
+#[pymethods]
+impl PyTrackerOptions {
+    #[new]
+    #[pyo3(signature = (*, mode = "video".to_owned(), server = None, fingerprint = None, token = String::new(),
+        deadline_ms = 33, crop_encoding = "jpeg:75".to_owned(), lookahead_ms = 120.0,
+        motion_compensation = true, ort_dylib = None, detector_model = None, krfws_model = None,
+        candide = None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        mode: String,
+        server: Option<String>,
+        fingerprint: Option<String>,
+        token: String,
+        deadline_ms: u64,
+        crop_encoding: String,
+        lookahead_ms: f64,
+        motion_compensation: bool,
+        ort_dylib: Option<PathBuf>,
+        detector_model: Option<PathBuf>,
+        krfws_model: Option<PathBuf>,
+        candide: Option<PathBuf>,
+    ) -> Self {
+        Self {
+            mode,
+            server,
+            fingerprint,
+            token,
+            deadline_ms,
+            crop_encoding,
+            lookahead_ms,
+            motion_compensation,
+            ort_dylib,
+            detector_model,
+            krfws_model,
+            candide,
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "TrackerOptions(mode={:?}, server={:?}, deadline_ms={}, lookahead_ms={}, motion_compensation={})",
+            self.mode, self.server, self.deadline_ms, self.lookahead_ms, self.motion_compensation
+        )
+    }
+}
+
+impl Default for PyTrackerOptions {
+    fn default() -> Self {
+        Self::new(
+            "video".to_owned(),
+            None,
+            None,
+            String::new(),
+            33,
+            "jpeg:75".to_owned(),
+            120.0,
+            true,
+            None,
+            None,
+            None,
+            None,
+        )
+    }
+}
+
+impl PyTrackerOptions {
+    fn to_rust(&self) -> PyResult<tracker::TrackerOptions> {
+        let mode = match self.mode.as_str() {
+            "video" => RunningMode::Video,
+            "image" => RunningMode::Image,
+            m => {
+                return Err(PyValueError::new_err(format!(
+                    "mode {m:?}: use \"video\" (track between frames) or \"image\" (detect every frame)"
+                )));
+            }
+        };
+        if !(self.lookahead_ms.is_finite() && (0.0..=1000.0).contains(&self.lookahead_ms)) {
+            return Err(PyValueError::new_err(format!(
+                "lookahead_ms {} must be within 0..=1000",
+                self.lookahead_ms
+            )));
+        }
+        let mut o = tracker::TrackerOptions {
+            mode,
+            ..tracker::TrackerOptions::default()
+        };
+        o.session.lookahead_s = self.lookahead_ms / 1e3;
+        o.session.motion_compensation = self.motion_compensation;
+        let paths = [
+            (&self.ort_dylib, &mut o.assets.ort_dylib),
+            (&self.detector_model, &mut o.assets.detector),
+            (&self.krfws_model, &mut o.assets.krfws),
+            (&self.candide, &mut o.assets.candide),
+        ];
+        for (given, slot) in paths {
+            if let Some(p) = given {
+                slot.clone_from(p);
+            }
+        }
+        match (&self.server, &self.fingerprint) {
+            (None, _) => {}
+            (Some(_), None) => {
+                return Err(PyValueError::new_err(
+                    "fingerprint is required with server (holoface-server prints it at start)",
+                ));
+            }
+            (Some(server), Some(fp)) => {
+                let server = server
+                    .parse()
+                    .map_err(|e| PyValueError::new_err(format!("server {server:?}: {e} (use ip:port)")))?;
+                let fingerprint = fp
+                    .parse()
+                    .map_err(|e| PyValueError::new_err(format!("fingerprint: {e}")))?;
+                if self.deadline_ms == 0 || self.deadline_ms > 10_000 {
+                    return Err(PyValueError::new_err(format!(
+                        "deadline_ms {} must be within 1..=10000",
+                        self.deadline_ms
+                    )));
+                }
+                let codec: CropCodec = self
+                    .crop_encoding
+                    .parse()
+                    .map_err(|e| PyValueError::new_err(format!("crop_encoding: {e}")))?;
+                o.aligner = AlignerChoice::Remote {
+                    server,
+                    fingerprint,
+                    token: self.token.clone(),
+                    deadline: Duration::from_millis(self.deadline_ms),
+                    codec,
+                };
+            }
+        }
+        Ok(o)
+    }
+}
+
+/// One tracked face. Landmarks are image pixels; `camera_pose` is head-to-camera (x right, y down, z forward,
+/// metres); `world_pose`, `predicted_position` and `display_pose` are in the world frame of the
+/// `camera_to_world` poses passed to `process`.
+#[pyclass(module = "holoface", name = "Face", frozen, get_all)]
+#[derive(Debug)]
+struct PyFace {
+    /// float32 array [68, 2]: the iBUG-68 landmarks in image pixels.
+    landmarks: Py<PyArray2<f32>>,
+    /// "ibug68" (all 68 aligned) or "inner51" (KRFWS: the jaw slots hold the initial shape).
+    landmark_set: String,
+    /// "remote_dan", "krfws" or "local_dan".
+    answered_by: String,
+    /// "detection" or "tracking": where this frame's initial shape came from.
+    init: String,
+    /// The remote DAN's face probability (higher is better), else None.
+    face_probability: Option<f32>,
+    /// KRFWS's predicted landmark error (lower is better), else None.
+    predicted_error: Option<f32>,
+    /// float64 [4, 4]: head-to-camera transform (CANDIDE-3 fit).
+    camera_pose: Py<PyArray2<f64>>,
+    /// Reprojection error of the CANDIDE-3 fit, pixels.
+    fit_rmse_px: f64,
+    /// float64 [4, 4]: head-to-world transform.
+    world_pose: Py<PyArray2<f64>>,
+    /// float64 [3]: world position predicted `lookahead_ms` ahead (Kalman), metres.
+    predicted_position: Py<PyArray1<f64>>,
+    /// float64 [4, 4]: the pose to render (prediction after two-frame denoising).
+    display_pose: Py<PyArray2<f64>>,
+    /// CANDIDE-3 expression weights by unit name (jaw_drop, lip_stretcher, brow_lowerer, ...).
+    expression_weights: Py<PyDict>,
+    /// Smiling (lip stretcher above its threshold, with hysteresis).
+    smile: bool,
+    /// Brows raised.
+    brows_raised: bool,
+    /// Mouth open.
+    mouth_open: bool,
+}
+
+#[pymethods]
+impl PyFace {
+    fn __repr__(&self) -> String {
+        format!(
+            "Face(answered_by={:?}, init={:?}, smile={}, brows_raised={}, mouth_open={})",
+            self.answered_by, self.init, self.smile, self.brows_raised, self.mouth_open
+        )
+    }
+}
+
+/// One frame's answer: the faces (empty when there is none) or why there is none.
+#[pyclass(module = "holoface", name = "FaceResult", frozen, get_all)]
+#[derive(Debug)]
+struct PyFaceResult {
+    /// The frame's timestamp, microseconds.
+    timestamp_us: u64,
+    /// Every face of the frame (one tracker follows one face today: zero or one entries).
+    faces: Vec<Py<PyFace>>,
+    /// Without a face: "not_detected", "rejected", "no_answer" or "fit_failed"; None with a face.
+    no_face_reason: Option<String>,
+    /// Which aligner answered ("remote_dan", "krfws", "local_dan"), None when nothing was aligned.
+    answered_by: Option<String>,
+    /// With a server: "connecting", "up", "retrying", "failed" or "stopped"; None without one.
+    link_state: Option<String>,
+    /// Why the link is not up ("unreachable", "unauthorized", "certificate_mismatch", ...), else None.
+    link_failure: Option<String>,
+    /// Milliseconds per step: prepare (detection or motion-compensated init), align, complete (fit, pose,
+    /// filters).
+    timings: Py<PyDict>,
+}
+
+#[pymethods]
+impl PyFaceResult {
+    /// The first face, or None.
+    #[getter]
+    fn face(&self, py: Python<'_>) -> Option<Py<PyFace>> {
+        self.faces.first().map(|f| f.clone_ref(py))
+    }
+
+    /// True when the frame has a face.
+    #[getter]
+    fn has_face(&self) -> bool {
+        !self.faces.is_empty()
+    }
+
+    fn __repr__(&self) -> String {
+        match &self.no_face_reason {
+            None => format!(
+                "FaceResult(timestamp_us={}, faces={}, answered_by={:?})",
+                self.timestamp_us,
+                self.faces.len(),
+                self.answered_by
+            ),
+            Some(r) => format!(
+                "FaceResult(timestamp_us={}, faces=0, no_face_reason={r:?})",
+                self.timestamp_us
+            ),
+        }
+    }
+}
+
+/// The snake_case name serde gives a unit enum variant.
+fn variant_name(v: &impl serde::Serialize) -> String {
+    match serde_json::to_value(v) {
+        Ok(serde_json::Value::String(s)) => s,
+        Ok(other) => other.to_string(),
+        Err(e) => format!("<{e}>"),
+    }
+}
+
+fn link_names(state: LinkState) -> (String, Option<String>) {
+    match state {
+        LinkState::Connecting => ("connecting".to_owned(), None),
+        LinkState::Up => ("up".to_owned(), None),
+        LinkState::Retrying(k) => ("retrying".to_owned(), Some(variant_name(&k))),
+        LinkState::Failed(k) => ("failed".to_owned(), Some(variant_name(&k))),
+        LinkState::Stopped => ("stopped".to_owned(), None),
+    }
+}
+
+fn matrix4(py: Python<'_>, rotation: Quat, translation: Vec3) -> Py<PyArray2<f64>> {
+    let r = rotation.to_mat3().0;
+    let t = translation.to_array();
+    let mut m = Array2::<f64>::eye(4);
+    for i in 0..3 {
+        for j in 0..3 {
+            m[[i, j]] = r[i][j];
+        }
+        m[[i, 3]] = t[i];
+    }
+    m.into_pyarray(py).unbind()
+}
+
+fn face_to_py(py: Python<'_>, u: &FaceUpdate) -> PyResult<PyFace> {
+    let mut lm = Array2::<f32>::zeros((68, 2));
+    for (i, p) in u.landmarks.iter().enumerate() {
+        lm[[i, 0]] = p.x;
+        lm[[i, 1]] = p.y;
+    }
+    let weights = PyDict::new(py);
+    for (unit, w) in u.fit.weights.iter() {
+        weights.set_item(unit.name(), w)?;
+    }
+    let (face_probability, predicted_error) = match u.confidence {
+        holoface_client::align::Confidence::FaceProbability(p) => (Some(p), None),
+        holoface_client::align::Confidence::PredictedError(e) => (None, Some(e)),
+    };
+    Ok(PyFace {
+        landmarks: lm.into_pyarray(py).unbind(),
+        landmark_set: match u.landmark_set {
+            holoface_client::align::LandmarkSet::Ibug68 => "ibug68",
+            holoface_client::align::LandmarkSet::Inner51 => "inner51",
+        }
+        .to_owned(),
+        answered_by: variant_name(&u.answered_by),
+        init: variant_name(&u.init),
+        face_probability,
+        predicted_error,
+        camera_pose: matrix4(py, u.fit.rotation, u.fit.translation),
+        fit_rmse_px: u.fit.rmse_px,
+        world_pose: matrix4(py, u.world.rotation, u.world.position),
+        predicted_position: u.predicted_position.to_array().to_pyarray(py).unbind(),
+        display_pose: matrix4(py, u.display.1, u.display.0),
+        expression_weights: weights.unbind(),
+        smile: u.attributes.smile,
+        brows_raised: u.attributes.brows_raised,
+        mouth_open: u.attributes.mouth_open,
+    })
+}
+
+fn result_to_py(py: Python<'_>, r: &tracker::FaceResult) -> PyResult<PyFaceResult> {
+    let (faces, no_face_reason) = match &r.outcome {
+        FrameResult::Face(u) => (vec![Py::new(py, face_to_py(py, u)?)?], None),
+        FrameResult::NoFace(reason) => (Vec::new(), Some(variant_name(reason))),
+    };
+    let (link_state, link_failure) = match r.link.map(link_names) {
+        Some((s, f)) => (Some(s), f),
+        None => (None, None),
+    };
+    let timings = PyDict::new(py);
+    timings.set_item("prepare_ms", r.timings.prepare.as_secs_f64() * 1e3)?;
+    timings.set_item("align_ms", r.timings.align.as_secs_f64() * 1e3)?;
+    timings.set_item("complete_ms", r.timings.complete.as_secs_f64() * 1e3)?;
+    Ok(PyFaceResult {
+        timestamp_us: r.timestamp_us,
+        faces,
+        no_face_reason,
+        answered_by: r.answered_by.map(|a: AnsweredBy| variant_name(&a)),
+        link_state,
+        link_failure,
+        timings: timings.unbind(),
+    })
+}
+
+/// `camera_to_world`: any 4x4 nested sequence or array of numbers (row-major, last row ignored).
+fn pose_from_py(m: &Bound<'_, PyAny>) -> PyResult<Pose> {
+    let rows: Vec<Vec<f64>> = m
+        .extract()
+        .map_err(|_| PyTypeError::new_err("camera_to_world must be a 4x4 array of numbers"))?;
+    if rows.len() != 4 || rows.iter().any(|r| r.len() != 4) {
+        return Err(PyValueError::new_err(format!(
+            "camera_to_world must be 4x4, got {} rows of lengths {:?}",
+            rows.len(),
+            rows.iter().map(Vec::len).collect::<Vec<_>>()
+        )));
+    }
+    let mut flat = [0f32; 16];
+    for (o, v) in flat.iter_mut().zip(rows.iter().flatten()) {
+        *o = *v as f32;
+    }
+    Pose::from_row_major_4x4(&flat).ok_or_else(|| {
+        PyValueError::new_err(
+            "camera_to_world is not a rigid transform (finite, rotation block orthonormal, determinant +1)",
+        )
+    })
+}
+
+fn intrinsics_from_py(v: Option<(f64, f64, f64, f64)>, width: usize, height: usize) -> PyResult<Intrinsics> {
+    let Some((fx, fy, cx, cy)) = v else {
+        return Ok(default_intrinsics(width, height));
+    };
+    if ![fx, fy, cx, cy].iter().all(|v| v.is_finite()) || fx <= 0.0 || fy <= 0.0 {
+        return Err(PyValueError::new_err(
+            "intrinsics (fx, fy, cx, cy) must be finite with fx, fy > 0",
+        ));
+    }
+    Ok(Intrinsics::new(fx, fy, cx, cy))
+}
+
+/// Checks an image argument: a C-contiguous uint8 numpy array of shape (height, width).
+fn gray_array<'a, 'py>(image: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, PyArray2<u8>>> {
+    let untyped = image.cast::<PyUntypedArray>().map_err(|_| {
+        PyTypeError::new_err(format!(
+            "image must be a numpy array (uint8, shape (height, width)), got {}",
+            image
+                .get_type()
+                .name()
+                .map_or_else(|_| "?".to_owned(), |n| n.to_string())
+        ))
+    })?;
+    let dtype = untyped.dtype();
+    if !dtype.is_equiv_to(&numpy::dtype::<u8>(image.py())) {
+        return Err(PyTypeError::new_err(format!(
+            "image must be uint8 grayscale, got dtype {}",
+            dtype.str().map_or_else(|_| "?".to_owned(), |s| s.to_string())
+        )));
+    }
+    if untyped.ndim() != 2 {
+        return Err(PyValueError::new_err(format!(
+            "image must have shape (height, width) (grayscale), got shape {:?}",
+            untyped.shape()
+        )));
+    }
+    let (h, w) = (untyped.shape()[0], untyped.shape()[1]);
+    if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
+        return Err(PyValueError::new_err(format!(
+            "image {w}x{h}: each side must be within 1..={MAX_SIDE}"
+        )));
+    }
+    if !untyped.is_c_contiguous() {
+        return Err(PyValueError::new_err(
+            "image must be C-contiguous (pass numpy.ascontiguousarray(image))",
+        ));
+    }
+    image
+        .cast::<PyArray2<u8>>()
+        .map_err(|_| PyTypeError::new_err("image must be a uint8 array"))
+}
+
+fn tracker_error(e: TrackerError) -> PyErr {
+    match e {
+        TrackerError::Assets(_) => AssetError::new_err(e.to_string()),
+        TrackerError::Timestamp { .. } => PyValueError::new_err(e.to_string()),
+        _ => ProcessingError::new_err(e.to_string()),
+    }
+}
+
+/// Detects, aligns, fits and filters a face frame by frame. Calls from several threads are serialised (one
+/// frame at a time, without the GIL); create one tracker per stream.
+#[pyclass(module = "holoface", name = "FaceTracker")]
+#[derive(Debug)]
+struct PyFaceTracker {
+    inner: Mutex<Option<tracker::FaceTracker>>,
+}
+
+/// (state, failure kind, failure message) of the server link.
+type LinkStatusTuple = (String, Option<String>, Option<String>);
+
+const CLOSED: &str = "the tracker is closed";
+
+#[pymethods]
+impl PyFaceTracker {
+    /// Loads the models and, with a server, starts connecting in the background.
+    #[new]
+    #[pyo3(signature = (options = None))]
+    fn new(py: Python<'_>, options: Option<PyTrackerOptions>) -> PyResult<Self> {
+        let opts = options.unwrap_or_default().to_rust()?;
+        let inner = py
+            .detach(|| tracker::FaceTracker::new(opts))
+            .map_err(|e| match e {
+                TrackerError::Detect(_) | TrackerError::Assets(_) => AssetError::new_err(e.to_string()),
+                other => tracker_error(other),
+            })?;
+        Ok(Self {
+            inner: Mutex::new(Some(inner)),
+        })
+    }
+
+    /// Processes one frame: `image` a C-contiguous uint8 array (height, width); `timestamp_us` increasing
+    /// in video mode; `camera_to_world` the headset camera's 4x4 pose (None = identity, a fixed camera);
+    /// `intrinsics` (fx, fy, cx, cy) in pixels (None = 60 degree horizontal field of view, centred).
+    #[pyo3(signature = (image, timestamp_us, camera_to_world = None, intrinsics = None))]
+    fn process(
+        &self,
+        py: Python<'_>,
+        image: &Bound<'_, PyAny>,
+        timestamp_us: u64,
+        camera_to_world: Option<&Bound<'_, PyAny>>,
+        intrinsics: Option<(f64, f64, f64, f64)>,
+    ) -> PyResult<PyFaceResult> {
+        let array = gray_array(image)?;
+        let readonly = array
+            .try_readonly()
+            .map_err(|e| PyValueError::new_err(format!("image: {e}")))?;
+        let pixels = readonly
+            .as_slice()
+            .map_err(|e| PyValueError::new_err(format!("image: {e}")))?;
+        let (h, w) = (readonly.shape()[0], readonly.shape()[1]);
+        let view =
+            GrayView::new(pixels, w, h, w).map_err(|e| PyValueError::new_err(format!("image: {e}")))?;
+        let pose = camera_to_world
+            .map(pose_from_py)
+            .transpose()?
+            .unwrap_or(Pose::IDENTITY);
+        let frame = Frame {
+            timestamp_us,
+            image: view,
+            intrinsics: intrinsics_from_py(intrinsics, w, h)?,
+            world_from_camera: pose,
+        };
+        let result = py.detach(|| {
+            let mut guard = self.inner.lock().unwrap_or_else(PoisonError::into_inner);
+            guard.as_mut().map(|t| t.process(&frame))
+        });
+        let result = result
+            .ok_or_else(|| PyValueError::new_err(CLOSED))?
+            .map_err(tracker_error)?;
+        result_to_py(py, &result)
+    }
+
+    /// With a server: (state, failure, message) of the link, e.g. ("up", None, None) or
+    /// ("failed", "unauthorized", "the server rejected the token ..."); None without a server.
+    fn link_status(&self) -> PyResult<Option<LinkStatusTuple>> {
+        let guard = self.inner.lock().unwrap_or_else(PoisonError::into_inner);
+        let tracker = guard.as_ref().ok_or_else(|| PyValueError::new_err(CLOSED))?;
+        Ok(tracker.link_status().map(|s| {
+            let (state, failure) = link_names(s.state());
+            (state, failure, s.failure().map(ToString::to_string))
+        }))
+    }
+
+    /// Releases the models and closes the server link; further calls raise.
+    fn close(&self, py: Python<'_>) {
+        py.detach(|| {
+            let taken = self.inner.lock().unwrap_or_else(PoisonError::into_inner).take();
+            drop(taken);
+        });
+    }
+
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
+        self.close(py);
+    }
+}
+
+/// A frame read from a source: `image` uint8 (height, width), `timestamp_us`, `intrinsics` (fx, fy, cx, cy),
+/// `camera_to_world` float64 4x4, `index`.
+#[pyclass(module = "holoface", name = "SourceFrame", frozen, get_all)]
+#[derive(Debug)]
+struct PySourceFrame {
+    /// Frame number in the source.
+    index: usize,
+    /// Timestamp, microseconds.
+    timestamp_us: u64,
+    /// uint8 [height, width].
+    image: Py<PyArray2<u8>>,
+    /// (fx, fy, cx, cy) in pixels.
+    intrinsics: (f64, f64, f64, f64),
+    /// float64 [4, 4]: the headset camera's pose (identity without a pose sidecar).
+    camera_to_world: Py<PyArray2<f64>>,
+}
+
+fn source_frame_to_py(py: Python<'_>, f: OwnedFrame) -> PyResult<PySourceFrame> {
+    let (w, h) = (f.image.width(), f.image.height());
+    let image = Array2::from_shape_vec((h, w), f.image.view().data().to_vec())
+        .map_err(|e| SourceError::new_err(format!("frame {}: {e}", f.index)))?;
+    let p = f.world_from_camera.to_row_major_4x4();
+    let m = Array2::from_shape_fn((4, 4), |(i, j)| f64::from(p[i * 4 + j]));
+    let k = f.intrinsics;
+    Ok(PySourceFrame {
+        index: f.index,
+        timestamp_us: f.timestamp_us,
+        image: image.into_pyarray(py).unbind(),
+        intrinsics: (k.fx, k.fy, k.cx, k.cy),
+        camera_to_world: m.into_pyarray(py).unbind(),
+    })
+}
+
+/// Frames of an image folder (name order, `fps` apart), an MP4/H.264 video or a `.hfrec` recording, read
+/// with the same code as `holoface track --source`; iterate it for `SourceFrame`s.
+#[pyclass(module = "holoface", name = "FrameSource", unsendable)]
+struct PyFrameSource {
+    inner: Box<dyn FrameSource>,
+}
+
+impl std::fmt::Debug for PyFrameSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameSource").finish_non_exhaustive()
+    }
+}
+
+#[pymethods]
+impl PyFrameSource {
+    #[new]
+    #[pyo3(signature = (path, fps = 30.0, poses = None))]
+    fn new(path: PathBuf, fps: f64, poses: Option<PathBuf>) -> PyResult<Self> {
+        let inner = holoface_client::source::open_source(&path, fps, poses.as_deref())
+            .map_err(|e| SourceError::new_err(format!("{e:#}")))?;
+        Ok(Self { inner })
+    }
+
+    fn __iter__(slf: PyRef<'_, Self>) -> PyRef<'_, Self> {
+        slf
+    }
+
+    fn __next__(&mut self, py: Python<'_>) -> PyResult<Option<PySourceFrame>> {
+        match self.inner.next_frame() {
+            Ok(Some(f)) => source_frame_to_py(py, f).map(Some),
+            Ok(None) => Ok(None),
+            Err(e) => Err(SourceError::new_err(format!("{e:#}"))),
+        }
+    }
+}
+
+/// Reads an image file (PNG or JPEG) as uint8 grayscale, with the decoder `holoface track` uses; a truncated
+/// or corrupt file raises `SourceError` naming it.
+#[pyfunction]
+fn read_gray(py: Python<'_>, path: PathBuf) -> PyResult<Py<PyArray2<u8>>> {
+    let img = py
+        .detach(|| holoface_client::images::read_gray(&path))
+        .map_err(|e| SourceError::new_err(format!("{e:#}")))?;
+    let a = Array2::from_shape_vec((img.height(), img.width()), img.view().data().to_vec())
+        .map_err(|e| SourceError::new_err(format!("{}: {e}", path.display())))?;
+    Ok(a.into_pyarray(py).unbind())
+}
+
+/// The extension module; the `holoface` package re-exports it.
+#[pymodule]
+fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add_class::<PyTrackerOptions>()?;
+    m.add_class::<PyFaceTracker>()?;
+    m.add_class::<PyFaceResult>()?;
+    m.add_class::<PyFace>()?;
+    m.add_class::<PyFrameSource>()?;
+    m.add_class::<PySourceFrame>()?;
+    m.add_function(wrap_pyfunction!(read_gray, m)?)?;
+    m.add("HoloFaceError", py.get_type::<HoloFaceError>())?;
+    m.add("AssetError", py.get_type::<AssetError>())?;
+    m.add("ProcessingError", py.get_type::<ProcessingError>())?;
+    m.add("SourceError", py.get_type::<SourceError>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

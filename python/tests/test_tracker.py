@@ -1,0 +1,160 @@
+"""The Python package against the Rust CLI on the bundled sample, and its answers to bad input."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import holoface
+
+
+def test_same_landmarks_as_the_rust_cli(clip, cli_lines):
+    frames = list(holoface.FrameSource(clip))
+    assert len(frames) == len(cli_lines) == 6
+    with holoface.FaceTracker() as tracker:
+        for frame, want in zip(frames, cli_lines):
+            assert frame.image.dtype == np.uint8 and frame.image.ndim == 2
+            r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
+            assert r.timestamp_us == want["timestamp_us"]
+            assert want["face"], f"the CLI lost the face on frame {frame.index}"
+            assert r.has_face and r.no_face_reason is None and len(r.faces) == 1
+            face = r.face
+            assert face.landmarks.dtype == np.float32 and face.landmarks.shape == (68, 2)
+            diff = np.abs(face.landmarks - np.asarray(want["landmarks_px"], dtype=np.float32)).max()
+            assert diff <= 1e-4, f"frame {frame.index}: landmarks differ from the CLI's by {diff} px"
+            assert face.answered_by == want["aligner"] == "krfws"
+            assert face.init == want["init"]
+            np.testing.assert_allclose(face.camera_pose[:3, 3], want["camera"]["translation_m"], atol=1e-9)
+            np.testing.assert_allclose(face.world_pose[:3, 3], want["world"]["position_m"], atol=1e-9)
+            np.testing.assert_allclose(face.predicted_position, want["world"]["predicted_position_m"], atol=1e-9)
+            assert face.expression_weights == pytest.approx(want["weights"], abs=1e-9)
+            assert (face.smile, face.brows_raised, face.mouth_open) == tuple(
+                want["attributes"][k] for k in ("smile", "brows_raised", "mouth_open"))
+            for pose in (face.camera_pose, face.world_pose, face.display_pose):
+                assert pose.shape == (4, 4)
+                np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
+            assert set(r.timings) == {"prepare_ms", "align_ms", "complete_ms"}
+    # The face moves right by 2 px a frame; tracking from frame 1 on follows it.
+    assert [line["init"] for line in cli_lines] == ["detection"] + ["tracking"] * 5
+
+
+def test_read_gray_matches_the_source(clip):
+    first = sorted(clip.iterdir())[0]
+    img = holoface.read_gray(first)
+    np.testing.assert_array_equal(img, next(iter(holoface.FrameSource(clip))).image)
+
+
+def test_no_face_is_an_answer_with_a_reason():
+    with holoface.FaceTracker(holoface.TrackerOptions(mode="image")) as tracker:
+        r = tracker.process(np.full((240, 320), 128, np.uint8), 0)
+    assert not r.has_face and r.face is None and r.faces == []
+    assert r.no_face_reason == "not_detected" and r.answered_by is None
+
+
+def test_the_gil_is_released_while_a_frame_runs(clip):
+    image = holoface.read_gray(sorted(clip.iterdir())[0])
+    tracker = holoface.FaceTracker(holoface.TrackerOptions(mode="image"))
+    tracker.process(image, 0)  # warm-up
+    calls = []
+    done = threading.Event()
+
+    def worker():
+        for i in range(5):
+            t0 = time.perf_counter()
+            tracker.process(image, i)
+            calls.append((t0, time.perf_counter()))
+        done.set()
+
+    ticks = []
+    t = threading.Thread(target=worker)
+    t.start()
+    while not done.is_set():
+        ticks.append(time.perf_counter())
+    t.join()
+    # With the GIL held through a call, this thread could not run inside it at all.
+    inside = [x for a, b in calls for x in ticks if a + 0.002 < x < b - 0.002]
+    assert inside, f"the main thread never ran during {len(calls)} calls of {[b - a for a, b in calls]} s"
+
+
+def test_remote_without_a_server_answers_locally_and_says_why():
+    opts = holoface.TrackerOptions(server="127.0.0.1:9", fingerprint="ab" * 32, deadline_ms=20)
+    with holoface.FaceTracker(opts) as tracker:
+        r = tracker.process(np.full((120, 160), 100, np.uint8), 1)
+        assert r.link_state in ("connecting", "retrying")
+        state, _failure, _message = tracker.link_status()
+        assert state in ("connecting", "retrying")
+
+
+@pytest.mark.parametrize(
+    "image, error, words",
+    [
+        (np.zeros((48, 64), np.float32), TypeError, "uint8"),
+        (np.zeros((48, 64, 3), np.uint8), ValueError, "shape"),
+        (np.zeros((48, 64), np.uint8)[:, ::2], ValueError, "C-contiguous"),
+        (np.zeros((48, 64), np.uint8).T, ValueError, "C-contiguous"),
+        (np.zeros((0, 64), np.uint8), ValueError, "within"),
+        ([[0, 1], [2, 3]], TypeError, "numpy array"),
+        (None, TypeError, "numpy array"),
+    ],
+)
+def test_bad_images_raise(image, error, words):
+    tracker = holoface.FaceTracker()
+    with pytest.raises(error, match=words):
+        tracker.process(image, 0)
+    # The tracker is still usable afterwards.
+    assert not tracker.process(np.zeros((48, 64), np.uint8), 1).has_face
+
+
+def test_bad_poses_intrinsics_and_timestamps_raise():
+    tracker = holoface.FaceTracker()
+    img = np.zeros((48, 64), np.uint8)
+    with pytest.raises(ValueError, match="rigid"):
+        tracker.process(img, 0, camera_to_world=np.full((4, 4), 2.0))
+    with pytest.raises(ValueError, match="4x4"):
+        tracker.process(img, 0, camera_to_world=np.eye(3))
+    with pytest.raises(TypeError, match="4x4"):
+        tracker.process(img, 0, camera_to_world="identity")
+    with pytest.raises(ValueError, match="fx, fy > 0"):
+        tracker.process(img, 0, intrinsics=(0.0, 500.0, 32.0, 24.0))
+    tracker.process(img, 10, camera_to_world=np.eye(4, dtype=np.float32))
+    with pytest.raises(ValueError, match="not after the previous"):
+        tracker.process(img, 10)
+
+
+def test_bad_options_and_assets_raise(tmp_path):
+    with pytest.raises(holoface.AssetError, match="nope.bin"):
+        holoface.FaceTracker(holoface.TrackerOptions(krfws_model=tmp_path / "nope.bin"))
+    corrupt = tmp_path / "corrupt.bin"
+    corrupt.write_bytes(b"not a model" * 10)
+    with pytest.raises(holoface.AssetError, match="corrupt.bin"):
+        holoface.FaceTracker(holoface.TrackerOptions(krfws_model=corrupt))
+    with pytest.raises(holoface.AssetError, match="missing.onnx"):
+        holoface.FaceTracker(holoface.TrackerOptions(detector_model=tmp_path / "missing.onnx"))
+    with pytest.raises(ValueError, match="mode"):
+        holoface.FaceTracker(holoface.TrackerOptions(mode="live"))
+    with pytest.raises(ValueError, match="fingerprint is required"):
+        holoface.FaceTracker(holoface.TrackerOptions(server="127.0.0.1:4433"))
+    with pytest.raises(ValueError, match="ip:port"):
+        holoface.FaceTracker(holoface.TrackerOptions(server="localhost", fingerprint="ab" * 32))
+    with pytest.raises(ValueError, match="fingerprint"):
+        holoface.FaceTracker(holoface.TrackerOptions(server="127.0.0.1:4433", fingerprint="xyz"))
+    assert issubclass(holoface.AssetError, holoface.HoloFaceError)
+
+
+def test_bad_files_raise_source_errors(tmp_path, clip):
+    with pytest.raises(holoface.SourceError, match="nothing-here"):
+        holoface.FrameSource(tmp_path / "nothing-here")
+    good = sorted(clip.iterdir())[0].read_bytes()
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(good[: len(good) // 3])
+    with pytest.raises(holoface.SourceError, match="truncated.png"):
+        holoface.read_gray(truncated)
+
+
+def test_a_closed_tracker_raises():
+    tracker = holoface.FaceTracker()
+    tracker.close()
+    with pytest.raises(ValueError, match="closed"):
+        tracker.process(np.zeros((48, 64), np.uint8), 0)
+    tracker.close()  # twice is fine
