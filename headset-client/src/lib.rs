@@ -17,3 +17,4 @@ pub mod session;
 pub mod source;
 pub mod tracker;
 pub mod video;
+pub mod y4m;

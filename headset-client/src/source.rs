@@ -1,4 +1,5 @@
-//! Frame sources: image sequences, MP4/H.264 videos (`video.rs`) and recorded streams. Each frame carries a timestamp, intrinsics and a
+//! Frame sources: image sequences, MP4/H.264 videos (`video.rs`), YUV4MPEG2 streams (`y4m.rs`, files or
+//! standard input) and recorded streams. Each frame carries a timestamp, intrinsics and a
 //! camera-to-world pose (identity when the source does not know it).
 //!
 //! This module and `data.rs` are the only places the client reads frames from files.
@@ -186,14 +187,43 @@ fn is_mp4(path: &Path) -> bool {
     }
 }
 
-/// Opens a frame source: a folder of images, an MP4/H.264 video, or a recorded stream (`.hfrec`); with a
-/// pose sidecar (see [`crate::poses`]) the frames take their camera-to-world poses from it.
+/// Whether `path` is a YUV4MPEG2 stream: by extension, else by its magic bytes.
+fn is_y4m(path: &Path) -> bool {
+    use std::io::Read;
+    let by_ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("y4m"));
+    by_ext || {
+        let mut head = [0u8; 9];
+        File::open(path)
+            .and_then(|mut f| f.read_exact(&mut head))
+            .is_ok_and(|()| head == *crate::y4m::MAGIC)
+    }
+}
+
+/// Opens a frame source: a folder of images, an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-` for
+/// standard input: a live camera piped through ffmpeg), or a recorded stream (`.hfrec`); with a pose sidecar
+/// (see [`crate::poses`]) the frames take their camera-to-world poses from it. `fps` times the frames of an
+/// image folder and of a `.y4m` whose header has no frame rate.
 pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Result<Box<dyn FrameSource>> {
-    let inner: Box<dyn FrameSource> = if path.is_dir() {
+    let inner: Box<dyn FrameSource> = if path.as_os_str() == "-" {
+        let stdin = BufReader::new(std::io::stdin());
+        Box::new(crate::y4m::Y4mSource::new(stdin, "stdin", fps, None)?)
+    } else if path.is_dir() {
         Box::new(ImageSequence::open(path, fps, None)?)
     } else if path.is_file() {
         if is_mp4(path) {
             Box::new(crate::video::Mp4Source::open(path, None)?)
+        } else if is_y4m(path) {
+            let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+            let name = path.display().to_string();
+            Box::new(crate::y4m::Y4mSource::new(
+                BufReader::new(file),
+                &name,
+                fps,
+                None,
+            )?)
         } else {
             Box::new(RecordedStream::open(path)?)
         }

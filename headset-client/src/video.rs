@@ -320,7 +320,6 @@ impl Mp4Writer {
 
     /// Encodes one frame (full-range grey, stored as limited-range luma with neutral chroma).
     pub fn push(&mut self, image: &GrayImage) -> anyhow::Result<()> {
-        use openh264::formats::YUVBuffer;
         if (image.width(), image.height()) != (self.width, self.height) {
             bail!(
                 "frame is {}x{}, the video is {}x{}",
@@ -330,9 +329,55 @@ impl Mp4Writer {
                 self.height
             );
         }
-        for (d, &s) in self.yuv.iter_mut().zip(image.as_bytes()) {
+        let (luma, chroma) = self.yuv.split_at_mut(self.width * self.height);
+        for (d, &s) in luma.iter_mut().zip(image.as_bytes()) {
             *d = (16.0 + f64::from(s) * 219.0 / 255.0).round() as u8;
         }
+        chroma.fill(128);
+        self.encode_current()
+    }
+
+    /// Encodes one colour frame: `rgb` holds rows of `stride` RGB pixels (`stride` ≥ the video's width, at
+    /// least the video's height rows); the top-left `width`×`height` is encoded (BT.601, limited range,
+    /// 4:2:0), so an odd-sized picture fits a video one pixel smaller.
+    pub fn push_rgb(&mut self, rgb: &[u8], stride: usize) -> anyhow::Result<()> {
+        let (w, h) = (self.width, self.height);
+        if stride < w || rgb.len() < stride * 3 * h {
+            bail!(
+                "RGB frame of {} bytes with stride {stride} is smaller than the {w}x{h} video",
+                rgb.len()
+            );
+        }
+        let px = |x: usize, y: usize| {
+            let i = (y * stride + x) * 3;
+            (f64::from(rgb[i]), f64::from(rgb[i + 1]), f64::from(rgb[i + 2]))
+        };
+        let (luma, chroma) = self.yuv.split_at_mut(w * h);
+        let (cb, cr) = chroma.split_at_mut(w * h / 4);
+        for y in 0..h {
+            for x in 0..w {
+                let (r, g, b) = px(x, y);
+                luma[y * w + x] = (16.0 + (65.481 * r + 128.553 * g + 24.966 * b) / 255.0).round() as u8;
+            }
+        }
+        for cy in 0..h / 2 {
+            for cx in 0..w / 2 {
+                let (mut r, mut g, mut b) = (0.0, 0.0, 0.0);
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let p = px(2 * cx + dx, 2 * cy + dy);
+                    (r, g, b) = (r + p.0 / 4.0, g + p.1 / 4.0, b + p.2 / 4.0);
+                }
+                cb[cy * (w / 2) + cx] =
+                    (128.0 + (-37.797 * r - 74.203 * g + 112.0 * b) / 255.0).round() as u8;
+                cr[cy * (w / 2) + cx] = (128.0 + (112.0 * r - 93.786 * g - 18.214 * b) / 255.0).round() as u8;
+            }
+        }
+        self.encode_current()
+    }
+
+    /// Encodes the frame in `self.yuv` (I420) and appends it to the track.
+    fn encode_current(&mut self) -> anyhow::Result<()> {
+        use openh264::formats::YUVBuffer;
         let yuv = YUVBuffer::from_vec(self.yuv.clone(), self.width, self.height);
         let stream = self
             .encoder

@@ -1,4 +1,4 @@
-"""Track the faces of an image folder, MP4/H.264 video or .hfrec recording; print one line per frame and
+"""Track the faces of an image folder, MP4/H.264 video, YUV4MPEG2 (.y4m) stream or .hfrec recording; print one line per frame and
 optionally draw the landmarks.
 
     python python/examples/track.py SOURCE [--draw OUT_DIR] [--server IP:PORT --fingerprint HEX --token T]
@@ -14,7 +14,7 @@ import holoface
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("source", type=Path, help="image folder, .mp4 or .hfrec")
+    ap.add_argument("source", type=Path, help="image folder, .mp4, .y4m or .hfrec")
     ap.add_argument("--fps", type=float, default=30.0, help="frame rate of an image folder")
     ap.add_argument("--draw", type=Path, help="write each frame with its landmarks as PNG here")
     ap.add_argument("--server", help="alignment server ip:port (remote DAN, KRFWS as fallback)")

@@ -129,7 +129,7 @@ class SourceFrame:
     camera_to_world: npt.NDArray[np.float64]
 
 class FrameSource:
-    """Image folder, MP4/H.264 video or .hfrec recording, read like `holoface track --source`."""
+    """Image folder, MP4/H.264 video, .y4m stream or .hfrec recording, read like `holoface track --source`."""
 
     def __init__(self, path: _Path, fps: float = 30.0, poses: Optional[_Path] = None) -> None: ...
     def __iter__(self) -> Iterator[SourceFrame]: ...

@@ -637,7 +637,8 @@ fn source_frame_to_py(py: Python<'_>, f: OwnedFrame) -> PyResult<PySourceFrame> 
     })
 }
 
-/// Frames of an image folder (name order, `fps` apart), an MP4/H.264 video or a `.hfrec` recording, read
+/// Frames of an image folder (name order, `fps` apart), an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`) or a
+/// `.hfrec` recording, read
 /// with the same code as `holoface track --source`; iterate it for `SourceFrame`s.
 #[pyclass(module = "holoface", name = "FrameSource", unsendable)]
 struct PyFrameSource {

@@ -158,3 +158,20 @@ def test_a_closed_tracker_raises():
     with pytest.raises(ValueError, match="closed"):
         tracker.process(np.zeros((48, 64), np.uint8), 0)
     tracker.close()  # twice is fine
+
+
+def test_a_y4m_stream_reads_like_the_cli(tmp_path, clip):
+    frames = [holoface.read_gray(p) for p in sorted(clip.iterdir())[:3]]
+    h, w = frames[0].shape
+    y4m = tmp_path / "cam.y4m"
+    with open(y4m, "wb") as f:
+        f.write(f"YUV4MPEG2 W{w} H{h} F25:1 Ip A1:1 C420jpeg\n".encode())
+        for img in frames:
+            f.write(b"FRAME\n" + img.tobytes() + bytes(2 * ((w + 1) // 2) * ((h + 1) // 2)))
+    got = list(holoface.FrameSource(y4m))
+    assert [g.timestamp_us for g in got] == [0, 40_000, 80_000]
+    for g, want in zip(got, frames):
+        np.testing.assert_array_equal(g.image, want)
+    y4m.write_bytes(y4m.read_bytes()[:-100])
+    with pytest.raises(holoface.SourceError, match="frame 2"):
+        list(holoface.FrameSource(y4m))

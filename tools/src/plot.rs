@@ -116,6 +116,18 @@ impl Canvas {
             }
         }
     }
+    /// Width, pixels.
+    pub fn width(&self) -> usize {
+        self.w
+    }
+    /// Height, pixels.
+    pub fn height(&self) -> usize {
+        self.h
+    }
+    /// The pixels: rows of `width` RGB triples.
+    pub fn rgb(&self) -> &[u8] {
+        &self.px
+    }
     /// Encodes as PNG.
     pub fn to_png(&self) -> Vec<u8> {
         let mut png = Vec::new();

@@ -145,3 +145,157 @@ fn bad_videos_and_sidecars_fail_with_clear_errors() {
     assert!(!ok && text.contains("bad.jsonl line 1"), "{text}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// The bundled sample as gray frames moving right by 2 px a frame, cropped to an odd size (so the annotated
+/// video drops a column and a row).
+fn sample_clip(frames: usize) -> Vec<GrayImage> {
+    let sample = std::env::var_os("HOLOFACE_SAMPLE").map_or_else(
+        || common::workspace().join(".cache/samples/astronaut.png"),
+        Into::into,
+    );
+    let gray = holoface_client::images::read_gray(&sample).unwrap();
+    let (w, h) = (gray.width() - 1, gray.height() - 1);
+    (0..frames)
+        .map(|k| {
+            let mut px = vec![0u8; w * h];
+            let src = gray.view();
+            for y in 0..h {
+                let row = src.row(y).unwrap();
+                px[y * w + 2 * k..(y + 1) * w].copy_from_slice(&row[..w - 2 * k]);
+            }
+            GrayImage::from_vec(px, w, h).unwrap()
+        })
+        .collect()
+}
+
+fn write_y4m(path: &std::path::Path, frames: &[GrayImage]) {
+    let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let mut w =
+        holoface_client::y4m::Y4mWriter::new(f, frames[0].width(), frames[0].height(), 30, 1).unwrap();
+    for f in frames {
+        w.push(f).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+/// `holoface track --source -` with `input` on stdin.
+fn track_stdin(input: &std::path::Path, extra: &[&str]) -> (bool, String) {
+    let mut args = vec!["track", "--source", "-", "--log", "warn"];
+    args.extend(extra);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(&args)
+        .current_dir(common::workspace())
+        .stdin(std::fs::File::open(input).unwrap())
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!text.contains("panicked"), "panic: {text}");
+    (out.status.success(), text)
+}
+
+#[test]
+fn a_y4m_stream_on_stdin_is_tracked_and_annotated_as_mp4() {
+    let d = tmp("y4m");
+    let clip = sample_clip(8);
+    let y4m = d.join("cam.y4m");
+    write_y4m(&y4m, &clip);
+    let out = d.join("track.jsonl");
+    let video = d.join("ann/annotated.mp4");
+    let (ok, text) = track_stdin(
+        &y4m,
+        &[
+            "--out",
+            out.to_str().unwrap(),
+            "--annotate",
+            video.to_str().unwrap(),
+        ],
+    );
+    assert!(ok, "{text}");
+    assert!(text.contains("8 annotated frames in"), "{text}");
+    let got = lines(&out);
+    assert_eq!(got.len(), 8);
+    for (k, g) in got.iter().enumerate() {
+        assert_eq!(g["frame"], k);
+        assert_eq!(
+            g["timestamp_us"],
+            [0, 33_333, 66_666, 100_000, 133_333, 166_666, 200_000, 233_333][k]
+        );
+        assert_eq!(g["face"], true, "frame {k}: {g}");
+        assert_eq!(g["init"], if k == 0 { "detection" } else { "tracking" });
+    }
+    // The nose follows the picture: 2 px to the right a frame.
+    let nose_x = |g: &serde_json::Value| g["landmarks_px"][30][0].as_f64().unwrap();
+    let moved = nose_x(&got[7]) - nose_x(&got[0]);
+    assert!(
+        (moved - 14.0).abs() < 4.0,
+        "the nose moved {moved} px, the picture 14"
+    );
+
+    // The same stream from a file gives the same lines (timings aside).
+    let out2 = d.join("file.jsonl");
+    let (ok, text) = run(&[
+        "track",
+        "--source",
+        y4m.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    for (a, b) in got.iter().zip(&lines(&out2)) {
+        assert_eq!(a["landmarks_px"], b["landmarks_px"]);
+    }
+
+    // The annotated video decodes to 8 frames of the clip's size rounded down to even.
+    let mut src = holoface_client::video::Mp4Source::open(&video, None).unwrap();
+    assert_eq!(src.frame_count(), 8);
+    use holoface_client::frame::FrameSource;
+    let first = src.next_frame().unwrap().unwrap();
+    assert_eq!(
+        (first.image.width(), first.image.height()),
+        (clip[0].width() & !1, clip[0].height() & !1)
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+#[test]
+fn a_truncated_or_malformed_y4m_is_an_error_naming_the_frame() {
+    let d = tmp("y4m-bad");
+    let clip = sample_clip(3);
+    let y4m = d.join("cam.y4m");
+    write_y4m(&y4m, &clip);
+    let mut bytes = std::fs::read(&y4m).unwrap();
+    bytes.truncate(bytes.len() - 1000);
+    let cut = d.join("cut.y4m");
+    std::fs::write(&cut, &bytes).unwrap();
+    let (ok, text) = track_stdin(&cut, &["--out", d.join("cut.jsonl").to_str().unwrap()]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("stdin: frame 2") && text.contains("truncated"),
+        "{text}"
+    );
+    let (ok, text) = run(&[
+        "track",
+        "--source",
+        cut.to_str().unwrap(),
+        "--out",
+        d.join("c.jsonl").to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("cut.y4m: frame 2"), "{text}");
+
+    let wrong = d.join("wrong.y4m");
+    std::fs::write(&wrong, b"YUV4MPEG2 W640 H480 F30:1 C420p10\nFRAME\n").unwrap();
+    let (ok, text) = track_stdin(&wrong, &[]);
+    assert!(
+        !ok && text.contains("stdin") && text.contains("C420p10 is not supported"),
+        "{text}"
+    );
+    let not_y4m = d.join("not.y4m");
+    std::fs::write(&not_y4m, b"P5 640 480 255\n").unwrap();
+    let (ok, text) = track_stdin(&not_y4m, &[]);
+    assert!(!ok && text.contains("not a YUV4MPEG2 stream"), "{text}");
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -28,14 +28,16 @@ pub enum TrackAligner {
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// A folder of PNG/JPEG frames (name order), an MP4/H.264 video, or a recorded stream (`.hfrec`).
+    /// A folder of PNG/JPEG frames (name order), an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-`
+    /// for standard input: a live camera through ffmpeg, taken as fixed without `--poses`), or a recorded
+    /// stream (`.hfrec`).
     #[arg(long)]
     pub source: PathBuf,
     /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per
     /// frame for a video or image folder.
     #[arg(long)]
     pub poses: Option<PathBuf>,
-    /// Frame rate of an image folder.
+    /// Frame rate of an image folder, of a `.y4m` without one in its header, and of `--annotate out.mp4`.
     #[arg(long, default_value_t = 30.0)]
     pub fps: f64,
     /// Aligner.
@@ -50,8 +52,8 @@ pub struct Args {
     /// Prediction horizon in milliseconds.
     #[arg(long, default_value_t = 120.0)]
     pub lookahead_ms: f64,
-    /// Also write each frame as an annotated PNG (landmarks, fitted CANDIDE-3 mesh, pose axes, aligner)
-    /// into this folder (`frame_000000.png`, ...).
+    /// Also draw each frame annotated (landmarks, fitted CANDIDE-3 mesh, pose axes, aligner): a path ending
+    /// in `.mp4` gets an H.264 video at `--fps`, any other path a folder of PNGs (`frame_000000.png`, ...).
     #[arg(long)]
     pub annotate: Option<PathBuf>,
     /// JSON-lines output, one line per frame.
@@ -126,9 +128,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let file =
         std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut out = std::io::BufWriter::new(file);
-    if let Some(dir) = &args.annotate {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    let mut annotated = args
+        .annotate
+        .as_deref()
+        .map(|p| Annotated::open(p, args.fps))
+        .transpose()?;
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
@@ -142,12 +146,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             remote_frames += 1;
         }
         frames += 1;
-        if let Some(dir) = &args.annotate {
-            let path = dir.join(format!("frame_{:06}.png", sf.index));
-            let png =
-                crate::annotate::annotate(&sf.image, sf.index, &result, session.face_model(), &sf.intrinsics)
-                    .to_png();
-            std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
+        if let Some(out) = annotated.as_mut() {
+            let canvas =
+                crate::annotate::annotate(&sf.image, sf.index, &result, session.face_model(), &sf.intrinsics);
+            out.push(sf.index, &canvas)?;
         }
         let timings = json!({
             "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
@@ -205,6 +207,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "{frames} frames, {faces} with a face; wrote {}",
         args.out.display()
     );
+    if let Some(a) = annotated {
+        println!("{}", a.finish()?);
+    }
     if let Some(status) = link.as_ref().map(holoface_client::link::LinkWatch::status) {
         if status.welcome().is_some() {
             println!("{remote_frames} of {faces} faces aligned by the remote DAN");
@@ -221,4 +226,75 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Where `--annotate` draws: a folder of PNGs, or an H.264 MP4 (created at the first frame's size).
+enum Annotated {
+    Pngs(PathBuf),
+    Video {
+        path: PathBuf,
+        fps: u32,
+        writer: Option<Box<holoface_client::video::Mp4Writer>>,
+    },
+}
+
+impl Annotated {
+    fn open(path: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
+        let is_mp4 = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("mp4"));
+        if is_mp4 {
+            anyhow::ensure!(
+                fps.is_finite() && (1.0..=1000.0).contains(&fps),
+                "--annotate {}: --fps {fps} must be within 1..=1000",
+                path.display()
+            );
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            }
+            Ok(Self::Video {
+                path: path.to_path_buf(),
+                fps: fps.round() as u32,
+                writer: None,
+            })
+        } else {
+            std::fs::create_dir_all(path).with_context(|| format!("creating {}", path.display()))?;
+            Ok(Self::Pngs(path.to_path_buf()))
+        }
+    }
+
+    fn push(&mut self, index: usize, canvas: &crate::plot::Canvas) -> anyhow::Result<()> {
+        match self {
+            Self::Pngs(dir) => {
+                let path = dir.join(format!("frame_{index:06}.png"));
+                std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))
+            }
+            Self::Video { path, fps, writer } => {
+                let w = match writer {
+                    Some(w) => w,
+                    None => {
+                        // H.264 4:2:0 needs even sizes: an odd last row or column is left out.
+                        let (vw, vh) = (canvas.width() & !1, canvas.height() & !1);
+                        writer.insert(Box::new(holoface_client::video::Mp4Writer::create(
+                            path, vw, vh, *fps,
+                        )?))
+                    }
+                };
+                w.push_rgb(canvas.rgb(), canvas.width())
+                    .with_context(|| format!("frame {index} of {}", path.display()))
+            }
+        }
+    }
+
+    /// Closes the video; says what was written.
+    fn finish(self) -> anyhow::Result<String> {
+        Ok(match self {
+            Self::Pngs(dir) => format!("annotated frames in {}", dir.display()),
+            Self::Video { path, writer, .. } => match writer {
+                Some(w) => format!("{} annotated frames in {}", w.finish()?, path.display()),
+                None => format!("no frames, so no video at {}", path.display()),
+            },
+        })
+    }
 }
