@@ -101,7 +101,9 @@ pub struct Metrics {
     /// Frames answered with landmarks.
     pub frames_aligned: AtomicU64,
     /// Frames answered `Dropped`, by reason.
-    pub drops: [AtomicU64; 5],
+    pub drops: [AtomicU64; DropReason::ALL.len()],
+    /// Frames whose model output was unusable (non-finite, or shaped against the model's declaration).
+    pub model_output_errors: AtomicU64,
     /// Frames in each inference batch.
     pub batch_size: Histogram,
     /// Time from arrival to batch formation, microseconds.
@@ -148,6 +150,7 @@ impl Metrics {
             queue_wait_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_errors: AtomicU64::new(0),
+            model_output_errors: AtomicU64::new(0),
             client_rtt_us: Histogram::new(LATENCY_BOUNDS_US),
             client_lost_packets: AtomicU64::new(0),
             ready: AtomicBool::new(false),
@@ -302,6 +305,12 @@ impl Metrics {
             "holoface_inference_errors_total",
             "Inference calls that failed.",
             load(&self.inference_errors),
+        );
+        counter(
+            &mut out,
+            "holoface_model_output_errors_total",
+            "Frames whose model output was unusable (non-finite, or shaped against the model's declaration).",
+            load(&self.model_output_errors),
         );
         counter(
             &mut out,

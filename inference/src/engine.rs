@@ -321,6 +321,31 @@ pub struct LandmarkOut {
     pub face_prob: f32,
 }
 
+impl LandmarkOut {
+    /// Why this result cannot be sent as landmarks, if it cannot: a landmark count other than the model
+    /// declares, a non-finite coordinate, or a face probability that is not a probability.
+    pub fn problem(&self, landmark_count: usize) -> Option<String> {
+        if self.landmarks.len() != landmark_count {
+            return Some(format!(
+                "{} landmarks, the model declares {landmark_count}",
+                self.landmarks.len()
+            ));
+        }
+        if let Some(i) = self
+            .landmarks
+            .iter()
+            .position(|p| !(p[0].is_finite() && p[1].is_finite()))
+        {
+            return Some(format!("landmark {i} is {:?}", self.landmarks[i]));
+        }
+        // A softmax output, allowing for its rounding.
+        if !(-1e-4..=1.0 + 1e-4).contains(&self.face_prob) {
+            return Some(format!("face probability {}", self.face_prob));
+        }
+        None
+    }
+}
+
 /// A synchronous batch inference engine.
 pub trait InferenceEngine: Send {
     /// The model's description.
@@ -466,7 +491,7 @@ impl InferenceEngine for OnnxEngine {
         let l = self.info.landmark_count;
         let tensor = ort::value::TensorRef::from_array_view(([n, 1, s, s], input.as_slice()))?;
         let outputs = self.session.run(ort::inputs![tensor])?;
-        let bad = |what: &str| EngineError::Ort(format!("unexpected output: {what}"));
+        let bad = |what: &str| EngineError::BadOutput(what.to_owned());
         let (lm_shape, lm) = outputs
             .get(OUTPUT_LANDMARKS)
             .ok_or_else(|| bad("no landmarks"))?

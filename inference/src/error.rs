@@ -76,6 +76,9 @@ pub enum EngineError {
         /// Bytes expected (S * S).
         expected: usize,
     },
+    /// The model's outputs are missing or shaped against its declaration (landmark count, batch).
+    #[error("model output contradicts its declaration: {0}")]
+    BadOutput(String),
     /// ONNX Runtime reported an error.
     #[error("ONNX Runtime: {0}")]
     Ort(String),

@@ -61,10 +61,18 @@ pub use recording::{
     RecordingWriter,
 };
 
-/// Protocol version carried in [`ClientHello::version`] and
-/// [`ServerWelcome::version`]. Peers with different versions close with
-/// [`CloseCode::BadVersion`].
-pub const PROTOCOL_VERSION: u16 = 1;
+/// The newest protocol version, carried in [`ClientHello::version`]. The
+/// server serves every version in [`MIN_PROTOCOL_VERSION`]`..=`this one at the
+/// client's version and says which in [`ServerWelcome::version`]; any other
+/// version is closed with [`CloseCode::BadVersion`].
+///
+/// History: 1, the first; 2 adds [`DropReason::ModelOutput`] (a version-1
+/// client is sent [`DropReason::Overloaded`] instead, see
+/// [`DropReason::for_version`]).
+pub const PROTOCOL_VERSION: u16 = 2;
+
+/// The oldest protocol version a server still serves.
+pub const MIN_PROTOCOL_VERSION: u16 = 1;
 
 /// QUIC ALPN protocol identifier.
 pub const ALPN: &[u8] = b"holoface/1";

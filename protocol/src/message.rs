@@ -140,6 +140,9 @@ wire_enum_u8!(
         BadCrop = 3,
         /// The server is draining.
         ShuttingDown = 4,
+        /// The model's output for this frame was unusable (non-finite values, or a
+        /// shape that contradicts the model's declaration). Protocol version 2.
+        ModelOutput = 5,
     }
 );
 
@@ -152,6 +155,17 @@ impl DropReason {
             Self::Overloaded => "overloaded",
             Self::BadCrop => "bad_crop",
             Self::ShuttingDown => "shutting_down",
+            Self::ModelOutput => "model_output",
+        }
+    }
+
+    /// The reason as a client of protocol `version` understands it: a reason
+    /// newer than its version becomes [`Self::Overloaded`], which a client
+    /// handles the same way (it answers the frame locally).
+    pub const fn for_version(self, version: u16) -> Self {
+        match self {
+            Self::ModelOutput if version < 2 => Self::Overloaded,
+            other => other,
         }
     }
 }

@@ -108,6 +108,29 @@ async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_version_1_client_is_served_at_version_1() {
+    let expected = reference(4);
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut old = hello(TEST_TOKEN);
+    old.version = 1;
+    let mut client = within(
+        "connect v1",
+        TestClient::connect(server.addr, server.fingerprint, old),
+    )
+    .await
+    .unwrap();
+    assert_eq!(
+        client.welcome.version, 1,
+        "the welcome says which version serves it"
+    );
+    let reply = within("v1 reply", client.request(&frame(1, 4, DEADLINE_MS)))
+        .await
+        .unwrap();
+    assert_landmarks(&reply, &expected);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replies_on_a_stream_when_configured() {
     let expected = reference(5);
     let mut s = settings();

@@ -3,7 +3,9 @@
 use std::sync::atomic::Ordering;
 
 use bytes::BytesMut;
-use holoface_protocol::{ClientHello, CloseCode, Message, PROTOCOL_VERSION, decode_framed};
+use holoface_protocol::{
+    ClientHello, CloseCode, MIN_PROTOCOL_VERSION, Message, PROTOCOL_VERSION, decode_framed,
+};
 use quinn::RecvStream;
 
 use super::fault::{ConnectionEnd, Fault};
@@ -45,12 +47,12 @@ fn token_eq(a: &str, b: &str) -> bool {
 }
 
 pub(super) fn authorize(hello: &ClientHello, settings: &Settings, metrics: &Metrics) -> Result<(), Fault> {
-    if hello.version != PROTOCOL_VERSION {
+    if !(MIN_PROTOCOL_VERSION..=PROTOCOL_VERSION).contains(&hello.version) {
         metrics.auth_bad_version.fetch_add(1, Ordering::Relaxed);
         return Err(Fault::new(
             CloseCode::BadVersion,
             format!(
-                "protocol version {} not supported (server speaks {PROTOCOL_VERSION})",
+                "protocol version {} not supported (server speaks {MIN_PROTOCOL_VERSION} to {PROTOCOL_VERSION})",
                 hello.version
             ),
         ));
@@ -100,5 +102,19 @@ mod tests {
         authorize(&hello(PROTOCOL_VERSION, "good"), &settings, &m).unwrap();
         assert_eq!(m.auth_bad_version.load(Ordering::Relaxed), 1);
         assert_eq!(m.auth_unauthorized.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn every_version_from_the_oldest_served_to_ours_is_served_and_no_other() {
+        let settings = Settings::for_loopback("good", "m.onnx".into(), "l.so".into()).unwrap();
+        let m = Metrics::new(8);
+        for v in MIN_PROTOCOL_VERSION..=PROTOCOL_VERSION {
+            authorize(&hello(v, "good"), &settings, &m).unwrap();
+        }
+        for v in [0, MIN_PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1, u16::MAX] {
+            let f = authorize(&hello(v, "good"), &settings, &m).unwrap_err();
+            assert_eq!(f.code, CloseCode::BadVersion, "version {v}");
+            assert!(f.detail.contains("1 to 2"), "{}", f.detail);
+        }
     }
 }

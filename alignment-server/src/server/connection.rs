@@ -6,8 +6,8 @@ use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use holoface_protocol::{
-    ClientHello, CloseCode, CropEncoding, Goaway, Message, PROTOCOL_VERSION, ReplyChannel, ServerWelcome,
-    decode_framed, encode_framed,
+    ClientHello, CloseCode, CropEncoding, Goaway, Message, ReplyChannel, ServerWelcome, decode_framed,
+    encode_framed,
 };
 use quinn::{Connection, Incoming, RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
@@ -137,6 +137,7 @@ async fn serve_connection(
         sink,
         newest: std::sync::Mutex::new(None),
         read_timeout: settings.hello_timeout.max(settings.max_frame_age),
+        version: hello.version,
     });
 
     // 3. Frames until the client leaves, misbehaves, or the server stops.
@@ -215,7 +216,8 @@ async fn send_welcome(
     conn.set_max_concurrent_uni_streams(VarInt::from(u32::from(max_in_flight)));
     let model = &shared.model;
     let welcome = Message::ServerWelcome(ServerWelcome {
-        version: PROTOCOL_VERSION,
+        // Served at the client's version (authorize checked it is one we speak).
+        version: hello.version,
         model_id: model.name.clone(),
         model_version: model.version.clone(),
         landmark_count: u16::try_from(model.landmark_count).unwrap_or(u16::MAX),

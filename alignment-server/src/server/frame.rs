@@ -31,6 +31,8 @@ pub(super) struct ConnCtx {
     /// Highest frame id seen (`None` before the first frame).
     pub(super) newest: std::sync::Mutex<Option<u64>>,
     pub(super) read_timeout: Duration,
+    /// The protocol version this client speaks (replies use only what it decodes).
+    pub(super) version: u16,
 }
 
 /// Decodes a crop into `size` x `size` gray8 pixels.
@@ -104,7 +106,9 @@ pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Resul
             queue_us,
             infer_us,
         },
-        FrameOutcome::Dropped(reason) => ReplyOutcome::Dropped { reason },
+        FrameOutcome::Dropped(reason) => ReplyOutcome::Dropped {
+            reason: reason.for_version(ctx.version),
+        },
     };
     ctx.sink.send(FrameReply { frame_id, outcome });
     // The stream (and its flow-control credit) is released only now, so a

@@ -11,8 +11,8 @@ use std::time::Duration;
 
 use bytes::BytesMut;
 use holoface_protocol::{
-    ClientHello, CloseCode, CropEncoding, DecodeError, FrameReply, FrameRequest, Message, PROTOCOL_VERSION,
-    ReplyChannel, ServerWelcome, decode_framed, encode_framed,
+    ClientHello, CloseCode, CropEncoding, DecodeError, FrameReply, FrameRequest, MIN_PROTOCOL_VERSION,
+    Message, PROTOCOL_VERSION, ReplyChannel, ServerWelcome, decode_framed, encode_framed,
 };
 use holoface_quic::{Fingerprint, pinned_client_config};
 use quinn::{Connection, ConnectionError, Endpoint, RecvStream, SendStream};
@@ -96,7 +96,7 @@ pub enum LinkError {
     #[error("protocol: {0}")]
     Protocol(String),
     /// The server speaks another protocol version.
-    #[error("server speaks protocol version {server}, we speak {PROTOCOL_VERSION}")]
+    #[error("server speaks protocol version {server}, we speak {MIN_PROTOCOL_VERSION} to {PROTOCOL_VERSION}")]
     Version {
         /// The server's version.
         server: u16,
@@ -347,7 +347,8 @@ async fn connect_inner(endpoint: &Endpoint, cfg: &ConnectConfig) -> Result<Estab
         max_in_flight: cfg.max_in_flight,
     };
     let established = handshake(conn, &hello).await?;
-    if established.welcome.version != PROTOCOL_VERSION {
+    // The server answers with the version it serves us at: ours, or an older one we still decode.
+    if !(MIN_PROTOCOL_VERSION..=PROTOCOL_VERSION).contains(&established.welcome.version) {
         established
             .conn
             .close(CloseCode::BadVersion.as_u32().into(), b"version");
