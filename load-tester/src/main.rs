@@ -17,7 +17,7 @@ use clap::Parser;
 use hdrhistogram::Histogram;
 use holoface_client::link::connection::{ConnectConfig, client_endpoint, connect, send_frame};
 use holoface_protocol::recording::{FramePayload, RecordingReader};
-use holoface_protocol::{Crop, FrameRequest, ReplyOutcome};
+use holoface_protocol::{Crop, FrameRequest, Message, ReplyOutcome};
 use holoface_tools::plot::{Series, series_plot_png};
 use serde_json::json;
 
@@ -159,6 +159,8 @@ struct Stats {
     window: Counts,
     totals: Counts,
     measuring: bool,
+    /// Headsets that stopped sending because the server said Goaway.
+    goaways: u64,
 }
 
 impl Stats {
@@ -169,6 +171,7 @@ impl Stats {
             window: Counts::default(),
             totals: Counts::default(),
             measuring: false,
+            goaways: 0,
         })
     }
 
@@ -213,7 +216,27 @@ async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
     let session = connect(&endpoint, &cfg)
         .await
         .with_context(|| format!("headset {id}: connecting to {}", cfg.server))?;
-    let (conn, _welcome, _control, mut replies) = session.split();
+    let (conn, _welcome, mut control, mut replies) = session.split();
+    // A headset honours the server's Goaway: it stops sending new frames, lets the in-flight ones be
+    // answered, and leaves (the server refuses frame streams that arrive well after its Goaway).
+    let (goaway_tx, mut goaway) = tokio::sync::watch::channel(false);
+    let watcher = {
+        let stats = Arc::clone(&stats);
+        tokio::spawn(async move {
+            while let Ok(msg) = control.next_message().await {
+                if let Message::Goaway(g) = msg {
+                    eprintln!(
+                        "headset {id}: server going away ({}): {}",
+                        g.reason.name(),
+                        g.text
+                    );
+                    stats.lock().unwrap_or_else(PoisonError::into_inner).goaways += 1;
+                    let _ = goaway_tx.send(true);
+                    break;
+                }
+            }
+        })
+    };
     let sent_at: Arc<Mutex<HashMap<u64, Instant>>> = Arc::default();
     let reader = {
         let (sent_at, stats) = (Arc::clone(&sent_at), Arc::clone(&stats));
@@ -252,10 +275,13 @@ async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
     loop {
         let f = &frames[(k % frames.len() as u64) as usize];
         let due = start + period * (k / frames.len() as u64) as u32 + f.offset;
-        if due >= end {
+        if due >= end || *goaway.borrow() {
             break;
         }
-        tokio::time::sleep_until(due.into()).await;
+        tokio::select! {
+            () = tokio::time::sleep_until(due.into()) => {}
+            _ = goaway.changed() => break,
+        }
         k += 1;
         let req = FrameRequest {
             frame_id: k,
@@ -285,6 +311,7 @@ async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
     // Let the last replies arrive.
     tokio::time::sleep(deadline + Duration::from_millis(200)).await;
     reader.abort();
+    watcher.abort();
     conn.close(0u32.into(), b"load test done");
     endpoint.wait_idle().await;
     Ok(())
@@ -361,7 +388,7 @@ fn run(args: Args) -> anyhow::Result<bool> {
 
     let stats = Arc::new(Mutex::new(Stats::new()?));
     let warmup = Duration::from_secs_f64(args.warmup_s);
-    let duration = Duration::from_secs_f64(args.duration_s);
+    let mut duration = Duration::from_secs_f64(args.duration_s);
     let t0 = Instant::now() + Duration::from_millis(200);
     let end = t0 + warmup + duration;
     let mean_interval = streams[0].1.as_secs_f64() / streams[0].0.len() as f64;
@@ -435,8 +462,14 @@ fn run(args: Args) -> anyhow::Result<bool> {
         timeline.push(row);
         s.interval.reset();
         s.window = Counts::default();
+        let all_left = s.goaways > 0 && tasks.iter().all(tokio::task::JoinHandle::is_finished);
         drop(s);
         next += interval;
+        if all_left {
+            // Every headset left on the server's Goaway: the run is over early.
+            duration = Instant::now().saturating_duration_since(warm_at).min(duration);
+            break;
+        }
     }
     for t in tasks {
         rt.block_on(t).context("headset task panicked")??;
@@ -483,7 +516,7 @@ fn run(args: Args) -> anyhow::Result<bool> {
         "totals": {
             "sent": s.totals.sent, "answered": s.totals.answered, "dropped": s.totals.dropped,
             "unanswered": lost, "deadline_misses": s.totals.misses, "throughput_per_s": throughput,
-            "drop_rate": drop_rate,
+            "drop_rate": drop_rate, "headsets_told_goaway": s.goaways,
             "latency_ms": {"p50": p(0.5), "p99": p(0.99), "p999": p(0.999), "max": s.total.max() as f64 / 1e3,
                            "mean": s.total.mean() / 1e3},
         },
@@ -529,6 +562,12 @@ fn run(args: Args) -> anyhow::Result<bool> {
     );
     std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
     println!("wrote {} and {}", args.out.display(), args.plot.display());
+    if s.goaways > 0 {
+        println!(
+            "{} of {} headsets stopped early on the server's Goaway",
+            s.goaways, args.clients
+        );
+    }
     for b in &broken {
         eprintln!("SLO broken: {b}");
     }

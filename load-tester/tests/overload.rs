@@ -214,3 +214,59 @@ fn slo_breach_exits_3_and_bad_input_exits_1_with_a_message() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("/proc/holoface.json"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn headsets_stop_sending_on_the_servers_goaway() {
+    let dir = std::env::temp_dir().join(format!("holoface-load-goaway-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rec = recording(&dir);
+    let ort = std::env::var_os("ORT_DYLIB_PATH").map_or_else(
+        || workspace().join(".cache/onnxruntime/libonnxruntime.so.1.31.1"),
+        PathBuf::from,
+    );
+    let mut s = alignment_server::config::Settings::for_loopback(
+        "goaway-test",
+        workspace().join("models/assets/dan.onnx"),
+        ort,
+    )
+    .unwrap();
+    s.engine.intra_threads = 1;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let server = rt.block_on(alignment_server::Server::bind(s)).unwrap();
+    let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint());
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let task = rt.spawn(server.run(async move {
+        let _ = stopped.await;
+    }));
+    let out = dir.join("goaway.json");
+    let started = std::time::Instant::now();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface-load"))
+        .current_dir(workspace())
+        .args(["--server", &addr.to_string(), "--fingerprint", &fp.to_string()])
+        .args(["--token", "goaway-test", "--clients", "2", "--fps", "10"])
+        .args(["--duration-s", "30", "--warmup-s", "0", "--interval-s", "1"])
+        .arg("--recording")
+        .arg(&rec)
+        .arg("--out")
+        .arg(&out)
+        .arg("--plot")
+        .arg(dir.join("goaway.png"))
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    stop.send(()).unwrap();
+    rt.block_on(task).unwrap().unwrap();
+    let status = child.wait().unwrap();
+    let took = started.elapsed();
+    assert_eq!(status.code(), Some(0));
+    // It left on the Goaway, not at the end of its 30 s.
+    assert!(took < std::time::Duration::from_secs(15), "the load ran {took:?}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(report["totals"]["headsets_told_goaway"], 2, "{report}");
+    assert!(report["totals"]["answered"].as_u64().unwrap() > 0, "{report}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
