@@ -177,7 +177,10 @@ test: deploy-check check deps-check unit c-example csharp-example python-test fu
 
 ## ---- fuzzing, benchmarks, training --------------------------------------------------------------
 FUZZ_SECONDS ?= 60
+CARGO_FUZZ_VERSION := 0.12.0
 fuzz:
+	@command -v cargo-fuzz >/dev/null || { echo "installing cargo-fuzz $(CARGO_FUZZ_VERSION)"; \
+	  $(CARGO) install --locked cargo-fuzz --version $(CARGO_FUZZ_VERSION); }
 	cd fuzz && for t in $$(RUSTC_BOOTSTRAP=1 cargo fuzz list); do \
 	  RUSTC_BOOTSTRAP=1 cargo fuzz run $$t -- -max_total_time=$(FUZZ_SECONDS) || exit 1; done
 
