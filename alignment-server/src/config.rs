@@ -210,6 +210,10 @@ pub struct EngineConfig {
     /// Let ONNX Runtime's intra-op threads spin between ops [default: false].
     #[arg(long, num_args = 0..=1, default_missing_value = "true")]
     pub spin: Option<bool>,
+    /// Engine instances (ONNX Runtime sessions, each on its own thread with `intra_threads` threads) fed
+    /// by the one batcher; a batch goes to whichever is idle [default: 1].
+    #[arg(long = "engine-instances", env = "HOLOFACE_ENGINE_INSTANCES")]
+    pub instances: Option<usize>,
 }
 
 /// `[internal]`: the metrics/health listener.
@@ -328,7 +332,7 @@ impl BatchConfig {
 }
 impl EngineConfig {
     fn merge(self, lo: Self) -> Self {
-        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda, spin)
+        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda, spin, instances)
     }
 }
 impl InternalConfig {
@@ -500,6 +504,12 @@ impl ServerConfig {
             .engine
             .ort_dylib
             .unwrap_or_else(holoface_inference::default_ort_dylib);
+        let engine_instances = self.engine.instances.unwrap_or(1);
+        if !(1..=64).contains(&engine_instances) {
+            return Err(invalid(format!(
+                "engine.instances {engine_instances} must be within 1..=64"
+            )));
+        }
         let intra_threads = self
             .engine
             .intra_threads
@@ -534,6 +544,7 @@ impl ServerConfig {
                 cuda: self.engine.cuda.unwrap_or(false),
                 spin: self.engine.spin.unwrap_or(false),
             },
+            engine_instances,
             metrics_listen: self.internal.metrics_listen,
         })
     }
@@ -589,8 +600,10 @@ pub struct Settings {
     pub max_frame_rate: u32,
     /// Batcher limits.
     pub batch: BatcherConfig,
-    /// ONNX Runtime engine options.
+    /// ONNX Runtime engine options (each instance's).
     pub engine: OnnxOptions,
+    /// Engine instances fed by the batcher.
+    pub engine_instances: usize,
     /// Internal metrics listener.
     pub metrics_listen: Option<SocketAddr>,
 }
@@ -774,7 +787,26 @@ mod tests {
         );
         cfg.quic.cert = None;
         cfg.batch.max_batch = Some(0);
-        assert!(cfg.resolve().unwrap_err().to_string().contains("max_batch"));
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("max_batch")
+        );
+        cfg.batch.max_batch = None;
+        assert_eq!(
+            cfg.clone().resolve().unwrap().engine_instances,
+            1,
+            "one instance by default"
+        );
+        for bad in [0, 65] {
+            cfg.engine.instances = Some(bad);
+            let e = cfg.clone().resolve().unwrap_err().to_string();
+            assert!(e.contains("engine.instances"), "{e}");
+        }
+        cfg.engine.instances = Some(2);
+        assert_eq!(cfg.resolve().unwrap().engine_instances, 2);
     }
 
     #[test]

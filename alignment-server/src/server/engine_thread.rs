@@ -40,10 +40,13 @@ impl ModelAlarm {
     }
 }
 
+/// Runs engine instance `index`: each batch from `jobs`, then `index` on `done` (the scheduler's signal that
+/// this instance is idle again).
 pub(super) fn engine_loop(
     mut engine: Box<dyn InferenceEngine>,
+    index: usize,
     jobs: &std::sync::mpsc::Receiver<Batch<FrameJob>>,
-    done: &mpsc::UnboundedSender<()>,
+    done: &mpsc::UnboundedSender<usize>,
     metrics: &Metrics,
 ) {
     let max_batch = engine.max_batch();
@@ -121,7 +124,7 @@ pub(super) fn engine_loop(
                 }
             }
         }
-        if done.send(()).is_err() {
+        if done.send(index).is_err() {
             break;
         }
     }
@@ -203,8 +206,12 @@ mod tests {
             })
             .unwrap();
         drop(jobs_tx);
-        engine_loop(Box::new(engine), &jobs_rx, &done_tx, metrics);
-        assert!(done_rx.try_recv().is_ok(), "the batch is reported done");
+        engine_loop(Box::new(engine), 7, &jobs_rx, &done_tx, metrics);
+        assert_eq!(
+            done_rx.try_recv().ok(),
+            Some(7),
+            "the batch is reported done by its instance"
+        );
         replies.into_iter().map(|mut r| r.try_recv().unwrap()).collect()
     }
 

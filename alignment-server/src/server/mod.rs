@@ -124,7 +124,8 @@ pub struct Server {
     fingerprint: Fingerprint,
     metrics: Arc<Metrics>,
     metrics_listener: Option<tokio::net::TcpListener>,
-    engine: Box<dyn InferenceEngine>,
+    /// One or more instances of the same model (`engine.instances`), never empty.
+    engines: Vec<Box<dyn InferenceEngine>>,
     settings: Settings,
 }
 
@@ -137,22 +138,28 @@ impl Server {
     /// Loads the ONNX engine (validating the model) and binds the endpoint.
     pub async fn bind(settings: Settings) -> Result<Self, ServerError> {
         let opts = settings.engine.clone();
-        let engine = tokio::task::spawn_blocking(move || OnnxEngine::load(&opts))
-            .await
-            .map_err(|e| ServerError::EngineThread(e.to_string()))??;
-        let info = engine.info();
+        let instances = settings.engine_instances.max(1);
+        let engines = tokio::task::spawn_blocking(move || {
+            (0..instances)
+                .map(|_| OnnxEngine::load(&opts).map(|e| Box::new(e) as Box<dyn InferenceEngine>))
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .await
+        .map_err(|e| ServerError::EngineThread(e.to_string()))??;
+        let info = engines[0].info();
         info!(
             model = %settings.engine.model.display(),
             name = %info.name,
             version = %info.version,
             untrained = info.untrained,
             intra_threads = settings.engine.intra_threads,
+            engine_instances = instances,
             "model loaded"
         );
         if info.untrained {
             warn!("the model is marked untrained (random weights): landmarks are meaningless");
         }
-        Self::bind_with_engine(settings, Box::new(engine)).await
+        Self::bind_with_engines(settings, engines).await
     }
 
     /// Binds with a given engine (tests and benchmarks use this with a fake
@@ -161,6 +168,23 @@ impl Server {
         settings: Settings,
         engine: Box<dyn InferenceEngine>,
     ) -> Result<Self, ServerError> {
+        Self::bind_with_engines(settings, vec![engine]).await
+    }
+
+    /// Binds with several instances of one model, each run on its own thread; the batcher hands each batch
+    /// to an idle one. Instances must describe the same model.
+    pub async fn bind_with_engines(
+        settings: Settings,
+        engines: Vec<Box<dyn InferenceEngine>>,
+    ) -> Result<Self, ServerError> {
+        let Some(first) = engines.first() else {
+            return Err(ServerError::EngineThread("no engine instance".into()));
+        };
+        if engines.iter().any(|e| e.info() != first.info()) {
+            return Err(ServerError::EngineThread(
+                "engine instances describe different models".into(),
+            ));
+        }
         let identity = match &settings.tls {
             TlsSource::Files { cert, key } => ServerIdentity::from_pem_files(cert, key)?,
             TlsSource::SelfSigned { names } => ServerIdentity::self_signed(names)?,
@@ -188,7 +212,7 @@ impl Server {
             fingerprint,
             metrics,
             metrics_listener,
-            engine,
+            engines,
             settings,
         })
     }
@@ -217,7 +241,7 @@ impl Server {
 
     /// The model being served.
     pub fn model(&self) -> &ModelInfo {
-        self.engine.info()
+        self.engines[0].info()
     }
 
     /// Serves clients until `shutdown` resolves, then drains: stop accepting,
@@ -229,20 +253,27 @@ impl Server {
             fingerprint,
             metrics,
             metrics_listener,
-            engine,
+            engines,
             settings,
         } = self;
-        let model = engine.info().clone();
+        let model = engines[0].info().clone();
         let (stop_tx, stop_rx) = watch::channel(false);
 
-        // Engine thread, fed by the scheduler.
-        let (job_tx, job_rx) = std::sync::mpsc::sync_channel::<Batch<FrameJob>>(1);
-        let (done_tx, done_rx) = mpsc::unbounded_channel::<()>();
-        let engine_metrics = Arc::clone(&metrics);
-        let engine_thread = std::thread::Builder::new()
-            .name("holoface-engine".into())
-            .spawn(move || engine_loop(engine, &job_rx, &done_tx, &engine_metrics))
-            .map_err(io_err("starting the engine thread"))?;
+        // Engine threads, one per instance, fed by the scheduler; each reports its index when done.
+        let (done_tx, done_rx) = mpsc::unbounded_channel::<usize>();
+        let mut job_txs = Vec::with_capacity(engines.len());
+        let mut engine_threads = Vec::with_capacity(engines.len());
+        for (index, engine) in engines.into_iter().enumerate() {
+            let (job_tx, job_rx) = std::sync::mpsc::sync_channel::<Batch<FrameJob>>(1);
+            let (done_tx, engine_metrics) = (done_tx.clone(), Arc::clone(&metrics));
+            let thread = std::thread::Builder::new()
+                .name(format!("holoface-engine-{index}"))
+                .spawn(move || engine_loop(engine, index, &job_rx, &done_tx, &engine_metrics))
+                .map_err(io_err("starting an engine thread"))?;
+            job_txs.push(job_tx);
+            engine_threads.push(thread);
+        }
+        drop(done_tx);
 
         let sched_capacity = settings
             .max_clients
@@ -252,7 +283,7 @@ impl Server {
         let scheduler = tokio::spawn(scheduler_loop(
             DynamicBatcher::new(settings.batch),
             sched_rx,
-            job_tx,
+            job_txs,
             done_rx,
             stop_rx.clone(),
             Arc::clone(&metrics),
@@ -351,11 +382,18 @@ impl Server {
         if let Some(task) = internal_task {
             task.abort();
         }
-        // The scheduler owned the job sender; the engine thread ends with it.
-        let joined = tokio::task::spawn_blocking(move || engine_thread.join()).await;
+        // The scheduler owned the job senders; the engine threads end with them.
+        let joined = tokio::task::spawn_blocking(move || {
+            engine_threads
+                .into_iter()
+                .map(std::thread::JoinHandle::join)
+                .filter(Result::is_err)
+                .count()
+        })
+        .await;
         match joined {
-            Ok(Ok(())) => {}
-            Ok(Err(_)) => return Err(ServerError::EngineThread("panicked".into())),
+            Ok(0) => {}
+            Ok(n) => return Err(ServerError::EngineThread(format!("{n} engine threads panicked"))),
             Err(e) => return Err(ServerError::EngineThread(e.to_string())),
         }
         info!("shutdown complete");

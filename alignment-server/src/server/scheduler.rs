@@ -40,12 +40,14 @@ pub(super) enum SchedMsg {
 pub(super) async fn scheduler_loop(
     mut batcher: DynamicBatcher<FrameJob>,
     mut rx: mpsc::Receiver<SchedMsg>,
-    job_tx: std::sync::mpsc::SyncSender<Batch<FrameJob>>,
-    mut done_rx: mpsc::UnboundedReceiver<()>,
+    job_txs: Vec<std::sync::mpsc::SyncSender<Batch<FrameJob>>>,
+    mut done_rx: mpsc::UnboundedReceiver<usize>,
     mut stop: watch::Receiver<bool>,
     metrics: Arc<Metrics>,
 ) {
-    let mut busy = false;
+    // Engine instances free for a batch (all of them at first); a batch goes to the last one freed.
+    let mut idle: Vec<usize> = (0..job_txs.len()).rev().collect();
+    let instances = job_txs.len();
     let mut inputs_open = true;
     let now = || tokio::time::Instant::now().into_std();
     loop {
@@ -53,7 +55,11 @@ pub(super) async fn scheduler_loop(
             metrics.count_drop(d.reason);
             let _ = d.item.payload.reply.send(FrameOutcome::Dropped(d.reason));
         }
-        let batch = if busy { None } else { batcher.poll_batch(now()) };
+        let busy = idle.len() < instances;
+        let batch = match idle.last() {
+            Some(_) => batcher.poll_batch(now()),
+            None => None,
+        };
         metrics
             .queued_frames
             .store(batcher.len() as i64, Ordering::Relaxed);
@@ -63,20 +69,26 @@ pub(super) async fn scheduler_loop(
                     .queue_wait_us
                     .observe_duration(batch.formed_at.saturating_duration_since(item.arrived));
             }
-            if job_tx.send(batch).is_err() {
-                warn!("engine thread is gone; dropping queued frames");
+            let Some(engine) = idle.pop() else { continue };
+            if let Err(std::sync::mpsc::SendError(batch)) = job_txs[engine].send(batch) {
+                warn!(engine, "engine thread is gone; dropping queued frames");
+                for item in batch.items {
+                    metrics.count_drop(DropReason::Overloaded);
+                    let _ = item
+                        .payload
+                        .reply
+                        .send(FrameOutcome::Dropped(DropReason::Overloaded));
+                }
                 batcher.start_drain();
-                continue;
             }
-            busy = true;
             continue;
         }
         if (batcher.is_draining() || !inputs_open) && !busy && batcher.is_empty() {
             break;
         }
-        // While the engine is busy only expiries can be acted on; arming the
+        // While every engine is busy only expiries can be acted on; arming the
         // (already passed) flush time would spin this loop.
-        let timeout = if busy {
+        let timeout = if idle.is_empty() {
             batcher.next_expiry()
         } else {
             batcher.poll_timeout()
@@ -93,10 +105,11 @@ pub(super) async fn scheduler_loop(
                     batcher.start_drain();
                 }
             },
-            done = done_rx.recv(), if busy => {
-                busy = false;
-                if done.is_none() {
-                    warn!("engine thread stopped");
+            done = done_rx.recv(), if busy => match done {
+                Some(engine) => idle.push(engine),
+                None => {
+                    warn!("engine threads stopped");
+                    idle = (0..instances).collect();
                     batcher.start_drain();
                     inputs_open = false;
                 }
@@ -150,17 +163,32 @@ mod tests {
 
     impl Harness {
         fn start(policy: BatchPolicy) -> Self {
+            let (h, _) = Self::with_engines(policy, 4, vec![Box::new(FakeEngine::new(4))]);
+            h
+        }
+
+        /// The scheduler over these engine instances; the extra join handles are the other instances'.
+        fn with_engines(
+            policy: BatchPolicy,
+            max_batch: usize,
+            engines: Vec<Box<dyn holoface_inference::InferenceEngine>>,
+        ) -> (Self, Vec<std::thread::JoinHandle<()>>) {
             let metrics = Arc::new(Metrics::new(4));
-            let (job_tx, job_rx) = std::sync::mpsc::sync_channel(1);
             let (done_tx, done_rx) = mpsc::unbounded_channel();
-            let engine_metrics = Arc::clone(&metrics);
-            let engine = std::thread::spawn(move || {
-                engine_loop(Box::new(FakeEngine::new(4)), &job_rx, &done_tx, &engine_metrics);
-            });
+            let mut job_txs = Vec::new();
+            let mut threads = Vec::new();
+            for (i, engine) in engines.into_iter().enumerate() {
+                let (job_tx, job_rx) = std::sync::mpsc::sync_channel(1);
+                let (done_tx, engine_metrics) = (done_tx.clone(), Arc::clone(&metrics));
+                threads.push(std::thread::spawn(move || {
+                    engine_loop(engine, i, &job_rx, &done_tx, &engine_metrics);
+                }));
+                job_txs.push(job_tx);
+            }
             let (tx, rx) = mpsc::channel(16);
             let (stop_tx, stop_rx) = watch::channel(false);
             let batcher = DynamicBatcher::new(BatcherConfig {
-                max_batch: 4,
+                max_batch,
                 policy,
                 per_client_queue: 1,
                 max_queued: 100,
@@ -168,19 +196,100 @@ mod tests {
             let sched = tokio::spawn(scheduler_loop(
                 batcher,
                 rx,
-                job_tx,
+                job_txs,
                 done_rx,
                 stop_rx,
                 Arc::clone(&metrics),
             ));
-            Self {
+            let engine = threads.remove(0);
+            let h = Self {
                 tx,
                 stop_tx,
                 sched,
                 engine,
                 metrics,
-            }
+            };
+            (h, threads)
         }
+    }
+
+    /// A fake engine that says when a batch starts and holds it until released.
+    struct Gated {
+        inner: FakeEngine,
+        started: std::sync::mpsc::Sender<usize>,
+        release: Arc<std::sync::Mutex<std::sync::mpsc::Receiver<()>>>,
+    }
+
+    impl holoface_inference::InferenceEngine for Gated {
+        fn info(&self) -> &holoface_inference::ModelInfo {
+            self.inner.info()
+        }
+        fn max_batch(&self) -> usize {
+            self.inner.max_batch()
+        }
+        fn infer(
+            &mut self,
+            input: &holoface_inference::BatchTensor,
+            out: &mut [holoface_inference::LandmarkOut],
+        ) -> Result<(), holoface_inference::EngineError> {
+            let _ = self.started.send(input.len());
+            let release = self.release.lock().unwrap();
+            let _ = release.recv_timeout(Duration::from_secs(10));
+            drop(release);
+            self.inner.infer(input, out)
+        }
+    }
+
+    /// Two engine instances: while one is busy with a batch, the next batch goes to the other at once
+    /// (both are inside `infer` together), and every frame is answered.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn two_engine_instances_run_two_batches_at_once() {
+        let (started_tx, started_rx) = std::sync::mpsc::channel();
+        let mut releases = Vec::new();
+        let mut engines: Vec<Box<dyn holoface_inference::InferenceEngine>> = Vec::new();
+        for _ in 0..2 {
+            let (tx, rx) = std::sync::mpsc::channel();
+            releases.push(tx);
+            engines.push(Box::new(Gated {
+                inner: FakeEngine::new(1),
+                started: started_tx.clone(),
+                release: Arc::new(std::sync::Mutex::new(rx)),
+            }));
+        }
+        let (h, others) = Harness::with_engines(BatchPolicy::WorkConserving, 1, engines);
+        let now = Instant::now();
+        let mut replies = Vec::new();
+        for client in 0..2_u8 {
+            let (msg, reply) = submit(u64::from(client), client, now);
+            h.tx.send(msg).await.unwrap();
+            replies.push(reply);
+        }
+        let both = tokio::task::spawn_blocking(move || {
+            (0..2)
+                .map(|_| started_rx.recv_timeout(Duration::from_secs(5)))
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .await
+        .unwrap();
+        assert_eq!(
+            both.unwrap(),
+            [1, 1],
+            "both instances were inside infer at the same time"
+        );
+        for r in &releases {
+            r.send(()).unwrap();
+        }
+        for reply in replies {
+            assert!(matches!(reply.await.unwrap(), FrameOutcome::Landmarks { .. }));
+        }
+        h.stop_tx.send(true).unwrap();
+        drop(h.tx);
+        h.sched.await.unwrap();
+        h.engine.join().unwrap();
+        for t in others {
+            t.join().unwrap();
+        }
+        assert_eq!(h.metrics.batch_size.count(), 2);
     }
 
     /// The driver around the batcher and the engine thread, with the fake

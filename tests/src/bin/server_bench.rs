@@ -46,6 +46,9 @@ struct Cli {
     /// Intra-op threads (server and raw baseline).
     #[arg(long, global = true, default_value_t = 2)]
     threads: usize,
+    /// The server's engine instances (each with `--threads` intra-op threads).
+    #[arg(long, global = true, default_value_t = 1)]
+    engine_instances: usize,
     /// ONNX Runtime intra-op spinning (server and raw baseline).
     #[arg(long, global = true)]
     spin: bool,
@@ -193,6 +196,7 @@ impl ServerChild {
             .arg("--ort-dylib")
             .arg(dylib(cli))
             .args(["--intra-threads", &cli.threads.to_string()])
+            .args(["--engine-instances", &cli.engine_instances.to_string()])
             .args(["--spin", if cli.spin { "true" } else { "false" }])
             .args(["--metrics-listen", "127.0.0.1:0"])
             .args(["--batch-policy", &cli.batch_policy])
@@ -491,9 +495,17 @@ fn stage_p50(stages: &[Histogram<u64>; 3]) -> anyhow::Result<serde_json::Value> 
 }
 
 fn policy_label(cli: &Cli) -> String {
-    match cli.batch_policy.as_str() {
+    let policy = match cli.batch_policy.as_str() {
         "max-wait" => format!("max-wait {} us", cli.max_wait_us),
         other => other.to_owned(),
+    };
+    if cli.engine_instances > 1 {
+        format!(
+            "{policy}, {} engines x {} threads",
+            cli.engine_instances, cli.threads
+        )
+    } else {
+        policy
     }
 }
 
