@@ -182,19 +182,7 @@ fn write_y4m(path: &std::path::Path, frames: &[GrayImage]) {
 fn track_stdin(input: &std::path::Path, extra: &[&str]) -> (bool, String) {
     let mut args = vec!["track", "--source", "-", "--log", "warn"];
     args.extend(extra);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(&args)
-        .current_dir(common::workspace())
-        .stdin(std::fs::File::open(input).unwrap())
-        .output()
-        .unwrap();
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(!text.contains("panicked"), "panic: {text}");
-    (out.status.success(), text)
+    common::holoface_with_stdin(&args, Some(input))
 }
 
 #[test]

@@ -56,9 +56,10 @@ pub(super) async fn scheduler_loop(
             let _ = d.item.payload.reply.send(FrameOutcome::Dropped(d.reason));
         }
         let busy = idle.len() < instances;
-        let batch = match idle.last() {
-            Some(_) => batcher.poll_batch(now()),
-            None => None,
+        let batch = if idle.is_empty() {
+            None
+        } else {
+            batcher.poll_batch(now())
         };
         metrics
             .queued_frames

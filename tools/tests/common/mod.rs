@@ -11,12 +11,17 @@ pub(crate) fn workspace() -> PathBuf {
 
 /// Runs the `holoface` binary; returns success and stdout + stderr. Fails the test on a panic.
 pub(crate) fn holoface(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(args)
-        .current_dir(workspace())
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .unwrap();
+    holoface_with_stdin(args, None)
+}
+
+/// [`holoface`] with standard input read from `stdin` (none: inherited).
+pub(crate) fn holoface_with_stdin(args: &[&str], stdin: Option<&Path>) -> (bool, String) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_holoface"));
+    cmd.args(args).current_dir(workspace()).env("RUST_BACKTRACE", "0");
+    if let Some(path) = stdin {
+        cmd.stdin(std::fs::File::open(path).unwrap());
+    }
+    let out = cmd.output().unwrap();
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
