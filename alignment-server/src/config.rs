@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::batcher::{BatchPolicy, BatcherConfig};
 use crate::metrics_http::is_internal_addr;
-use holoface_inference::OnnxOptions;
+use holoface_inference::{OnnxOptions, Provider};
 
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
@@ -204,9 +204,17 @@ pub struct EngineConfig {
     /// ONNX Runtime intra-op threads [default: available cores].
     #[arg(long, env = "HOLOFACE_INTRA_THREADS")]
     pub intra_threads: Option<usize>,
-    /// Use the CUDA execution provider (needs the `cuda` build feature) [default: false].
+    /// Run the model on ONNX Runtime's CUDA execution provider; needs `ort_dylib` to be the onnxruntime-gpu
+    /// build (`make ort-gpu`), CUDA 13, cuDNN 9 and a GPU. Without them the CPU runs it and the log and
+    /// `holoface_engine_info` say why [default: false].
     #[arg(long, num_args = 0..=1, default_missing_value = "true")]
     pub cuda: Option<bool>,
+    /// The CUDA device ordinal [default: 0].
+    #[arg(long)]
+    pub cuda_device: Option<i32>,
+    /// With `cuda`: refuse to start instead of falling back to the CPU [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub cuda_required: Option<bool>,
     /// Let ONNX Runtime's intra-op threads spin between ops [default: false].
     #[arg(long, num_args = 0..=1, default_missing_value = "true")]
     pub spin: Option<bool>,
@@ -332,7 +340,18 @@ impl BatchConfig {
 }
 impl EngineConfig {
     fn merge(self, lo: Self) -> Self {
-        merge_fields!(self, lo, model, ort_dylib, intra_threads, cuda, spin, instances)
+        merge_fields!(
+            self,
+            lo,
+            model,
+            ort_dylib,
+            intra_threads,
+            cuda,
+            cuda_device,
+            cuda_required,
+            spin,
+            instances
+        )
     }
 }
 impl InternalConfig {
@@ -504,6 +523,30 @@ impl ServerConfig {
             .engine
             .ort_dylib
             .unwrap_or_else(holoface_inference::default_ort_dylib);
+        let provider = match (
+            self.engine.cuda.unwrap_or(false),
+            self.engine.cuda_device,
+            self.engine.cuda_required,
+        ) {
+            (true, device, required) => {
+                let device = device.unwrap_or(0);
+                if device < 0 {
+                    return Err(ConfigError::Invalid(format!(
+                        "engine.cuda_device {device} must be 0 or more"
+                    )));
+                }
+                Provider::Cuda {
+                    device,
+                    required: required.unwrap_or(false),
+                }
+            }
+            (false, Some(_), _) | (false, _, Some(true)) => {
+                return Err(ConfigError::Invalid(
+                    "engine.cuda_device and engine.cuda_required need engine.cuda = true".into(),
+                ));
+            }
+            (false, _, _) => Provider::Cpu,
+        };
         let engine_instances = self.engine.instances.unwrap_or(1);
         if !(1..=64).contains(&engine_instances) {
             return Err(invalid(format!(
@@ -541,7 +584,7 @@ impl ServerConfig {
                 ort_dylib,
                 intra_threads,
                 max_batch,
-                cuda: self.engine.cuda.unwrap_or(false),
+                provider,
                 spin: self.engine.spin.unwrap_or(false),
             },
             engine_instances,
@@ -752,6 +795,38 @@ mod tests {
         assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
         assert_eq!(s.metrics_listen, None);
         assert!(matches!(s.tls, TlsSource::SelfSigned { ref names } if names == &["localhost"]));
+    }
+
+    #[test]
+    fn cuda_settings_resolve_to_a_provider() {
+        let parse = |toml: &'static str| {
+            ServerConfig::parse_and_merge(["x", "-c", "f.toml", "--token", "t"], move |_| Ok(toml.into()))
+                .and_then(ServerConfig::resolve)
+                .map(|s| s.engine.provider)
+        };
+        assert_eq!(parse("").unwrap(), Provider::Cpu);
+        assert_eq!(
+            parse("[engine]\ncuda = true\n").unwrap(),
+            Provider::Cuda {
+                device: 0,
+                required: false
+            }
+        );
+        assert_eq!(
+            parse("[engine]\ncuda = true\ncuda_device = 1\ncuda_required = true\n").unwrap(),
+            Provider::Cuda {
+                device: 1,
+                required: true
+            }
+        );
+        for bad in ["[engine]\ncuda_device = 1\n", "[engine]\ncuda_required = true\n"] {
+            let e = parse(bad).unwrap_err().to_string();
+            assert!(e.contains("need engine.cuda = true"), "{bad}: {e}");
+        }
+        let e = parse("[engine]\ncuda = true\ncuda_device = -1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cuda_device -1"), "{e}");
     }
 
     #[test]

@@ -6,6 +6,7 @@ use std::fmt::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::time::Duration;
 
+use holoface_inference::{Execution, ModelInfo};
 use holoface_protocol::{CloseCode, DropReason};
 
 /// A Prometheus histogram with fixed upper bounds, in integer units.
@@ -122,6 +123,13 @@ pub struct Metrics {
     pub ready: AtomicBool,
     /// Shutdown has started.
     pub draining: AtomicBool,
+    /// The `holoface_engine_info` labels, set once the engine is loaded.
+    engine_info: std::sync::OnceLock<String>,
+}
+
+/// A Prometheus label value: backslash, double quote and newline escaped.
+fn label_value(v: &str) -> String {
+    v.replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n")
 }
 
 impl Metrics {
@@ -155,7 +163,20 @@ impl Metrics {
             client_lost_packets: AtomicU64::new(0),
             ready: AtomicBool::new(false),
             draining: AtomicBool::new(false),
+            engine_info: std::sync::OnceLock::new(),
         }
+    }
+
+    /// Records what the server runs, for `holoface_engine_info` (the first call wins).
+    pub fn set_engine_info(&self, model: &ModelInfo, execution: &Execution, instances: usize) {
+        let _ = self.engine_info.set(format!(
+            "model=\"{}\",version=\"{}\",precision=\"{}\",provider=\"{}\",fallback=\"{}\",instances=\"{instances}\"",
+            label_value(&model.name),
+            label_value(&model.version),
+            label_value(&model.precision),
+            label_value(&execution.provider),
+            execution.fallback.is_some(),
+        ));
     }
 
     /// Counts a dropped frame.
@@ -205,6 +226,14 @@ impl Metrics {
         let counter = |out: &mut String, name: &str, help: &str, v: u64| {
             let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
         };
+        if let Some(labels) = self.engine_info.get() {
+            let _ = writeln!(
+                out,
+                "# HELP holoface_engine_info The model and the ONNX Runtime execution provider running it \
+                 (fallback=\"true\": the requested GPU provider could not run; the log says why).\n\
+                 # TYPE holoface_engine_info gauge\nholoface_engine_info{{{labels}}} 1"
+            );
+        }
         gauge(
             &mut out,
             "holoface_connected_clients",
@@ -362,6 +391,28 @@ mod tests {
         assert!(out.contains("x_bucket{le=\"10\"} 2\n"), "{out}");
         assert!(out.contains("x_bucket{le=\"+Inf\"} 3\n"), "{out}");
         assert!(out.contains("x_sum 56\n") && out.contains("x_count 3\n"), "{out}");
+    }
+
+    #[test]
+    fn engine_info_names_the_provider_and_escapes_labels() {
+        let m = Metrics::new(8);
+        assert!(!m.render().contains("holoface_engine_info"), "no engine yet");
+        use holoface_inference::InferenceEngine as _;
+        let mut model = holoface_inference::engine::FakeEngine::new(1).info().clone();
+        model.name = "da\"n".into();
+        let execution = Execution {
+            fallback: Some("no libcudart".into()),
+            ..Execution::cpu()
+        };
+        m.set_engine_info(&model, &execution, 2);
+        let text = m.render();
+        assert!(
+            text.contains(
+                "holoface_engine_info{model=\"da\\\"n\",version=\"0\",precision=\"fp32\",\
+                 provider=\"CPUExecutionProvider\",fallback=\"true\",instances=\"2\"} 1\n"
+            ),
+            "{text}"
+        );
     }
 
     #[test]

@@ -14,7 +14,8 @@
 //! * metadata `holoface.name`, `holoface.version`, `holoface.landmarks` (L),
 //!   `holoface.crop_size` (S), `holoface.mean_shape` (JSON list of L `[x, y]`),
 //!   `holoface.face_threshold`; optional `holoface.licence`,
-//!   `holoface.untrained`.
+//!   `holoface.untrained`, `holoface.precision` (`fp32` when absent; `fp16` for
+//!   `models/dan/to_fp16.py`'s half-precision graph, same inputs and outputs).
 //!
 //! Everything is checked at load ([`validate_io`], [`ModelInfo::from_metadata`])
 //! with an error that names the offending tensor, dimension or key.
@@ -53,6 +54,9 @@ pub struct ModelInfo {
     pub licence: Option<String>,
     /// `holoface.untrained == "true"` (a random-weights development model).
     pub untrained: bool,
+    /// `holoface.precision`: the arithmetic inside the graph (`fp32` when absent, `fp16`); the inputs and
+    /// outputs are the contract's either way.
+    pub precision: String,
 }
 
 impl ModelInfo {
@@ -126,6 +130,13 @@ impl ModelInfo {
                     key: "holoface.face_threshold",
                     problem: format!("{thr:?} is not a finite number"),
                 })?;
+        let precision = get("holoface.precision").map_or_else(|| "fp32".to_owned(), |v| v.trim().to_owned());
+        if !matches!(precision.as_str(), "fp32" | "fp16") {
+            return Err(EngineError::BadMetadata {
+                key: "holoface.precision",
+                problem: format!("{precision:?} is neither \"fp32\" nor \"fp16\""),
+            });
+        }
         Ok(Self {
             name,
             version,
@@ -135,6 +146,7 @@ impl ModelInfo {
             face_threshold,
             licence: get("holoface.licence"),
             untrained: get("holoface.untrained").is_some_and(|v| v.trim() == "true"),
+            precision,
         })
     }
 
@@ -354,6 +366,14 @@ pub trait InferenceEngine: Send {
     fn max_batch(&self) -> usize;
     /// Runs `input` (`input.len()` crops) and fills `out[..input.len()]`.
     fn infer(&mut self, input: &BatchTensor, out: &mut [LandmarkOut]) -> Result<(), EngineError>;
+    /// What runs the model (the execution provider, and why it is not the requested one if it is not).
+    fn execution(&self) -> Execution {
+        Execution {
+            provider: "in-process engine".into(),
+            device: None,
+            fallback: None,
+        }
+    }
 }
 
 impl std::fmt::Debug for dyn InferenceEngine {
@@ -361,6 +381,64 @@ impl std::fmt::Debug for dyn InferenceEngine {
         write!(f, "InferenceEngine({} {})", self.info().name, self.info().version)
     }
 }
+
+/// The ONNX Runtime execution provider an [`OnnxEngine`] is asked to run the model on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Provider {
+    /// ONNX Runtime's CPU execution provider (any `libonnxruntime`).
+    #[default]
+    Cpu,
+    /// The CUDA execution provider on GPU `device`; needs the CUDA build of ONNX Runtime (the
+    /// `onnxruntime-gpu` wheel's library, `make ort-gpu`), CUDA 13 and cuDNN 9. When it cannot run, the
+    /// engine falls back to the CPU and says why ([`Execution::fallback`]), unless `required`.
+    Cuda {
+        /// The CUDA device ordinal.
+        device: i32,
+        /// Fail to load instead of falling back to the CPU.
+        required: bool,
+    },
+}
+
+/// What actually runs a loaded engine's model.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Execution {
+    /// The execution provider's ONNX Runtime name (`CPUExecutionProvider`, `CUDAExecutionProvider`), or the
+    /// test engine's name.
+    pub provider: String,
+    /// The GPU ordinal, when the provider is a GPU's.
+    pub device: Option<i32>,
+    /// Why the requested provider is not the one running (the CPU took over), if it is not.
+    pub fallback: Option<String>,
+}
+
+impl Execution {
+    /// The CPU execution provider, as asked.
+    pub fn cpu() -> Self {
+        Self {
+            provider: CPU_PROVIDER.into(),
+            device: None,
+            fallback: None,
+        }
+    }
+}
+
+impl std::fmt::Display for Execution {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.provider)?;
+        if let Some(d) = self.device {
+            write!(f, " (device {d})")?;
+        }
+        if let Some(why) = &self.fallback {
+            write!(f, ", falling back from the requested provider: {why}")?;
+        }
+        Ok(())
+    }
+}
+
+/// ONNX Runtime's name of its CPU execution provider.
+pub const CPU_PROVIDER: &str = "CPUExecutionProvider";
+/// ONNX Runtime's name of its CUDA execution provider.
+pub const CUDA_PROVIDER: &str = "CUDAExecutionProvider";
 
 /// ONNX Runtime engine settings.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -373,8 +451,8 @@ pub struct OnnxOptions {
     pub intra_threads: usize,
     /// Largest batch.
     pub max_batch: usize,
-    /// Register the CUDA execution provider (needs the `cuda` feature).
-    pub cuda: bool,
+    /// The execution provider to run on.
+    pub provider: Provider,
     /// Let ONNX Runtime's intra-op threads spin between ops. Off by default:
     /// the engine shares the cores with the QUIC driver, and spinning threads
     /// starve it (and each other) on a small or loaded machine.
@@ -387,6 +465,7 @@ pub struct OnnxEngine {
     session: ort::session::Session,
     info: ModelInfo,
     max_batch: usize,
+    execution: Execution,
     _env: ort::environment::Environment,
 }
 
@@ -424,17 +503,32 @@ impl OnnxEngine {
             });
         }
         let env = load_runtime(&opts.ort_dylib)?;
-        let mut builder = ort::session::Session::builder(&env)?
-            .with_intra_threads(opts.intra_threads.max(1))
-            .map_err(ort::Error::from)?
-            .with_inter_threads(1)
-            .map_err(ort::Error::from)?
-            .with_intra_op_spinning(opts.spin)
-            .map_err(ort::Error::from)?;
-        if opts.cuda {
-            builder = with_cuda(builder)?;
-        }
-        let session = builder.commit_from_file(&opts.model)?;
+        let (session, execution) = match opts.provider {
+            Provider::Cpu => (cpu_session(&env, opts)?, Execution::cpu()),
+            Provider::Cuda { device, required } => match cuda_session(&env, opts, device) {
+                Ok(session) => (
+                    session,
+                    Execution {
+                        provider: CUDA_PROVIDER.into(),
+                        device: Some(device),
+                        fallback: None,
+                    },
+                ),
+                Err(why) if required => {
+                    return Err(EngineError::ProviderUnavailable {
+                        provider: CUDA_PROVIDER,
+                        detail: why,
+                    });
+                }
+                Err(why) => (
+                    cpu_session(&env, opts)?,
+                    Execution {
+                        fallback: Some(why),
+                        ..Execution::cpu()
+                    },
+                ),
+            },
+        };
         let info = {
             let meta = session.metadata()?;
             ModelInfo::from_metadata(|k| meta.custom(k))?
@@ -446,30 +540,89 @@ impl OnnxEngine {
             session,
             info,
             max_batch: opts.max_batch.max(1),
+            execution,
             _env: env,
         })
     }
 }
 
-#[cfg(feature = "cuda")]
-fn with_cuda(
-    builder: ort::session::builder::SessionBuilder,
+/// A session builder with the options every provider shares.
+fn session_builder(
+    env: &ort::environment::Environment,
+    opts: &OnnxOptions,
 ) -> Result<ort::session::builder::SessionBuilder, EngineError> {
-    Ok(builder
-        .with_execution_providers([ort::ep::CUDA::default().build().error_on_failure()])
+    Ok(ort::session::Session::builder(env)?
+        .with_intra_threads(opts.intra_threads.max(1))
+        .map_err(ort::Error::from)?
+        .with_inter_threads(1)
+        .map_err(ort::Error::from)?
+        .with_intra_op_spinning(opts.spin)
         .map_err(ort::Error::from)?)
 }
 
+fn cpu_session(
+    env: &ort::environment::Environment,
+    opts: &OnnxOptions,
+) -> Result<ort::session::Session, EngineError> {
+    Ok(session_builder(env, opts)?.commit_from_file(&opts.model)?)
+}
+
+/// A CUDA session, or why there is none: the library is the CPU build, the provider or the CUDA/cuDNN
+/// libraries it links cannot be loaded, or there is no usable GPU.
+#[cfg(feature = "cuda")]
+fn cuda_session(
+    env: &ort::environment::Environment,
+    opts: &OnnxOptions,
+    device: i32,
+) -> Result<ort::session::Session, String> {
+    use ort::ep::ExecutionProvider as _;
+    match ort::ep::CUDA::is_available() {
+        Ok(true) => {}
+        Ok(false) => {
+            return Err(format!(
+                "{} is a build of ONNX Runtime without the CUDA execution provider (use the onnxruntime-gpu \
+                 wheel's library: `make ort-gpu`, then engine.ort_dylib = .cache/onnxruntime-gpu/…)",
+                opts.ort_dylib.display()
+            ));
+        }
+        Err(e) => return Err(format!("asking ONNX Runtime for its providers: {e}")),
+    }
+    let builder = session_builder(env, opts).map_err(|e| e.to_string())?;
+    let mut builder = builder
+        .with_execution_providers([ort::ep::CUDA::default()
+            .with_device_id(device)
+            .build()
+            .error_on_failure()])
+        .map_err(|e| {
+            format!(
+                "registering the CUDA execution provider on device {device}: {}",
+                e.to_string().trim_end()
+            )
+        })?;
+    builder.commit_from_file(&opts.model).map_err(|e| {
+        format!(
+            "creating a CUDA session on device {device}: {}",
+            e.to_string().trim_end()
+        )
+    })
+}
+
 #[cfg(not(feature = "cuda"))]
-fn with_cuda(
-    _builder: ort::session::builder::SessionBuilder,
-) -> Result<ort::session::builder::SessionBuilder, EngineError> {
-    Err(EngineError::CudaNotCompiled)
+fn cuda_session(
+    _env: &ort::environment::Environment,
+    _opts: &OnnxOptions,
+    _device: i32,
+) -> Result<ort::session::Session, String> {
+    Err("this build of holoface has no `cuda` feature".into())
 }
 
 impl InferenceEngine for OnnxEngine {
     fn info(&self) -> &ModelInfo {
         &self.info
+    }
+
+    fn execution(&self) -> Execution {
+        self.execution.clone()
     }
 
     fn max_batch(&self) -> usize {
@@ -550,6 +703,7 @@ impl FakeEngine {
                 face_threshold: 0.5,
                 licence: None,
                 untrained: true,
+                precision: "fp32".into(),
             },
             max_batch,
             batches: Vec::new(),
@@ -639,6 +793,10 @@ mod tests {
         assert_eq!(info.face_threshold, 0.5);
         assert!(info.untrained);
         assert_eq!(info.licence, None);
+        assert_eq!(info.precision, "fp32", "absent means fp32");
+        let mut m = meta();
+        m.insert("holoface.precision", "fp16".into());
+        assert_eq!(info_of(&m).unwrap().precision, "fp16");
     }
 
     #[test]
@@ -658,6 +816,10 @@ mod tests {
         let mut m = meta();
         m.insert("holoface.face_threshold", "NaN".into());
         assert!(info_of(&m).unwrap_err().to_string().contains("face_threshold"));
+        let mut m = meta();
+        m.insert("holoface.precision", "int4".into());
+        let e = info_of(&m).unwrap_err().to_string();
+        assert!(e.contains("holoface.precision") && e.contains("int4"), "{e}");
         let mut m = meta();
         m.insert("holoface.landmarks", "500".into());
         assert!(
@@ -731,7 +893,7 @@ mod tests {
             ort_dylib: "/nonexistent/libonnxruntime.so".into(),
             intra_threads: 1,
             max_batch: 1,
-            cuda: false,
+            provider: Provider::Cpu,
             spin: false,
         };
         let e = OnnxEngine::load(&opts).unwrap_err().to_string();
@@ -747,7 +909,7 @@ mod tests {
             ort_dylib: "/nonexistent/libonnxruntime.so".into(),
             intra_threads: 1,
             max_batch: 1,
-            cuda: false,
+            provider: Provider::Cpu,
             spin: false,
         };
         let e = OnnxEngine::load(&opts).unwrap_err().to_string();

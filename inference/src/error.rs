@@ -57,9 +57,14 @@ pub enum EngineError {
         /// What is wrong with it.
         problem: String,
     },
-    /// The CUDA execution provider was requested but is not compiled in.
-    #[error("the CUDA execution provider was requested but this build has no `cuda` feature")]
-    CudaNotCompiled,
+    /// The requested execution provider cannot run the model, and falling back to the CPU was not allowed.
+    #[error("{provider} is required (engine.cuda_required) but cannot run: {detail}")]
+    ProviderUnavailable {
+        /// ONNX Runtime's name of the provider.
+        provider: &'static str,
+        /// Why it cannot run.
+        detail: String,
+    },
     /// A batch larger than the engine's maximum, or with a wrong output slice.
     #[error("batch of {len} does not fit (max {max})")]
     BatchTooLarge {

@@ -13,6 +13,9 @@ pub mod engine;
 pub mod error;
 pub mod runtime;
 
-pub use engine::{BatchTensor, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine, OnnxOptions};
+pub use engine::{
+    BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, Execution, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine,
+    OnnxOptions, Provider,
+};
 pub use error::EngineError;
 pub use runtime::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

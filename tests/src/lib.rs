@@ -84,6 +84,26 @@ pub fn ort_dylib_path() -> PathBuf {
     }
 }
 
+/// ONNX Runtime's CUDA build (the `onnxruntime-gpu` wheel's library, `make ort-gpu`):
+/// `$HOLOFACE_ORT_GPU_DYLIB`, else `.cache/onnxruntime-gpu/`.
+///
+/// # Panics
+/// If it is not there (the fail-over tests must fail, not skip, without it).
+pub fn ort_gpu_dylib_path() -> PathBuf {
+    let path = std::env::var_os("HOLOFACE_ORT_GPU_DYLIB")
+        .filter(|v| !v.is_empty())
+        .map_or_else(
+            || workspace_root().join(".cache/onnxruntime-gpu/libonnxruntime.so.1.31.1"),
+            PathBuf::from,
+        );
+    assert!(
+        path.is_file(),
+        "ONNX Runtime's CUDA build not found at {} (run `make ort-gpu` or set HOLOFACE_ORT_GPU_DYLIB)",
+        path.display()
+    );
+    path
+}
+
 /// Loopback settings with the real model and runtime, 1 intra-op thread.
 pub fn loopback_settings() -> Settings {
     let mut s = match Settings::for_loopback(TEST_TOKEN, model_path(), ort_dylib_path()) {

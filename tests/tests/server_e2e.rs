@@ -649,3 +649,78 @@ async fn shutdown_is_bounded_and_closes_shutting_down_when_a_client_ignores_goaw
         sent - 2
     );
 }
+
+#[test]
+fn cuda_on_the_cpu_library_falls_back_naming_the_gpu_build() {
+    let mut opts = loopback_settings().engine;
+    opts.provider = holoface_inference::Provider::Cuda {
+        device: 0,
+        required: false,
+    };
+    let engine = OnnxEngine::load(&opts).unwrap();
+    let execution = engine.execution();
+    assert_eq!(execution.provider, holoface_inference::CPU_PROVIDER);
+    let why = execution.fallback.unwrap_or_default();
+    assert!(
+        why.contains("without the CUDA execution provider") && why.contains("make ort-gpu"),
+        "{why}"
+    );
+}
+
+/// The half-precision DAN (`make dan-fp16`): `$HOLOFACE_DAN_FP16_MODEL`, else `.cache/models/`.
+fn fp16_model() -> std::path::PathBuf {
+    let path = std::env::var_os("HOLOFACE_DAN_FP16_MODEL")
+        .filter(|v| !v.is_empty())
+        .map_or_else(
+            || holoface_e2e::workspace_root().join(".cache/models/dan.fp16.onnx"),
+            std::path::PathBuf::from,
+        );
+    assert!(
+        path.is_file(),
+        "fp16 DAN not found at {} (run `make dan-fp16`)",
+        path.display()
+    );
+    path
+}
+
+#[test]
+fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
+    let mut opts = loopback_settings().engine;
+    opts.max_batch = 4;
+    let mut fp32 = OnnxEngine::load(&opts).unwrap();
+    opts.model = fp16_model();
+    let mut fp16 = OnnxEngine::load(&opts).unwrap();
+    assert_eq!(
+        (fp32.info().precision.as_str(), fp16.info().precision.as_str()),
+        ("fp32", "fp16")
+    );
+    assert_eq!(
+        fp16.info().mean_shape,
+        fp32.info().mean_shape,
+        "same model, same contract"
+    );
+    let mut batch = BatchTensor::new(4, 112 * 112);
+    for seed in [0, 60, 120, 180] {
+        batch.push(&frame(0, seed, 0).crop.data).unwrap();
+    }
+    let mut a = vec![LandmarkOut::default(); 4];
+    let mut b = vec![LandmarkOut::default(); 4];
+    fp32.infer(&batch, &mut a).unwrap();
+    fp16.infer(&batch, &mut b).unwrap();
+    for (x, y) in a.iter().zip(&b) {
+        assert!(y.problem(68).is_none());
+        let shift = x
+            .landmarks
+            .iter()
+            .zip(&y.landmarks)
+            .map(|(p, q)| (p[0] - q[0]).hypot(p[1] - q[1]))
+            .fold(0.0_f32, f32::max);
+        assert!(shift < 0.5, "fp16 moved a landmark by {shift} px");
+        assert!(
+            (x.face_prob - y.face_prob).abs() < 1e-2,
+            "{} vs {}",
+            x.face_prob,
+            y.face_prob
+        );
+    }
+}

@@ -49,7 +49,7 @@ impl RuntimeArgs {
             ort_dylib: self.ort_dylib.clone(),
             intra_threads: self.threads,
             max_batch: 1,
-            cuda: false,
+            provider: holoface_inference::Provider::Cpu,
             spin: false,
         })
         .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;

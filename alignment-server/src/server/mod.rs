@@ -147,15 +147,25 @@ impl Server {
         .await
         .map_err(|e| ServerError::EngineThread(e.to_string()))??;
         let info = engines[0].info();
+        let execution = engines[0].execution();
         info!(
             model = %settings.engine.model.display(),
             name = %info.name,
             version = %info.version,
+            precision = %info.precision,
             untrained = info.untrained,
+            provider = %execution.provider,
+            device = ?execution.device,
             intra_threads = settings.engine.intra_threads,
             engine_instances = instances,
             "model loaded"
         );
+        if let Some(why) = &execution.fallback {
+            warn!(
+                "the CUDA execution provider was requested but cannot run, so the CPU runs the model \
+                 (set engine.cuda_required = true to refuse to start instead): {why}"
+            );
+        }
         if info.untrained {
             warn!("the model is marked untrained (random weights): landmarks are meaningless");
         }
@@ -207,6 +217,7 @@ impl Server {
             None => None,
         };
         let metrics = Arc::new(Metrics::new(settings.batch.max_batch));
+        metrics.set_engine_info(first.info(), &first.execution(), engines.len());
         Ok(Self {
             endpoint,
             fingerprint,

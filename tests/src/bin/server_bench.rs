@@ -52,6 +52,10 @@ struct Cli {
     /// ONNX Runtime intra-op spinning (server and raw baseline).
     #[arg(long, global = true)]
     spin: bool,
+    /// Run the model on the CUDA execution provider (server and raw baseline; `--ort-dylib` must be the
+    /// onnxruntime-gpu build). Required, never a silent CPU fallback: the run fails without a GPU.
+    #[arg(long, global = true)]
+    cuda: bool,
     /// The server's batching policy (`work-conserving`, or `max-wait` with `--max-wait-us`).
     #[arg(long, global = true, default_value = "work-conserving")]
     batch_policy: String,
@@ -88,6 +92,9 @@ enum Cmd {
         batches: Vec<usize>,
         #[arg(long, default_value_t = 8.0)]
         seconds: f64,
+        /// Start a call every this many ms (as a camera would) instead of back to back; 0 = back to back.
+        #[arg(long, default_value_t = 0.0)]
+        pace_ms: f64,
     },
     /// Saturated server throughput versus raw ORT at the same batch size.
     Throughput {
@@ -151,13 +158,33 @@ fn record(cli: &Cli, value: &serde_json::Value) -> anyhow::Result<()> {
 }
 
 /// Raw ORT: images per second at `batch` for about `seconds`.
-fn raw_ort(cli: &Cli, batch: usize, seconds: f64) -> anyhow::Result<(f64, f64)> {
+/// Raw ONNX Runtime in this process: img/s and the per-call time distribution (ms).
+struct RawOrt {
+    img_s: f64,
+    mean_ms: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    max_ms: f64,
+}
+
+fn provider(cli: &Cli) -> holoface_inference::Provider {
+    if cli.cuda {
+        holoface_inference::Provider::Cuda {
+            device: 0,
+            required: true,
+        }
+    } else {
+        holoface_inference::Provider::Cpu
+    }
+}
+
+fn raw_ort(cli: &Cli, batch: usize, seconds: f64, pace_ms: f64) -> anyhow::Result<RawOrt> {
     let mut engine = OnnxEngine::load(&OnnxOptions {
         model: model(cli),
         ort_dylib: dylib(cli),
         intra_threads: cli.threads,
         max_batch: batch,
-        cuda: false,
+        provider: provider(cli),
         spin: cli.spin,
     })?;
     let mut tensor = BatchTensor::new(batch, 112 * 112);
@@ -166,14 +193,31 @@ fn raw_ort(cli: &Cli, batch: usize, seconds: f64) -> anyhow::Result<(f64, f64)> 
     }
     let mut out = vec![LandmarkOut::default(); batch];
     engine.infer(&tensor, &mut out)?; // warm-up
+    let mut calls = Histogram::<u64>::new_with_bounds(1, 60_000_000, 3)?;
+    let pace = Duration::from_secs_f64(pace_ms.max(0.0) / 1e3);
     let start = Instant::now();
-    let mut runs = 0_u64;
+    let mut busy = Duration::ZERO;
+    let mut next = start;
     while start.elapsed().as_secs_f64() < seconds {
+        if !pace.is_zero() {
+            std::thread::sleep(next.saturating_duration_since(Instant::now()));
+            next += pace;
+        }
+        let t = Instant::now();
         engine.infer(&tensor, &mut out)?;
-        runs += 1;
+        let dt = t.elapsed();
+        busy += dt;
+        calls.record(u64::try_from(dt.as_micros()).unwrap_or(u64::MAX).max(1))?;
     }
-    let dt = start.elapsed().as_secs_f64();
-    Ok(((runs as f64 * batch as f64) / dt, dt * 1e3 / runs as f64))
+    let runs = calls.len().max(1) as f64;
+    let ms = |q: f64| calls.value_at_quantile(q) as f64 / 1e3;
+    Ok(RawOrt {
+        img_s: runs * batch as f64 / busy.as_secs_f64(),
+        mean_ms: busy.as_secs_f64() * 1e3 / runs,
+        p50_ms: ms(0.5),
+        p99_ms: ms(0.99),
+        max_ms: calls.max() as f64 / 1e3,
+    })
 }
 
 /// The server as a child process.
@@ -198,6 +242,11 @@ impl ServerChild {
             .args(["--intra-threads", &cli.threads.to_string()])
             .args(["--engine-instances", &cli.engine_instances.to_string()])
             .args(["--spin", if cli.spin { "true" } else { "false" }])
+            .args(if cli.cuda {
+                &["--cuda", "--cuda-required"][..]
+            } else {
+                &[][..]
+            })
             .args(["--metrics-listen", "127.0.0.1:0"])
             .args(["--batch-policy", &cli.batch_policy])
             .args(extra)
@@ -302,7 +351,8 @@ async fn throughput(
     in_flight: usize,
 ) -> anyhow::Result<()> {
     // Raw ORT before and after the server run (background load drifts).
-    let (raw_before, raw_ms) = raw_ort(cli, batch, seconds)?;
+    let first = raw_ort(cli, batch, seconds, 0.0)?;
+    let (raw_before, raw_ms) = (first.img_s, first.mean_ms);
     let server = ServerChild::start(
         cli,
         &[
@@ -362,7 +412,7 @@ async fn throughput(
     let engine_busy = (infer_after - infer_before) / seconds;
     let server_ms_per_batch = (infer_after - infer_before) * 1e3 / (after - before).max(1.0);
     server.stop();
-    let (raw_after, _) = raw_ort(cli, batch, seconds)?;
+    let raw_after = raw_ort(cli, batch, seconds, 0.0)?.img_s;
     let raw = f64::midpoint(raw_before, raw_after);
     record(
         cli,
@@ -567,13 +617,18 @@ async fn main() -> anyhow::Result<()> {
             .trim()
     );
     match &cli.cmd {
-        Cmd::Ort { batches, seconds } => {
+        Cmd::Ort {
+            batches,
+            seconds,
+            pace_ms,
+        } => {
             for &b in batches {
-                let (img_s, ms) = raw_ort(&cli, b, *seconds)?;
+                let r = raw_ort(&cli, b, *seconds, *pace_ms)?;
                 record(
                     &cli,
                     &serde_json::json!({"bench": "raw_ort", "batch": b, "threads": cli.threads, "spin": cli.spin,
-                        "img_s": img_s, "ms_per_batch": ms}),
+                        "cuda": cli.cuda, "model": model(&cli), "pace_ms": pace_ms, "img_s": r.img_s,
+                        "ms_per_batch": r.mean_ms, "p50_ms": r.p50_ms, "p99_ms": r.p99_ms, "max_ms": r.max_ms}),
                 )?;
             }
             Ok(())
