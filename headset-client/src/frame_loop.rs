@@ -1,6 +1,7 @@
-//! The frame loop, written once: [`TrackerSession::prepare`] -> an [`Aligner`] -> [`TrackerSession::complete`],
-//! timed per step. [`crate::tracker::FaceTracker`], the FFI and every command-line tool that tracks frames go
-//! through [`step`]; they differ only in which aligner they pass and what they do with the [`Step`].
+//! The frame loop, written once: [`TrackerSession::prepare_faces`] -> an [`Aligner`] per face ->
+//! [`TrackerSession::complete_faces`], timed per step ([`step_faces`]), and its one-face form [`step`].
+//! [`crate::tracker::FaceTracker`], the FFI and every command-line tool that tracks frames go through these;
+//! they differ only in which aligner they pass and what they do with the result.
 //!
 //! The session itself stays clock-free; this module reads the monotonic clock only to report [`Timings`].
 
@@ -9,7 +10,7 @@ use std::time::{Duration, Instant};
 use crate::align::{AlignError, Aligner, Alignment, align_from};
 use crate::detect::DetectError;
 use crate::frame::Frame;
-use crate::session::{FrameResult, Prepared, TrackerSession};
+use crate::session::{Candidate, FrameFaces, FrameResult, Prepared, TrackerSession};
 
 /// Time spent per step of one frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -66,6 +67,52 @@ pub fn step<A: Aligner + ?Sized>(
         prepared,
         alignment,
         result,
+        timings: Timings {
+            prepare: t1 - t0,
+            align: t2 - t1,
+            complete: t2.elapsed(),
+        },
+    })
+}
+
+/// One frame through the loop, every face.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FacesStep {
+    /// What the session prepared: one candidate per tracked face and new detection (empty: "no face").
+    pub candidates: Vec<Candidate>,
+    /// What the aligner answered, per candidate.
+    pub alignments: Vec<Option<Alignment>>,
+    /// Whether the detector ran on this frame.
+    pub detected: bool,
+    /// The frame's faces.
+    pub faces: FrameFaces,
+    /// Time per step (align: all faces together).
+    pub timings: Timings,
+}
+
+/// Runs one frame with every tracked face: prepare, align each candidate with `aligner` (its detection
+/// variant for new detections), complete.
+pub fn step_faces<A: Aligner + ?Sized>(
+    session: &mut TrackerSession,
+    aligner: &mut A,
+    frame: &Frame<'_>,
+) -> Result<FacesStep, StepError> {
+    let t0 = Instant::now();
+    let runs = session.detector_runs();
+    let candidates = session.prepare_faces(frame)?;
+    let detected = session.detector_runs() != runs;
+    let t1 = Instant::now();
+    let alignments = candidates
+        .iter()
+        .map(|c| align_from(aligner, &frame.image, &c.init, c.source).map(Some))
+        .collect::<Result<Vec<_>, _>>()?;
+    let t2 = Instant::now();
+    let faces = session.complete_faces(frame, &alignments);
+    Ok(FacesStep {
+        candidates,
+        alignments,
+        detected,
+        faces,
         timings: Timings {
             prepare: t1 - t0,
             align: t2 - t1,

@@ -47,7 +47,7 @@ use crate::link::{
     Backoff, ConnectConfig, CropCodec, LinkOptions, LinkState, LinkStatus, LinkWatch, LinkedAligner,
     RemoteLink,
 };
-use crate::session::{FaceUpdate, FrameResult, SessionOptions, TrackerSession};
+use crate::session::{FaceUpdate, FrameResult, SessionOptions, TrackedFace, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -132,14 +132,20 @@ pub enum TrackerError {
 }
 
 /// The answer for one frame.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct FaceResult {
     /// The frame's timestamp.
     pub timestamp_us: u64,
-    /// A face, or "no face" with the reason.
+    /// Every face tracked in this frame with its stable id, oldest track first (at most
+    /// [`SessionOptions::max_faces`]); empty when there is none ([`FaceResult::outcome`] says why).
+    pub faces: Vec<TrackedFace>,
+    /// The single-face view: the first face of `faces`, or "no face" with the reason.
     pub outcome: FrameResult,
-    /// Which aligner answered (`None` when nothing was aligned).
+    /// Which aligner answered the first candidate (`None` when nothing was aligned); per face in
+    /// [`FaceUpdate::answered_by`].
     pub answered_by: Option<AnsweredBy>,
+    /// Whether the face detector ran on this frame.
+    pub detected: bool,
     /// Time per step.
     pub timings: Timings,
     /// With [`AlignerChoice::Remote`]: the link's state after this frame (`Retrying`/`Failed` say why
@@ -178,7 +184,11 @@ impl FaceTracker {
     /// Loads the assets and, for [`AlignerChoice::Remote`], starts connecting in the background.
     pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
         let a = &opts.assets;
-        let detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
+        let mut detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
+        if opts.session.max_faces > 1 {
+            // Several people in view are smaller in the frame: look at tiles too (see `BlazeFace::tiles`).
+            detector.for_several_faces();
+        }
         let model = crate::assets::load_face_model(&a.candide).map_err(TrackerError::Assets)?;
         let krfws = crate::assets::load_krfws(&a.krfws).map_err(TrackerError::Assets)?;
         let local = crate::align::KrfwsAligner::new(krfws);
@@ -233,11 +243,13 @@ impl FaceTracker {
             }
             self.last_timestamp = Some(frame.timestamp_us);
         }
-        let step = crate::frame_loop::step(&mut self.session, &mut *self.aligner, frame)?;
+        let step = crate::frame_loop::step_faces(&mut self.session, &mut *self.aligner, frame)?;
         Ok(FaceResult {
             timestamp_us: frame.timestamp_us,
-            outcome: step.result,
-            answered_by: step.alignment.map(|a| a.answered_by),
+            outcome: step.faces.first(),
+            answered_by: step.alignments.first().copied().flatten().map(|a| a.answered_by),
+            detected: step.detected,
+            faces: step.faces.faces,
             timings: step.timings,
             link: self.link.as_ref().map(|w| w.status().state()),
         })

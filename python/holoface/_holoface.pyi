@@ -39,6 +39,8 @@ class TrackerOptions:
     """"raw", "png", "jpeg" or "jpeg:Q"."""
     lookahead_ms: float
     motion_compensation: bool
+    max_faces: int
+    """Most faces tracked at once (1..=64), each with a stable id."""
     ort_dylib: Optional[str]
     detector_model: Optional[str]
     krfws_model: Optional[str]
@@ -54,6 +56,7 @@ class TrackerOptions:
         crop_encoding: str = "jpeg:75",
         lookahead_ms: float = 120.0,
         motion_compensation: bool = True,
+        max_faces: int = 1,
         ort_dylib: Optional[_Path] = None,
         detector_model: Optional[_Path] = None,
         krfws_model: Optional[_Path] = None,
@@ -63,6 +66,8 @@ class TrackerOptions:
 class Face:
     """One tracked face (see FaceResult)."""
 
+    id: int
+    """The track id: the same for as long as the face is tracked, never reused by this tracker."""
     landmarks: npt.NDArray[np.float32]
     """[68, 2] iBUG-68 landmarks in image pixels."""
     landmark_set: str

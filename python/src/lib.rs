@@ -81,6 +81,8 @@ struct PyTrackerOptions {
     lookahead_ms: f64,
     /// Compensate headset motion when initialising from the previous frame.
     motion_compensation: bool,
+    /// Most faces tracked at once (1..=64), each with a stable id.
+    max_faces: usize,
     /// ONNX Runtime shared library (default: $ORT_DYLIB_PATH, then the set-up's path).
     ort_dylib: Option<PathBuf>,
     /// BlazeFace ONNX model (default: $HOLOFACE_DETECTOR_MODEL, then the set-up's path).
@@ -96,7 +98,7 @@ impl PyTrackerOptions {
     #[new]
     #[pyo3(signature = (*, mode = "video".to_owned(), server = None, fingerprint = None, token = String::new(),
         deadline_ms = 33, crop_encoding = "jpeg:75".to_owned(), lookahead_ms = 120.0,
-        motion_compensation = true, ort_dylib = None, detector_model = None, krfws_model = None,
+        motion_compensation = true, max_faces = 1, ort_dylib = None, detector_model = None, krfws_model = None,
         candide = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -108,6 +110,7 @@ impl PyTrackerOptions {
         crop_encoding: String,
         lookahead_ms: f64,
         motion_compensation: bool,
+        max_faces: usize,
         ort_dylib: Option<PathBuf>,
         detector_model: Option<PathBuf>,
         krfws_model: Option<PathBuf>,
@@ -122,6 +125,7 @@ impl PyTrackerOptions {
             crop_encoding,
             lookahead_ms,
             motion_compensation,
+            max_faces,
             ort_dylib,
             detector_model,
             krfws_model,
@@ -131,8 +135,14 @@ impl PyTrackerOptions {
 
     fn __repr__(&self) -> String {
         format!(
-            "TrackerOptions(mode={:?}, server={:?}, deadline_ms={}, lookahead_ms={}, motion_compensation={})",
-            self.mode, self.server, self.deadline_ms, self.lookahead_ms, self.motion_compensation
+            "TrackerOptions(mode={:?}, server={:?}, deadline_ms={}, lookahead_ms={}, motion_compensation={}, \
+             max_faces={})",
+            self.mode,
+            self.server,
+            self.deadline_ms,
+            self.lookahead_ms,
+            self.motion_compensation,
+            self.max_faces
         )
     }
 }
@@ -148,6 +158,7 @@ impl Default for PyTrackerOptions {
             "jpeg:75".to_owned(),
             120.0,
             true,
+            1,
             None,
             None,
             None,
@@ -179,6 +190,13 @@ impl PyTrackerOptions {
         };
         o.session.lookahead_s = self.lookahead_ms / 1e3;
         o.session.motion_compensation = self.motion_compensation;
+        if !(1..=64).contains(&self.max_faces) {
+            return Err(PyValueError::new_err(format!(
+                "max_faces {} must be within 1..=64",
+                self.max_faces
+            )));
+        }
+        o.session.max_faces = self.max_faces;
         let paths = [
             (&self.ort_dylib, &mut o.assets.ort_dylib),
             (&self.detector_model, &mut o.assets.detector),
@@ -233,6 +251,8 @@ impl PyTrackerOptions {
 #[pyclass(module = "holoface", name = "Face", frozen, get_all)]
 #[derive(Debug)]
 struct PyFace {
+    /// The face's track id: the same for as long as it is tracked, never reused by this tracker.
+    id: u32,
     /// float32 array [68, 2]: the iBUG-68 landmarks in image pixels.
     landmarks: Py<PyArray2<f32>>,
     /// "ibug68" (all 68 aligned) or "inner51" (KRFWS: the jaw slots hold the initial shape).
@@ -269,8 +289,8 @@ struct PyFace {
 impl PyFace {
     fn __repr__(&self) -> String {
         format!(
-            "Face(answered_by={:?}, init={:?}, smile={}, brows_raised={}, mouth_open={})",
-            self.answered_by, self.init, self.smile, self.brows_raised, self.mouth_open
+            "Face(id={}, answered_by={:?}, init={:?}, smile={}, brows_raised={}, mouth_open={})",
+            self.id, self.answered_by, self.init, self.smile, self.brows_raised, self.mouth_open
         )
     }
 }
@@ -281,7 +301,7 @@ impl PyFace {
 struct PyFaceResult {
     /// The frame's timestamp, microseconds.
     timestamp_us: u64,
-    /// Every face of the frame (one tracker follows one face today: zero or one entries).
+    /// Every face of the frame, oldest track first (at most `TrackerOptions.max_faces`).
     faces: Vec<Py<PyFace>>,
     /// Without a face: "not_detected", "rejected", "no_answer" or "fit_failed"; None with a face.
     no_face_reason: Option<String>,
@@ -358,7 +378,7 @@ fn matrix4(py: Python<'_>, rotation: Quat, translation: Vec3) -> Py<PyArray2<f64
     m.into_pyarray(py).unbind()
 }
 
-fn face_to_py(py: Python<'_>, u: &FaceUpdate) -> PyResult<PyFace> {
+fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
     let mut lm = Array2::<f32>::zeros((68, 2));
     for (i, p) in u.landmarks.iter().enumerate() {
         lm[[i, 0]] = p.x;
@@ -373,6 +393,7 @@ fn face_to_py(py: Python<'_>, u: &FaceUpdate) -> PyResult<PyFace> {
         holoface_client::align::Confidence::PredictedError(e) => (None, Some(e)),
     };
     Ok(PyFace {
+        id,
         landmarks: lm.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
             holoface_client::align::LandmarkSet::Ibug68 => "ibug68",
@@ -396,9 +417,14 @@ fn face_to_py(py: Python<'_>, u: &FaceUpdate) -> PyResult<PyFace> {
 }
 
 fn result_to_py(py: Python<'_>, r: &tracker::FaceResult) -> PyResult<PyFaceResult> {
-    let (faces, no_face_reason) = match &r.outcome {
-        FrameResult::Face(u) => (vec![Py::new(py, face_to_py(py, u)?)?], None),
-        FrameResult::NoFace(reason) => (Vec::new(), Some(variant_name(reason))),
+    let faces = r
+        .faces
+        .iter()
+        .map(|f| Py::new(py, face_to_py(py, f.id, &f.update)?))
+        .collect::<PyResult<Vec<_>>>()?;
+    let no_face_reason = match &r.outcome {
+        FrameResult::Face(_) => None,
+        FrameResult::NoFace(reason) => Some(variant_name(reason)),
     };
     let (link_state, link_failure) = match r.link.map(link_names) {
         Some((s, f)) => (Some(s), f),

@@ -20,23 +20,24 @@ def test_same_landmarks_as_the_rust_cli(clip, cli_lines):
             assert want["face"], f"the CLI lost the face on frame {frame.index}"
             assert r.has_face and r.no_face_reason is None and len(r.faces) == 1
             face = r.face
+            assert [f["id"] for f in want["faces"]] == [0]
             assert face.landmarks.dtype == np.float32 and face.landmarks.shape == (68, 2)
-            diff = np.abs(face.landmarks - np.asarray(want["landmarks_px"], dtype=np.float32)).max()
+            diff = np.abs(face.landmarks - np.asarray(want["faces"][0]["landmarks_px"], dtype=np.float32)).max()
             assert diff <= 1e-4, f"frame {frame.index}: landmarks differ from the CLI's by {diff} px"
-            assert face.answered_by == want["aligner"] == "krfws"
-            assert face.init == want["init"]
-            np.testing.assert_allclose(face.camera_pose[:3, 3], want["camera"]["translation_m"], atol=1e-9)
-            np.testing.assert_allclose(face.world_pose[:3, 3], want["world"]["position_m"], atol=1e-9)
-            np.testing.assert_allclose(face.predicted_position, want["world"]["predicted_position_m"], atol=1e-9)
-            assert face.expression_weights == pytest.approx(want["weights"], abs=1e-9)
+            assert face.answered_by == want["faces"][0]["aligner"] == "krfws"
+            assert face.init == want["faces"][0]["init"]
+            np.testing.assert_allclose(face.camera_pose[:3, 3], want["faces"][0]["camera"]["translation_m"], atol=1e-9)
+            np.testing.assert_allclose(face.world_pose[:3, 3], want["faces"][0]["world"]["position_m"], atol=1e-9)
+            np.testing.assert_allclose(face.predicted_position, want["faces"][0]["world"]["predicted_position_m"], atol=1e-9)
+            assert face.expression_weights == pytest.approx(want["faces"][0]["weights"], abs=1e-9)
             assert (face.smile, face.brows_raised, face.mouth_open) == tuple(
-                want["attributes"][k] for k in ("smile", "brows_raised", "mouth_open"))
+                want["faces"][0]["attributes"][k] for k in ("smile", "brows_raised", "mouth_open"))
             for pose in (face.camera_pose, face.world_pose, face.display_pose):
                 assert pose.shape == (4, 4)
                 np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
             assert set(r.timings) == {"prepare_ms", "align_ms", "complete_ms"}
     # The face moves right by 2 px a frame; tracking from frame 1 on follows it.
-    assert [line["init"] for line in cli_lines] == ["detection"] + ["tracking"] * 5
+    assert [line["faces"][0]["init"] for line in cli_lines] == ["detection"] + ["tracking"] * 5
 
 
 def test_read_gray_matches_the_source(clip):
@@ -175,3 +176,15 @@ def test_a_y4m_stream_reads_like_the_cli(tmp_path, clip):
     y4m.write_bytes(y4m.read_bytes()[:-100])
     with pytest.raises(holoface.SourceError, match="frame 2"):
         list(holoface.FrameSource(y4m))
+
+
+def test_max_faces_gives_ids_and_is_checked(clip):
+    with pytest.raises(ValueError, match="max_faces"):
+        holoface.FaceTracker(holoface.TrackerOptions(max_faces=0))
+    frames = list(holoface.FrameSource(clip))
+    with holoface.FaceTracker(holoface.TrackerOptions(max_faces=3)) as tracker:
+        ids = []
+        for frame in frames:
+            r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
+            ids.append([f.id for f in r.faces])
+    assert ids == [[0]] * len(frames), "one person in the clip: one face, one id throughout"

@@ -139,7 +139,139 @@ fn bench_frame(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_frame);
+/// The first validation face's landmark box grown by 15 % on every side, as a life-size picture.
+fn face_picture() -> Option<PlanarScene> {
+    let name = VALIDATION_SPLIT
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))?;
+    let base = default_data_root().join("faces68/train").join(name);
+    let photo = read_gray(&base.with_extension("jpg")).ok()?;
+    let lm = read_pts(&base.with_extension("pts")).ok()?;
+    let r = holoface_models::geometry::Rect::bounding(&lm)?;
+    let m = 0.15 * r.width().max(r.height());
+    let (x0, y0) = ((r.x0 - m).max(0.0) as usize, (r.y0 - m).max(0.0) as usize);
+    let x1 = ((r.x1 + m) as usize).min(photo.width());
+    let y1 = ((r.y1 + m) as usize).min(photo.height());
+    let mut data = Vec::new();
+    for y in y0..y1 {
+        data.extend_from_slice(&photo.as_bytes()[y * photo.width() + x0..y * photo.width() + x1]);
+    }
+    let cut = GrayImage::from_vec(data, x1 - x0, y1 - y0).ok()?;
+    let moved = lm.map(|p| Point2::new(p.x - x0 as f32, p.y - y0 as f32));
+    PlanarScene::life_size(cut, moved).ok()
+}
+
+/// Client CPU per frame with 1, 2, 3 and 5 tracked faces (the same picture side by side, 17 cm apart at
+/// 0.75 m, a moving headset), excluding the aligner as above: prepare (every face's motion-compensated
+/// init), one crop per face, complete (every face's fit, pose, filters). All faces are tracked before the
+/// measurement, so the detector does not run in it.
+fn bench_faces(c: &mut Criterion) {
+    let (Some(ort), Some(det), Some(picture)) = (
+        env_path("ORT_DYLIB_PATH"),
+        env_path("HOLOFACE_DETECTOR_MODEL"),
+        face_picture(),
+    ) else {
+        eprintln!("runtime assets or ../shared/data missing (run `make setup`); skipping");
+        return;
+    };
+    let wfm =
+        env_path("HOLOFACE_CANDIDE").unwrap_or_else(|| default_data_root().join("candide3/candide3.wfm"));
+    let model = load_face_model(&wfm).unwrap();
+    let mean = holoface_models::shape::canonical_from_mean(&dan_mean_shape());
+    let canonical: [Point2; 68] = std::array::from_fn(|i| mean[i]);
+    let mut g = c.benchmark_group("client_frame_faces");
+    for n in [1usize, 2, 3, 5] {
+        let frames: Vec<(GrayImage, Pose, Vec<[Point2; 68]>)> = (0..60)
+            .map(|i| {
+                let t = i as f64 / 30.0;
+                let cam = Pose {
+                    rotation: Mat3::rot_y(0.05 * (4.0 * t).sin()),
+                    translation: Vec3::new(0.01 * t.sin(), 0.0, 0.0),
+                };
+                let mut img = GrayImage::zeros(640, 480);
+                let mut truths = Vec::new();
+                for k in 0..n {
+                    let plane = Pose {
+                        rotation: Mat3::IDENTITY,
+                        translation: Vec3::new((k as f64 - (n as f64 - 1.0) / 2.0) * 0.17, 0.0, 0.75),
+                    };
+                    let h = picture.homography(&SCENE_CAMERA, &cam, &plane);
+                    picture.render_over(&h, &mut img).unwrap();
+                    truths.push(picture.landmarks_in(&h));
+                }
+                (img, cam, truths)
+            })
+            .collect();
+        if n == 5 {
+            // What a detection costs on such a frame: the whole frame, and with the several-face tiles.
+            use holoface_client::detect::FaceDetector as _;
+            let mut whole = BlazeFace::load(&det, &ort, 1).unwrap();
+            let mut tiled = BlazeFace::load(&det, &ort, 1).unwrap();
+            tiled.for_several_faces();
+            let img = &frames[0].0;
+            g.throughput(Throughput::Elements(1));
+            g.bench_function("detect_whole_frame", |b| {
+                b.iter(|| black_box(whole.detect(&img.view()).unwrap()))
+            });
+            g.bench_function("detect_with_3x3_tiles", |b| {
+                b.iter(|| black_box(tiled.detect(&img.view()).unwrap()))
+            });
+        }
+        let mut detector = BlazeFace::load(&det, &ort, 1).unwrap();
+        detector.for_several_faces();
+        let opts = SessionOptions {
+            max_faces: n,
+            ..SessionOptions::default()
+        };
+        let mut session = TrackerSession::new(Box::new(detector), model.clone(), dan_mean_shape(), opts);
+        let mut crop = Crop112::default();
+        let mut step = |i: usize, crop: &mut Crop112| -> usize {
+            let (img, cam, truths) = &frames[i % frames.len()];
+            let frame = Frame {
+                timestamp_us: i as u64 * 33_333,
+                image: img.view(),
+                intrinsics: SCENE_CAMERA,
+                world_from_camera: *cam,
+            };
+            let cands = session.prepare_faces(&frame).unwrap();
+            let answers: Vec<_> = cands
+                .iter()
+                .map(|c| {
+                    let sim = crop_from_image(&c.init, &canonical).unwrap();
+                    crop_bilinear(&frame.image, &sim, crop).unwrap();
+                    let centre = holoface_models::geometry::centroid(&c.init);
+                    truths
+                        .iter()
+                        .min_by(|a, b| {
+                            let da = holoface_models::geometry::centroid(&a[..]).dist(centre);
+                            da.total_cmp(&holoface_models::geometry::centroid(&b[..]).dist(centre))
+                        })
+                        .map(truth_alignment)
+                })
+                .collect();
+            session.complete_faces(&frame, &answers).faces.len()
+        };
+        // Track every face first (the detector runs here, outside the measurement).
+        let mut i = 0usize;
+        while step(i, &mut crop) < n {
+            i += 1;
+            assert!(i < 60, "{n} faces: not all detected");
+        }
+        g.throughput(Throughput::Elements(n as u64));
+        g.bench_function(format!("{n}_faces"), |b| {
+            b.iter(|| {
+                i += 1;
+                let tracked = step(i, &mut crop);
+                assert_eq!(tracked, n, "a face was lost at frame {i}");
+                black_box(tracked)
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_frame, bench_faces);
 
 fn main() {
     benches();

@@ -8,7 +8,7 @@ use holoface_models::math3::Vec3;
 
 use crate::plot::Canvas;
 use holoface_client::align::AnsweredBy;
-use holoface_client::session::FrameResult;
+use holoface_client::session::{FaceUpdate, NoFaceReason, TrackedFace};
 
 /// Length of the drawn pose axes, metres.
 const AXIS_M: f64 = 0.05;
@@ -23,65 +23,31 @@ pub fn aligner_style(by: Option<AnsweredBy>) -> ([u8; 3], &'static str) {
     }
 }
 
-/// Draws frame `index` and its result.
+/// Draws one frame: each tracked face's fitted CANDIDE-3 mesh, landmarks, pose axes and id (coloured by
+/// the aligner that answered it), and a header line (the face's depth and world position with one face; the
+/// count with several; the reason with none).
 pub fn annotate(
     image: &GrayImage,
     index: usize,
-    result: &FrameResult,
+    faces: &[TrackedFace],
+    no_face: Option<NoFaceReason>,
     model: &FaceModel,
     k: &Intrinsics,
 ) -> Canvas {
     let (w, h) = (image.width(), image.height());
     let mut cv = Canvas::new(w, h);
     cv.blit_gray(0, 0, image.as_bytes(), w, h, 1);
-    match result {
-        FrameResult::Face(u) => {
+    for f in faces {
+        draw_face(&mut cv, &f.update, model, k);
+        let (colour, _) = aligner_style(Some(f.update.answered_by));
+        if let Some(b) = holoface_models::geometry::Rect::bounding(&f.update.landmarks) {
+            cv.text(b.x0 as i64, b.y0 as i64 - 14, &format!("#{}", f.id), colour);
+        }
+    }
+    match (faces, no_face) {
+        ([f], _) => {
+            let u = &f.update;
             let (colour, label) = aligner_style(Some(u.answered_by));
-            // Mesh: every triangle edge whose ends are in front of the camera.
-            let verts: Vec<_> = model
-                .mesh_in_camera(&u.fit)
-                .into_iter()
-                .map(|p| k.project(p))
-                .collect();
-            for tri in &model.faces {
-                for (a, b) in [(tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])] {
-                    if let (Some(Some(p)), Some(Some(q))) = (verts.get(a), verts.get(b)) {
-                        cv.line(
-                            (f64::from(p.x), f64::from(p.y)),
-                            (f64::from(q.x), f64::from(q.y)),
-                            [200, 190, 90],
-                            1,
-                        );
-                    }
-                }
-            }
-            let first = match u.landmark_set {
-                holoface_client::align::LandmarkSet::Ibug68 => 0,
-                holoface_client::align::LandmarkSet::Inner51 => 17,
-            };
-            for p in &u.landmarks[first..] {
-                cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);
-            }
-            // Pose axes from the head origin: x red, y green, z blue.
-            let r = u.fit.rotation.to_mat3();
-            let o = u.fit.translation;
-            if let Some(po) = k.project(o) {
-                let axes = [
-                    (Vec3::new(AXIS_M, 0.0, 0.0), [230, 30, 30]),
-                    (Vec3::new(0.0, AXIS_M, 0.0), [30, 200, 30]),
-                    (Vec3::new(0.0, 0.0, AXIS_M), [40, 80, 255]),
-                ];
-                for (axis, c) in axes {
-                    if let Some(pa) = k.project(o + r * axis) {
-                        cv.line(
-                            (f64::from(po.x), f64::from(po.y)),
-                            (f64::from(pa.x), f64::from(pa.y)),
-                            c,
-                            3,
-                        );
-                    }
-                }
-            }
             let t = u.world.position;
             cv.text(
                 6,
@@ -96,15 +62,68 @@ pub fn annotate(
                 colour,
             );
         }
-        FrameResult::NoFace(reason) => {
+        ([], reason) => {
             let (colour, _) = aligner_style(None);
-            let why = serde_json::to_value(reason)
+            let why = serde_json::to_value(reason.unwrap_or(NoFaceReason::NotDetected))
                 .ok()
                 .and_then(|v| v.as_str().map(str::to_owned))
                 .unwrap_or_default()
                 .replace('_', " ");
             cv.text(6, 6, &format!("frame {index} no face {why}"), colour);
         }
+        (many, _) => {
+            let (colour, _) = aligner_style(Some(many[0].update.answered_by));
+            cv.text(6, 6, &format!("frame {index} {} faces", many.len()), colour);
+        }
     }
     cv
+}
+
+fn draw_face(cv: &mut Canvas, u: &FaceUpdate, model: &FaceModel, k: &Intrinsics) {
+    let (colour, _) = aligner_style(Some(u.answered_by));
+    // Mesh: every triangle edge whose ends are in front of the camera.
+    let verts: Vec<_> = model
+        .mesh_in_camera(&u.fit)
+        .into_iter()
+        .map(|p| k.project(p))
+        .collect();
+    for tri in &model.faces {
+        for (a, b) in [(tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])] {
+            if let (Some(Some(p)), Some(Some(q))) = (verts.get(a), verts.get(b)) {
+                cv.line(
+                    (f64::from(p.x), f64::from(p.y)),
+                    (f64::from(q.x), f64::from(q.y)),
+                    [200, 190, 90],
+                    1,
+                );
+            }
+        }
+    }
+    let first = match u.landmark_set {
+        holoface_client::align::LandmarkSet::Ibug68 => 0,
+        holoface_client::align::LandmarkSet::Inner51 => 17,
+    };
+    for p in &u.landmarks[first..] {
+        cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);
+    }
+    // Pose axes from the head origin: x red, y green, z blue.
+    let r = u.fit.rotation.to_mat3();
+    let o = u.fit.translation;
+    if let Some(po) = k.project(o) {
+        let axes = [
+            (Vec3::new(AXIS_M, 0.0, 0.0), [230, 30, 30]),
+            (Vec3::new(0.0, AXIS_M, 0.0), [30, 200, 30]),
+            (Vec3::new(0.0, 0.0, AXIS_M), [40, 80, 255]),
+        ];
+        for (axis, c) in axes {
+            if let Some(pa) = k.project(o + r * axis) {
+                cv.line(
+                    (f64::from(po.x), f64::from(po.y)),
+                    (f64::from(pa.x), f64::from(pa.y)),
+                    c,
+                    3,
+                );
+            }
+        }
+    }
 }

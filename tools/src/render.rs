@@ -120,6 +120,13 @@ impl PlanarScene {
     /// Renders the photo through `h` into `out` (bilinear; `background` outside the picture or behind
     /// the camera).
     pub fn render(&self, h: &Homography, out: &mut GrayImage, background: u8) -> anyhow::Result<()> {
+        out.as_bytes_mut().fill(background);
+        self.render_over(h, out)
+    }
+
+    /// Renders the photo through `h` over what `out` already holds: pixels outside the picture (or behind
+    /// the camera) are left alone, so pictures drawn far to near occlude each other.
+    pub fn render_over(&self, h: &Homography, out: &mut GrayImage) -> anyhow::Result<()> {
         let hi = h.inverse().context("degenerate camera pose")?.0;
         let (pw, ph) = (self.photo.width(), self.photo.height());
         let (fw, fh) = (out.width(), out.height());
@@ -132,17 +139,14 @@ impl PlanarScene {
                 let w = hi[2][0] * xf + hi[2][1] * yf + hi[2][2];
                 let u = (hi[0][0] * xf + hi[0][1] * yf + hi[0][2]) / w;
                 let v = (hi[1][0] * xf + hi[1][1] * yf + hi[1][2]) / w;
-                dst[y * fw + x] =
-                    if w > 0.0 && u >= 0.0 && v >= 0.0 && u < (pw - 1) as f64 && v < (ph - 1) as f64 {
-                        let (iu, iv) = (u as usize, v as usize);
-                        let (fu, fv) = (u - iu as f64, v - iv as f64);
-                        let p = |dx: usize, dy: usize| f64::from(src[(iv + dy) * pw + iu + dx]);
-                        let top = p(0, 0) * (1.0 - fu) + p(1, 0) * fu;
-                        let bottom = p(0, 1) * (1.0 - fu) + p(1, 1) * fu;
-                        (top * (1.0 - fv) + bottom * fv).round() as u8
-                    } else {
-                        background
-                    };
+                if w > 0.0 && u >= 0.0 && v >= 0.0 && u < (pw - 1) as f64 && v < (ph - 1) as f64 {
+                    let (iu, iv) = (u as usize, v as usize);
+                    let (fu, fv) = (u - iu as f64, v - iv as f64);
+                    let p = |dx: usize, dy: usize| f64::from(src[(iv + dy) * pw + iu + dx]);
+                    let top = p(0, 0) * (1.0 - fu) + p(1, 0) * fu;
+                    let bottom = p(0, 1) * (1.0 - fu) + p(1, 1) * fu;
+                    dst[y * fw + x] = (top * (1.0 - fv) + bottom * fv).round() as u8;
+                }
             }
         }
         Ok(())

@@ -63,15 +63,20 @@ fn rendered_sequence_tracks_from_mp4_with_sidecar_and_annotations() {
     for (g, t) in got.iter().zip(&truth) {
         assert_eq!(g["frame"], t["frame"]);
         if g["face"] == true {
-            // Landmarks near the truth (the nose tip, point 30), world pose present.
-            let (p, q) = (&g["landmarks_px"][30], &t["landmarks_px"][30]);
+            // One face (the default --max-faces 1), with id 0 throughout: landmarks near the truth (the nose
+            // tip, point 30), world pose present.
+            let f = &g["faces"][0];
+            assert_eq!(g["faces"].as_array().map(Vec::len), Some(1), "{g}");
+            assert_eq!(f["id"], 0, "{g}");
+            let (p, q) = (&f["landmarks_px"][30], &t["landmarks_px"][30]);
             let dx = p[0].as_f64().unwrap() - q[0].as_f64().unwrap();
             let dy = p[1].as_f64().unwrap() - q[1].as_f64().unwrap();
             if dx.hypot(dy) < 10.0 {
                 tracked += 1;
             }
-            assert!(g["world"]["position_m"].is_array());
+            assert!(f["world"]["position_m"].is_array());
         } else {
+            assert_eq!(g["faces"], serde_json::json!([]), "{g}");
             assert!(g["reason"].is_string(), "{g}");
         }
     }
@@ -213,10 +218,18 @@ fn a_y4m_stream_on_stdin_is_tracked_and_annotated_as_mp4() {
             [0, 33_333, 66_666, 100_000, 133_333, 166_666, 200_000, 233_333][k]
         );
         assert_eq!(g["face"], true, "frame {k}: {g}");
-        assert_eq!(g["init"], if k == 0 { "detection" } else { "tracking" });
+        assert_eq!(
+            g["faces"][0]["init"],
+            if k == 0 { "detection" } else { "tracking" }
+        );
+        assert_eq!(
+            g["detected"],
+            k == 0,
+            "the detector runs only until a face is tracked"
+        );
     }
     // The nose follows the picture: 2 px to the right a frame.
-    let nose_x = |g: &serde_json::Value| g["landmarks_px"][30][0].as_f64().unwrap();
+    let nose_x = |g: &serde_json::Value| g["faces"][0]["landmarks_px"][30][0].as_f64().unwrap();
     let moved = nose_x(&got[7]) - nose_x(&got[0]);
     assert!(
         (moved - 14.0).abs() < 4.0,
@@ -234,7 +247,7 @@ fn a_y4m_stream_on_stdin_is_tracked_and_annotated_as_mp4() {
     ]);
     assert!(ok, "{text}");
     for (a, b) in got.iter().zip(&lines(&out2)) {
-        assert_eq!(a["landmarks_px"], b["landmarks_px"]);
+        assert_eq!(a["faces"], b["faces"]);
     }
 
     // The annotated video decodes to 8 frames of the clip's size rounded down to even.

@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod demo;
 pub mod eval;
+pub mod multi_face;
 pub mod record;
 pub mod simulate;
 pub mod track;
@@ -29,6 +30,9 @@ pub enum Command {
     Demo(demo::Args),
     /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
     Eval(eval::Args),
+    /// Several faces at once on rendered scenes (1, 2, 3, 5 faces): per-face NME against tracking each face
+    /// alone, id switches, detector runs, losses.
+    MultiFace(multi_face::Args),
     /// Write a recorded stream (`.hfrec`) from an image folder or another recording.
     Record(record::Args),
     /// Synthetic headset sequences from CANDIDE-3: fit recovery, prediction and motion-compensation numbers.
@@ -47,6 +51,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(args) => demo::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::MultiFace(args) => multi_face::run(args),
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),

@@ -10,7 +10,7 @@ use serde_json::json;
 
 use crate::args::RuntimeArgs;
 use holoface_client::align::{Aligner, AnsweredBy};
-use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
+use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
 use holoface_client::source::open_source;
 
 /// Local aligner for `track`.
@@ -52,6 +52,12 @@ pub struct Args {
     /// Prediction horizon in milliseconds.
     #[arg(long, default_value_t = 120.0)]
     pub lookahead_ms: f64,
+    /// Most faces tracked at once, each with a stable id.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub max_faces: u16,
+    /// While fewer than `--max-faces` are tracked (and at least one), run the detector every N frames.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
+    pub detect_every: u32,
     /// Also draw each frame annotated (landmarks, fitted CANDIDE-3 mesh, pose axes, aligner): a path ending
     /// in `.mp4` gets an H.264 video at `--fps`, any other path a folder of PNGs (`frame_000000.png`, ...).
     #[arg(long)]
@@ -103,10 +109,43 @@ fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_cli
     ))
 }
 
+/// One face of a `track` line.
+fn face_json(f: &TrackedFace) -> serde_json::Value {
+    let u = &f.update;
+    json!({
+        "id": f.id,
+        "aligner": u.answered_by,
+        "init": u.init,
+        "confidence": u.confidence,
+        "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
+        "camera": {
+            "translation_m": u.fit.translation.to_array(),
+            "rotation_wxyz": [u.fit.rotation.w, u.fit.rotation.x, u.fit.rotation.y, u.fit.rotation.z],
+            "rmse_px": u.fit.rmse_px,
+        },
+        "world": {
+            "position_m": u.world.position.to_array(),
+            "rotation_wxyz": [u.world.rotation.w, u.world.rotation.x, u.world.rotation.y, u.world.rotation.z],
+            "predicted_position_m": u.predicted_position.to_array(),
+            "display_position_m": u.display.0.to_array(),
+        },
+        "weights": u.fit.weights.iter()
+            .map(|(unit, w)| (unit.name().to_owned(), json!(w)))
+            .collect::<serde_json::Map<_, _>>(),
+        "attributes": {
+            "smile": u.attributes.smile, "brows_raised": u.attributes.brows_raised,
+            "mouth_open": u.attributes.mouth_open,
+        },
+    })
+}
+
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let model = args.candide.load()?;
-    let detector = args.runtime.detector()?;
+    let mut detector = args.runtime.detector()?;
+    if args.max_faces > 1 {
+        detector.for_several_faces();
+    }
     let (mut aligner, link): (Box<dyn Aligner>, _) = match args.aligner {
         TrackAligner::Krfws => (Box::new(args.runtime.krfws_aligner()?), None),
         TrackAligner::Dan => (Box::new(args.runtime.dan_aligner()?), None),
@@ -118,6 +157,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let opts = SessionOptions {
         motion_compensation: !args.no_motion_compensation,
         lookahead_s: args.lookahead_ms / 1e3,
+        max_faces: usize::from(args.max_faces),
+        detect_every: args.detect_every,
         ..SessionOptions::default()
     };
     let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);
@@ -136,77 +177,50 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
-        let step = holoface_client::frame_loop::step(&mut session, &mut *aligner, &frame)?;
-        let result = step.result;
+        let step = holoface_client::frame_loop::step_faces(&mut session, &mut *aligner, &frame)?;
         let link_state = link.as_ref().map(|w| w.status().state());
-        if step
-            .alignment
-            .is_some_and(|a| a.answered_by == AnsweredBy::RemoteDan)
-        {
-            remote_frames += 1;
-        }
+        remote_frames += step
+            .faces
+            .faces
+            .iter()
+            .filter(|f| f.update.answered_by == AnsweredBy::RemoteDan)
+            .count();
         frames += 1;
+        let no_face = step.faces.no_face_reason();
         if let Some(out) = annotated.as_mut() {
-            let canvas =
-                crate::annotate::annotate(&sf.image, sf.index, &result, session.face_model(), &sf.intrinsics);
+            let canvas = crate::annotate::annotate(
+                &sf.image,
+                sf.index,
+                &step.faces.faces,
+                no_face,
+                session.face_model(),
+                &sf.intrinsics,
+            );
             out.push(sf.index, &canvas)?;
         }
-        let timings = json!({
-            "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
-            "align_ms": step.timings.align.as_secs_f64() * 1e3,
-            "fit_pose_filter_ms": step.timings.complete.as_secs_f64() * 1e3,
+        faces += step.faces.faces.len();
+        let mut line = json!({
+            "frame": sf.index,
+            "timestamp_us": sf.timestamp_us,
+            "face": !step.faces.faces.is_empty(),
+            "faces": step.faces.faces.iter().map(face_json).collect::<Vec<_>>(),
+            "detected": step.detected,
+            "timings": {
+                "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
+                "align_ms": step.timings.align.as_secs_f64() * 1e3,
+                "fit_pose_filter_ms": step.timings.complete.as_secs_f64() * 1e3,
+            },
+            "link": link_state,
         });
-        let line = match result {
-            FrameResult::Face(u) => {
-                faces += 1;
-                json!({
-                    "frame": sf.index,
-                    "timestamp_us": sf.timestamp_us,
-                    "face": true,
-                    "aligner": u.answered_by,
-                    "init": u.init,
-                    "confidence": u.confidence,
-                    "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
-                    "camera": {
-                        "translation_m": u.fit.translation.to_array(),
-                        "rotation_wxyz": [u.fit.rotation.w, u.fit.rotation.x, u.fit.rotation.y, u.fit.rotation.z],
-                        "rmse_px": u.fit.rmse_px,
-                    },
-                    "world": {
-                        "position_m": u.world.position.to_array(),
-                        "rotation_wxyz": [u.world.rotation.w, u.world.rotation.x, u.world.rotation.y, u.world.rotation.z],
-                        "predicted_position_m": u.predicted_position.to_array(),
-                        "display_position_m": u.display.0.to_array(),
-                    },
-                    "weights": u.fit.weights.iter()
-                        .map(|(unit, w)| (unit.name().to_owned(), json!(w)))
-                        .collect::<serde_json::Map<_, _>>(),
-                    "attributes": {
-                        "smile": u.attributes.smile, "brows_raised": u.attributes.brows_raised,
-                        "mouth_open": u.attributes.mouth_open,
-                    },
-                    "timings": timings,
-                    "link": link_state,
-                })
-            }
-            FrameResult::NoFace(reason) => json!({
-                "frame": sf.index,
-                "timestamp_us": sf.timestamp_us,
-                "face": false,
-                "reason": reason,
-                "timings": timings,
-                "link": link_state,
-            }),
-        };
+        if let Some(reason) = no_face {
+            line["reason"] = json!(reason);
+        }
         serde_json::to_writer(&mut out, &line)?;
         out.write_all(b"\n")?;
     }
     out.flush()
         .with_context(|| format!("writing {}", args.out.display()))?;
-    println!(
-        "{frames} frames, {faces} with a face; wrote {}",
-        args.out.display()
-    );
+    println!("{frames} frames, {faces} faces; wrote {}", args.out.display());
     if let Some(a) = annotated {
         println!("{}", a.finish()?);
     }

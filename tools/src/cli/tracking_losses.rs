@@ -84,10 +84,10 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-const FRAME_W: usize = 640;
-const FRAME_H: usize = 480;
+pub(crate) const FRAME_W: usize = 640;
+pub(crate) const FRAME_H: usize = 480;
 const FACE_DISTANCE_M: f64 = 0.6;
-const GOOD_NME: f64 = 0.08;
+pub(crate) const GOOD_NME: f64 = 0.08;
 
 /// The scenario's motion; `phase` decorrelates sequences.
 #[derive(Clone, Copy, Debug)]
@@ -132,8 +132,17 @@ impl Motion {
 /// The face's photo region: the landmarks' box grown by its size on every side (other faces in group
 /// photos are mostly cut away); landmarks are moved into the cut.
 fn cut_face(image: &GrayImage, lm: &[Point2; 68]) -> anyhow::Result<(GrayImage, [Point2; 68])> {
+    cut_face_with_margin(image, lm, 1.0)
+}
+
+/// [`cut_face`] with the box grown by `margin` times its size on every side.
+pub(crate) fn cut_face_with_margin(
+    image: &GrayImage,
+    lm: &[Point2; 68],
+    margin: f32,
+) -> anyhow::Result<(GrayImage, [Point2; 68])> {
     let r = Rect::bounding(lm).context("empty landmarks")?;
-    let m = r.width().max(r.height());
+    let m = margin * r.width().max(r.height());
     let x0 = (r.x0 - m).floor().max(0.0) as usize;
     let y0 = (r.y0 - m).floor().max(0.0) as usize;
     let x1 = ((r.x1 + m).ceil() as usize).min(image.width());

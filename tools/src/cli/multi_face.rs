@@ -1,0 +1,557 @@
+//! `holoface multi-face`: several faces at once, measured against the truth on rendered scenes.
+//!
+//! A scene holds N validation faces (never trained on), each cut out of its photo and hung as a flat,
+//! life-size picture (`render.rs`) at its own place, depth and motion (a head's slow turns and sway), all
+//! seen by the wearer's headset camera, which turns and sways too. Pictures are drawn far to near, so a
+//! nearer one covers a farther one where they overlap; every frame is the exact homography of each photo,
+//! so every face's true landmarks are known in every frame.
+//!
+//! One tracker session (`max_faces = N`) runs over the scene. Per frame, its faces are matched to the true
+//! faces (smallest NME49 first, each truth at most once, a match only below NME49 0.25). Per true face:
+//! * **NME49** over the frames it is matched, against the **same face tracked alone**: the same frames
+//!   rendered with only that picture, one single-face session;
+//! * **id switches**: the face, matched to track a in the previous frame, is now matched to track b != a, or
+//!   to a track last matched to another face (a swap);
+//! * **losses**: matched in the previous frame, not in this one (its track was rejected or wandered off);
+//! * **reacquisitions**: back after a loss under a new track id (ids are never reused);
+//!
+//! and per scene the most tracks at once, the distinct track ids and the detector runs.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::geometry::Point2;
+use holoface_models::image::GrayImage;
+use holoface_models::math3::{Mat3, Pose, Vec3};
+use holoface_models::metrics::nme49;
+use holoface_models::shape::dan_mean_shape;
+use serde_json::json;
+
+use super::tracking_losses::{FRAME_H, FRAME_W, cut_face_with_margin};
+use crate::args::RuntimeArgs;
+use crate::data::{Split, default_data_root, load_folder};
+use crate::render::{PlanarScene, SCENE_CAMERA};
+use holoface_client::align::Aligner;
+use holoface_client::frame::Frame;
+use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
+
+/// Aligner for the measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum SceneAligner {
+    /// KRFWS (the headset's local aligner).
+    Krfws,
+    /// DAN in-process through ONNX Runtime.
+    Dan,
+}
+
+/// Arguments of `holoface multi-face`.
+#[derive(Debug, ClapArgs)]
+pub struct Args {
+    /// Annotated faces (`NAME.jpg` + `NAME.pts`); the validation split is used.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Scenes to run: the number of faces in each.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3,5")]
+    pub counts: Vec<usize>,
+    /// Frames per scene.
+    #[arg(long, default_value_t = 300)]
+    pub frames: usize,
+    /// Frame rate.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Headset yaw amplitude, degrees.
+    #[arg(long, default_value_t = 4.0)]
+    pub headset_yaw_deg: f64,
+    /// While fewer than N faces are tracked, run the detector every this many frames.
+    #[arg(long, default_value_t = 10)]
+    pub detect_every: u32,
+    /// Aligner.
+    #[arg(long, value_enum, default_value = "krfws")]
+    pub aligner: SceneAligner,
+    /// CANDIDE-3 model.
+    #[command(flatten)]
+    pub candide: crate::args::CandideArg,
+    /// JSON report.
+    #[arg(long, default_value = "runs/multi-face.json")]
+    pub out: PathBuf,
+    /// Also write the first scene as `sequence.mp4` (H.264), `poses.jsonl` (the sidecar `holoface track
+    /// --poses` reads) and `truth.jsonl` (every face's true landmarks per frame) into this folder.
+    #[arg(long)]
+    pub write_sequence: Option<PathBuf>,
+    /// Also draw each scene's first frame with the tracked faces and their ids (`scene_N.png`) here.
+    #[arg(long)]
+    pub snapshots: Option<PathBuf>,
+    /// Runtime assets.
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+/// Largest scene: five pictures side by side fill the 640-px view at this spacing and depth. The depth
+/// keeps every face about 95 px wide, which the detector (BlazeFace short range, the frame letterboxed into
+/// 128 px) still finds; farther faces are below its smallest anchor.
+const MAX_FACES: usize = 5;
+/// Horizontal spacing of the pictures' rest positions, metres.
+const SPACING_M: f64 = 0.17;
+/// Depth of the nearest picture, metres; the others step back by `DEPTH_STEP_M` each.
+const NEAR_M: f64 = 0.74;
+const DEPTH_STEP_M: f64 = 0.03;
+/// Each picture is the face's landmark box grown by this fraction of its size on every side.
+const PICTURE_MARGIN: f32 = 0.15;
+/// Faces used: near-frontal (the nose tip within this fraction of the eye distance from the eyes'
+/// midpoint, horizontally) and sharp enough (at least `MIN_EYE_PX` between the eye centres in the photo).
+const MAX_NOSE_OFFSET: f32 = 0.12;
+const MIN_EYE_PX: f32 = 40.0;
+/// A tracked face further than this (NME49) from every unmatched true face matches none.
+const MATCH_NME: f64 = 0.25;
+
+/// One picture of a scene and its motion.
+struct Person {
+    name: String,
+    scene: PlanarScene,
+    rest: Vec3,
+    phase: f64,
+}
+
+impl Person {
+    fn pose(&self, t: f64) -> Pose {
+        let tau = std::f64::consts::TAU;
+        let s = t + self.phase;
+        Pose {
+            rotation: Mat3::rot_y(12f64.to_radians() * (tau * s / 5.0).sin())
+                * Mat3::rot_x(6f64.to_radians() * (tau * s / 4.0 + 0.5).sin())
+                * Mat3::rot_z(6f64.to_radians() * (tau * s / 4.5).sin()),
+            translation: self.rest
+                + Vec3::new(
+                    0.03 * (tau * s / 6.0).sin(),
+                    0.02 * (tau * s / 5.0).sin(),
+                    0.03 * (tau * s / 7.0).sin(),
+                ),
+        }
+    }
+}
+
+fn headset(yaw_deg: f64, t: f64) -> Pose {
+    let w = std::f64::consts::TAU / 3.0;
+    Pose {
+        rotation: Mat3::rot_y(yaw_deg.to_radians() * (w * t).sin())
+            * Mat3::rot_x((0.5 * yaw_deg).to_radians() * (0.7 * w * t + 1.0).sin()),
+        translation: Vec3::new(0.02 * (0.5 * w * t).sin(), 0.015 * (0.6 * w * t).sin(), 0.0),
+    }
+}
+
+/// Per true face.
+#[derive(Debug, Default, Clone)]
+struct FaceTally {
+    frames: usize,
+    matched: usize,
+    nme_sum: f64,
+    losses: usize,
+    id_switches: usize,
+    reacquisitions: usize,
+    last_id: Option<u32>,
+    matched_before: bool,
+}
+
+impl FaceTally {
+    /// One frame: `matched` is the track id and NME49 of the face's match, `owner` says which true face a
+    /// track id was last matched to (to tell a swap from a new track).
+    fn record(
+        &mut self,
+        me: usize,
+        matched: Option<(u32, f64)>,
+        owner: &mut std::collections::HashMap<u32, usize>,
+    ) {
+        self.frames += 1;
+        match matched {
+            Some((id, e)) => {
+                self.matched += 1;
+                self.nme_sum += e;
+                let other_face = owner.get(&id).is_some_and(|&f| f != me);
+                if self.last_id.is_some_and(|last| last != id) {
+                    if self.matched_before || other_face {
+                        self.id_switches += 1;
+                    } else {
+                        self.reacquisitions += 1;
+                    }
+                } else if other_face {
+                    self.id_switches += 1;
+                }
+                owner.insert(id, me);
+                self.last_id = Some(id);
+            }
+            None if self.matched_before => self.losses += 1,
+            None => {}
+        }
+        self.matched_before = matched.is_some();
+    }
+
+    fn nme_pct(&self) -> f64 {
+        100.0 * self.nme_sum / self.matched.max(1) as f64
+    }
+}
+
+/// Greedy matching of tracked faces to true faces (smallest NME49 first, each at most once).
+fn match_faces(faces: &[TrackedFace], truths: &[[Point2; 68]]) -> Vec<Option<(u32, f64)>> {
+    let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+    for (i, f) in faces.iter().enumerate() {
+        for (j, t) in truths.iter().enumerate() {
+            if let Some(e) = nme49(&f.update.landmarks, t).filter(|e| e.is_finite() && *e < MATCH_NME) {
+                pairs.push((e, i, j));
+            }
+        }
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut out = vec![None; truths.len()];
+    let mut used = vec![false; faces.len()];
+    for (e, i, j) in pairs {
+        if !used[i] && out[j].is_none() {
+            used[i] = true;
+            out[j] = Some((faces[i].id, e));
+        }
+    }
+    out
+}
+
+/// Renders frame `i` of a scene with the pictures `which` (far to near) and returns the truths of all.
+fn render(
+    people: &[Person],
+    which: &[usize],
+    cam: &Pose,
+    t: f64,
+    image: &mut GrayImage,
+) -> anyhow::Result<Vec<[Point2; 68]>> {
+    image.as_bytes_mut().fill(90);
+    let mut order: Vec<usize> = which.to_vec();
+    order.sort_by(|&a, &b| people[b].rest.z.total_cmp(&people[a].rest.z));
+    let mut truths = vec![[Point2::default(); 68]; people.len()];
+    for &k in &order {
+        let p = &people[k];
+        let h = p.scene.homography(&SCENE_CAMERA, cam, &p.pose(t));
+        p.scene.render_over(&h, image)?;
+        truths[k] = p.scene.landmarks_in(&h);
+    }
+    Ok(truths)
+}
+
+struct Run {
+    tallies: Vec<FaceTally>,
+    ids: std::collections::BTreeSet<u32>,
+    most_at_once: usize,
+    detector_runs: usize,
+}
+
+/// Tracks one rendered sequence of `which` (with `max_faces` = its size) and tallies the faces in it.
+fn track(
+    args: &Args,
+    model: &holoface_models::candide::FaceModel,
+    aligner: &mut dyn Aligner,
+    people: &[Person],
+    which: &[usize],
+    mut export: Option<&mut Export>,
+) -> anyhow::Result<Run> {
+    let opts = SessionOptions {
+        max_faces: which.len(),
+        detect_every: args.detect_every,
+        ..SessionOptions::default()
+    };
+    // The same detector for the scene and for each face alone: the several-face settings.
+    let mut detector = args.runtime.detector()?;
+    detector.for_several_faces();
+    let mut session = TrackerSession::new(Box::new(detector), model.clone(), dan_mean_shape(), opts);
+    let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
+    let mut run = Run {
+        tallies: vec![FaceTally::default(); which.len()],
+        ids: std::collections::BTreeSet::new(),
+        most_at_once: 0,
+        detector_runs: 0,
+    };
+    let mut owner = std::collections::HashMap::new();
+    for i in 0..args.frames {
+        let t = i as f64 / args.fps;
+        let cam = headset(args.headset_yaw_deg, t);
+        let all = render(people, which, &cam, t, &mut image)?;
+        let truths: Vec<[Point2; 68]> = which.iter().map(|&k| all[k]).collect();
+        let frame = Frame {
+            timestamp_us: (t * 1e6).round() as u64,
+            image: image.view(),
+            intrinsics: SCENE_CAMERA,
+            world_from_camera: cam,
+        };
+        if let Some(e) = export.as_deref_mut() {
+            e.push(i, frame.timestamp_us, &image, &cam, &truths)?;
+        }
+        let step = holoface_client::frame_loop::step_faces(&mut session, aligner, &frame)?;
+        if let Some(dir) = args
+            .snapshots
+            .as_ref()
+            .filter(|_| i + 1 == args.frames.min(30) && which.len() > 1)
+        {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let canvas = crate::annotate::annotate(
+                &image,
+                i,
+                &step.faces.faces,
+                step.faces.no_face_reason(),
+                model,
+                &SCENE_CAMERA,
+            );
+            let path = dir.join(format!("scene_{}.png", which.len()));
+            std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))?;
+        }
+        run.detector_runs += usize::from(step.detected);
+        if let Some(dir) = args
+            .snapshots
+            .as_ref()
+            .filter(|_| i + 1 == args.frames.min(30) && which.len() > 1)
+        {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let canvas = crate::annotate::annotate(
+                &image,
+                i,
+                &step.faces.faces,
+                step.faces.no_face_reason(),
+                model,
+                &SCENE_CAMERA,
+            );
+            let path = dir.join(format!("scene_{}.png", which.len()));
+            std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))?;
+        }
+        run.detector_runs += usize::from(step.detected);
+        if std::env::var_os("MF_DEBUG").is_some()
+            && step
+                .faces
+                .outcomes
+                .iter()
+                .any(|o| !matches!(o.result, holoface_client::session::FrameResult::Face(_)))
+        {
+            eprintln!(
+                "n={} frame {i}: {:?}",
+                which.len(),
+                step.faces
+                    .outcomes
+                    .iter()
+                    .map(|o| (
+                        o.id,
+                        match o.result {
+                            holoface_client::session::FrameResult::Face(u) =>
+                                format!("face {:?}", holoface_models::geometry::centroid(&u.landmarks)),
+                            holoface_client::session::FrameResult::NoFace(r) => format!("{r:?}"),
+                        }
+                    ))
+                    .collect::<Vec<_>>()
+            );
+            eprintln!(
+                "   cands {:?}",
+                step.candidates
+                    .iter()
+                    .map(|c| (c.track, holoface_models::geometry::centroid(&c.init)))
+                    .collect::<Vec<_>>()
+            );
+        }
+        run.ids.extend(step.faces.faces.iter().map(|f| f.id));
+        run.most_at_once = run.most_at_once.max(step.faces.faces.len());
+        let matches = match_faces(&step.faces.faces, &truths);
+        for (k, (tally, m)) in run.tallies.iter_mut().zip(matches).enumerate() {
+            tally.record(k, m, &mut owner);
+        }
+    }
+    Ok(run)
+}
+
+/// `--write-sequence`: the scene's video, pose sidecar and truth.
+struct Export {
+    video: holoface_client::video::Mp4Writer,
+    poses: std::io::BufWriter<std::fs::File>,
+    truth: std::io::BufWriter<std::fs::File>,
+}
+
+impl Export {
+    fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let file = |name: &str| -> anyhow::Result<_> {
+            let p = dir.join(name);
+            Ok(std::io::BufWriter::new(
+                std::fs::File::create(&p).with_context(|| format!("creating {}", p.display()))?,
+            ))
+        };
+        Ok(Self {
+            video: holoface_client::video::Mp4Writer::create(
+                &dir.join("sequence.mp4"),
+                FRAME_W,
+                FRAME_H,
+                fps.round() as u32,
+            )?,
+            poses: file("poses.jsonl")?,
+            truth: file("truth.jsonl")?,
+        })
+    }
+
+    fn push(
+        &mut self,
+        i: usize,
+        t_us: u64,
+        image: &GrayImage,
+        cam: &Pose,
+        truths: &[[Point2; 68]],
+    ) -> anyhow::Result<()> {
+        use std::io::Write;
+        self.video.push(image)?;
+        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
+        let faces: Vec<Vec<[f32; 2]>> = truths
+            .iter()
+            .map(|lm| lm.iter().map(|p| [p.x, p.y]).collect())
+            .collect();
+        serde_json::to_writer(&mut self.truth, &json!({"frame": i, "faces_landmarks_px": faces}))?;
+        self.truth.write_all(b"\n")?;
+        Ok(())
+    }
+
+    fn finish(mut self) -> anyhow::Result<u64> {
+        use std::io::Write;
+        self.poses.flush()?;
+        self.truth.flush()?;
+        self.video.finish()
+    }
+}
+
+/// Runs `holoface multi-face`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.counts.is_empty() || args.counts.iter().any(|&n| n == 0 || n > MAX_FACES) {
+        bail!("--counts: each scene holds 1..={MAX_FACES} faces");
+    }
+    if args.frames == 0 || !(args.fps.is_finite() && args.fps > 0.0) {
+        bail!("--frames and --fps must be positive");
+    }
+    let root = args
+        .data
+        .clone()
+        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let samples = load_folder(&root, Split::Validation, true)?;
+    let model = args.candide.load()?;
+    let mut aligner: Box<dyn Aligner> = match args.aligner {
+        SceneAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
+        SceneAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+    };
+    let mut scenes = Vec::new();
+    println!(
+        "{:>5} {:>9} {:>8} {:>11} {:>9} {:>6} {:>10}   per face: NME49 % together / alone (relative)",
+        "faces", "at once", "ids", "id switches", "detector", "losses", "reacquired"
+    );
+    for &n in &args.counts {
+        let mut people = Vec::with_capacity(n);
+        let usable = samples
+            .iter()
+            .filter(|s| s.landmarks.as_ref().is_some_and(near_frontal));
+        for (k, sample) in usable.take(n).enumerate() {
+            let Some(lm) = sample.landmarks else { continue };
+            let (photo, lm) = cut_face_with_margin(&sample.image, &lm, PICTURE_MARGIN)
+                .with_context(|| sample.name.clone())?;
+            let x = (k as f64 - (n as f64 - 1.0) / 2.0) * SPACING_M;
+            people.push(Person {
+                name: sample.name.clone(),
+                scene: PlanarScene::life_size(photo, lm).with_context(|| sample.name.clone())?,
+                rest: Vec3::new(x, 0.0, NEAR_M + DEPTH_STEP_M * k as f64),
+                phase: 1.3 * k as f64,
+            });
+        }
+        if people.len() < n {
+            bail!(
+                "{} near-frontal validation faces, the scene needs {n}",
+                people.len()
+            );
+        }
+        let all: Vec<usize> = (0..n).collect();
+        let mut export = match args.write_sequence.as_deref() {
+            Some(dir) if scenes.is_empty() => Some(Export::create(dir, args.fps)?),
+            _ => None,
+        };
+        let together = track(&args, &model, &mut *aligner, &people, &all, export.as_mut())?;
+        if let (Some(e), Some(dir)) = (export, args.write_sequence.as_deref()) {
+            println!(
+                "wrote {} frames of the {n}-face scene to {}",
+                e.finish()?,
+                dir.display()
+            );
+        }
+        let mut per_face = Vec::new();
+        let mut line = String::new();
+        for (k, tally) in together.tallies.iter().enumerate() {
+            let alone = track(&args, &model, &mut *aligner, &people, &[k], None)?;
+            let solo = &alone.tallies[0];
+            let rel = together_vs_alone(tally.nme_pct(), solo.nme_pct());
+            line.push_str(&format!(
+                "  {:.2}/{:.2} ({:+.1} %)",
+                tally.nme_pct(),
+                solo.nme_pct(),
+                rel
+            ));
+            per_face.push(json!({
+                "face": people[k].name,
+                "nme49_pct": tally.nme_pct(),
+                "nme49_alone_pct": solo.nme_pct(),
+                "nme49_relative_change_pct": rel,
+                "tracked_frames_pct": 100.0 * tally.matched as f64 / tally.frames.max(1) as f64,
+                "tracked_frames_alone_pct": 100.0 * solo.matched as f64 / solo.frames.max(1) as f64,
+                "id_switches": tally.id_switches,
+                "losses": tally.losses,
+                "losses_alone": solo.losses,
+                "reacquisitions": tally.reacquisitions,
+            }));
+        }
+        let sum = |f: fn(&FaceTally) -> usize| together.tallies.iter().map(f).sum::<usize>();
+        let (switches, losses, reacquired) = (
+            sum(|t| t.id_switches),
+            sum(|t| t.losses),
+            sum(|t| t.reacquisitions),
+        );
+        println!(
+            "{n:>5} {:>9} {:>8} {switches:>11} {:>9} {losses:>6} {reacquired:>10} {line}",
+            together.most_at_once,
+            together.ids.len(),
+            together.detector_runs
+        );
+        scenes.push(json!({
+            "faces": n,
+            "frames": args.frames,
+            "tracks_at_once": together.most_at_once,
+            "track_ids": together.ids.len(),
+            "id_switches": switches,
+            "detector_runs": together.detector_runs,
+            "losses": losses,
+            "reacquisitions": reacquired,
+            "per_face": per_face,
+        }));
+    }
+    let report = json!({
+        "aligner": format!("{:?}", args.aligner).to_lowercase(),
+        "fps": args.fps,
+        "headset_yaw_deg": args.headset_yaw_deg,
+        "detect_every": args.detect_every,
+        "scenes": scenes,
+    });
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(&args.out, serde_json::to_vec_pretty(&report)?)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// See [`MAX_NOSE_OFFSET`] and [`MIN_EYE_PX`].
+fn near_frontal(lm: &[Point2; 68]) -> bool {
+    let c = |r: std::ops::Range<usize>| holoface_models::geometry::centroid(&lm[r]);
+    let (l, r) = (c(36..42), c(42..48));
+    let eyes = l.dist(r);
+    eyes >= MIN_EYE_PX && (lm[30].x - 0.5 * (l.x + r.x)).abs() <= MAX_NOSE_OFFSET * eyes
+}
+
+/// NME49 together relative to alone, percent (0 when both are 0).
+fn together_vs_alone(together: f64, alone: f64) -> f64 {
+    if alone > 0.0 {
+        100.0 * (together / alone - 1.0)
+    } else {
+        0.0
+    }
+}
