@@ -108,6 +108,19 @@ static class TrackSample
         Expect<ObjectDisposedException>("disposed tracker", () => tracker.Process(px, w, h, 40000000, cam, pose), "FaceTracker");
         Expect<ObjectDisposedException>("disposed tracker's link", () => tracker.LinkStatus(), "FaceTracker");
 
+        // Several faces: one person in the picture, so one face with id 0 in every frame.
+        Expect<InvalidOperationException>("maxFaces 0", () => { using (new FaceTracker(maxFaces: 0)) { } }, "max_faces");
+        using (var multi = new FaceTracker(maxFaces: 3))
+        {
+            int withId0 = 0;
+            for (int i = 0; i < 30; i++)
+            {
+                var all = multi.ProcessFaces(px, w, h, (ulong)i * 33333, cam, pose);
+                if (all.Length == 1 && all[0].id == 0 && all[0].face.hasFace == 1) withId0++;
+            }
+            Check(withId0 >= 25, "several-face tracker: " + withId0 + " of 30 frames with exactly face #0");
+        }
+
         Expect<InvalidOperationException>("missing model file", () =>
         {
             Environment.SetEnvironmentVariable("HOLOFACE_KRFWS_MODEL", "/nonexistent/krfws.bin");

@@ -85,7 +85,31 @@ int main(int argc, char **argv) {
     printf("old timestamp: status %d (%s)\n", (int)back, hf_last_error());
     hf_tracker_free(t);
     if (hf_tracker_free(t) != HF_STATUS_INVALID_HANDLE) return 3; /* double free is caught */
+
+    /* Several faces: up to 3 tracked at once, each with its id (one person here: id 0 throughout). */
+    HfTracker *multi = NULL;
+    if (hf_tracker_new_faces(&opts, 0, &multi) != HF_STATUS_INVALID_ARGUMENT) return 3;
+    if (hf_tracker_new_faces(&opts, HF_MAX_FACES + 1, &multi) != HF_STATUS_INVALID_ARGUMENT) return 3;
+    if (hf_tracker_new_faces(&opts, 3, &multi) != HF_STATUS_OK) {
+        fprintf(stderr, "hf_tracker_new_faces failed: %s\n", hf_last_error());
+        return 1;
+    }
+    HfFaces all;
+    all.struct_size = sizeof(HfFaces) - 1; /* a caller built against another layout is refused */
+    if (hf_tracker_process_faces(multi, px, w, h, w, 0, &cam, pose, &all) != HF_STATUS_INVALID_ARGUMENT) return 3;
+    printf("wrong HfFaces size rejected: %s\n", hf_last_error());
+    all.struct_size = sizeof(HfFaces);
+    int with_id0 = 0;
+    for (int i = 0; i < 30; i++) {
+        if (hf_tracker_process_faces(multi, px, w, h, w, (uint64_t)i * 33333u, &cam, pose, &all) != HF_STATUS_OK) {
+            fprintf(stderr, "faces frame %d failed: %s\n", i, hf_last_error());
+            return 1;
+        }
+        with_id0 += all.count == 1 && all.faces[0].id == 0 && all.faces[0].face.has_face;
+    }
+    printf("several-face tracker: %d of 30 frames with exactly face #0\n", with_id0);
+    hf_tracker_free(multi);
     free(px);
     printf("%d of 30 frames with a face\n", faces);
-    return (s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25) ? 0 : 1;
+    return (s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25 && with_id0 >= 25) ? 0 : 1;
 }

@@ -13,6 +13,11 @@
 #include <stdlib.h>
 
 /**
+ * Most faces one `HfFaces` holds (`hf_tracker_new_faces` accepts 1..=`HF_MAX_FACES`).
+ */
+#define HF_MAX_FACES 8
+
+/**
  * Result of every call.
  */
 typedef enum HfStatus {
@@ -292,6 +297,44 @@ typedef struct HfResult {
 } HfResult;
 
 /**
+ * One tracked face of a frame: its stable id and its answer (`face.has_face` is 1).
+ */
+typedef struct HfFace {
+  /**
+   * The track id: the same for as long as the face is tracked, never reused by this tracker.
+   */
+  uint32_t id;
+  /**
+   * The face (landmarks, poses, weights, attributes, who answered).
+   */
+  struct HfResult face;
+} HfFace;
+
+/**
+ * Every face of one frame (`hf_tracker_process_faces`). Versioned by size: set `struct_size` to
+ * `sizeof(HfFaces)` before the call; a library built with another layout refuses it
+ * (`HF_STATUS_INVALID_ARGUMENT`) instead of writing past it.
+ */
+typedef struct HfFaces {
+  /**
+   * `sizeof(HfFaces)`, set by the caller.
+   */
+  uint32_t struct_size;
+  /**
+   * Faces in `faces`, oldest track first.
+   */
+  uint32_t count;
+  /**
+   * With no face: 1 not detected, 2 rejected, 3 no aligner answered, 4 the 3D fit failed; else 0.
+   */
+  uint32_t no_face_reason;
+  /**
+   * The faces; entries from `count` on are zeroed.
+   */
+  struct HfFace faces[HF_MAX_FACES];
+} HfFaces;
+
+/**
  * The link's status: state, failure kind, and the failure message (NUL-terminated UTF-8, truncated).
  */
 typedef struct HfLinkStatus {
@@ -322,13 +365,27 @@ extern "C" {
 enum HfStatus hf_options_default(struct HfOptions *out);
 
 /**
- * Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`.
+ * Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`. It follows one face;
+ * `hf_tracker_new_faces` follows several.
  *
  * # Safety
  * `options` is NULL (defaults) or points to an initialised `HfOptions` whose strings are NULL or
  * NUL-terminated; `out` points to writable memory for one pointer.
  */
-enum HfStatus hf_tracker_new(const struct HfOptions *options, struct HfTracker **out);
+enum HfStatus hf_tracker_new(const struct HfOptions *options,
+                             struct HfTracker **out);
+
+/**
+ * Creates a tracker that follows up to `max_faces` faces at once (1..=`HF_MAX_FACES`), each with a stable id;
+ * read them with `hf_tracker_process_faces` (`hf_tracker_process` reports the oldest). Detection then also
+ * scans tiles of the frame, for faces smaller than a selfie's.
+ *
+ * # Safety
+ * As `hf_tracker_new`.
+ */
+enum HfStatus hf_tracker_new_faces(const struct HfOptions *options,
+                                   uint32_t max_faces,
+                                   struct HfTracker **out);
 
 /**
  * Processes one gray8 frame. `world_from_camera` is a row-major 4x4 camera-to-world matrix (16 floats) or
@@ -348,6 +405,23 @@ enum HfStatus hf_tracker_process(struct HfTracker *tracker,
                                  const struct HfCamera *camera,
                                  const float *world_from_camera,
                                  struct HfResult *out);
+
+/**
+ * Processes one gray8 frame like `hf_tracker_process` and reports every tracked face with its id. Set
+ * `out->struct_size = sizeof(HfFaces)` first.
+ *
+ * # Safety
+ * As `hf_tracker_process`, with `out` pointing to one `HfFaces` whose `struct_size` is initialised.
+ */
+enum HfStatus hf_tracker_process_faces(struct HfTracker *tracker,
+                                       const uint8_t *pixels,
+                                       uint32_t width,
+                                       uint32_t height,
+                                       uint32_t stride,
+                                       uint64_t timestamp_us,
+                                       const struct HfCamera *camera,
+                                       const float *world_from_camera,
+                                       struct HfFaces *out);
 
 /**
  * The tracker's link to the alignment server: `HF_LINK_STATE_LOCAL` without a server, else whether it is up

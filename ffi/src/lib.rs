@@ -20,7 +20,7 @@ use std::time::Duration;
 use holoface_client::align::AnsweredBy;
 use holoface_client::frame::Frame;
 use holoface_client::link::{FailureKind, LinkState, LinkStatus};
-use holoface_client::session::{FrameResult, NoFaceReason};
+use holoface_client::session::{FaceUpdate, FrameResult, NoFaceReason};
 use holoface_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
@@ -139,6 +139,35 @@ pub struct HfResult {
     pub brows_raised: u8,
     /// Mouth open (0/1).
     pub mouth_open: u8,
+}
+
+/// Most faces one `HfFaces` holds (`hf_tracker_new_faces` accepts 1..=`HF_MAX_FACES`).
+pub const HF_MAX_FACES: usize = 8;
+
+/// One tracked face of a frame: its stable id and its answer (`face.has_face` is 1).
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct HfFace {
+    /// The track id: the same for as long as the face is tracked, never reused by this tracker.
+    pub id: u32,
+    /// The face (landmarks, poses, weights, attributes, who answered).
+    pub face: HfResult,
+}
+
+/// Every face of one frame (`hf_tracker_process_faces`). Versioned by size: set `struct_size` to
+/// `sizeof(HfFaces)` before the call; a library built with another layout refuses it
+/// (`HF_STATUS_INVALID_ARGUMENT`) instead of writing past it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct HfFaces {
+    /// `sizeof(HfFaces)`, set by the caller.
+    pub struct_size: u32,
+    /// Faces in `faces`, oldest track first.
+    pub count: u32,
+    /// With no face: 1 not detected, 2 rejected, 3 no aligner answered, 4 the 3D fit failed; else 0.
+    pub no_face_reason: u32,
+    /// The faces; entries from `count` on are zeroed.
+    pub faces: [HfFace; HF_MAX_FACES],
 }
 
 /// Where the link to the alignment server stands.
@@ -405,42 +434,165 @@ fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
     Ok(t)
 }
 
-/// Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`.
+/// Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`. It follows one face;
+/// `hf_tracker_new_faces` follows several.
 ///
 /// # Safety
 /// `options` is NULL (defaults) or points to an initialised `HfOptions` whose strings are NULL or
 /// NUL-terminated; `out` points to writable memory for one pointer.
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn hf_tracker_new(options: *const HfOptions, out: *mut *mut HfTracker) -> HfStatus {
+    // SAFETY: the caller's contract is `new_tracker`'s.
+    guard(|| unsafe { new_tracker("hf_tracker_new", options, 1, out) })
+}
+
+/// Creates a tracker that follows up to `max_faces` faces at once (1..=`HF_MAX_FACES`), each with a stable id;
+/// read them with `hf_tracker_process_faces` (`hf_tracker_process` reports the oldest). Detection then also
+/// scans tiles of the frame, for faces smaller than a selfie's.
+///
+/// # Safety
+/// As `hf_tracker_new`.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_new_faces(
+    options: *const HfOptions,
+    max_faces: u32,
+    out: *mut *mut HfTracker,
+) -> HfStatus {
     guard(|| {
-        if out.is_null() {
-            return fail(HfStatus::NullPointer, "hf_tracker_new: out is NULL");
+        if max_faces == 0 || max_faces as usize > HF_MAX_FACES {
+            return fail(
+                HfStatus::InvalidArgument,
+                format!("hf_tracker_new_faces: max_faces {max_faces} must be within 1..={HF_MAX_FACES}"),
+            );
         }
-        let opts = if options.is_null() {
-            Ok(TrackerOptions::default())
-        } else {
-            // SAFETY: non-NULL and initialised per the contract.
-            options_from(unsafe { &*options })
-        };
-        let opts = match opts {
-            Ok(o) => o,
-            Err(s) => return s,
-        };
-        match FaceTracker::new(opts) {
-            Ok(inner) => {
-                let ptr = Box::into_raw(Box::new(HfTracker { inner }));
-                HANDLES
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .get_or_insert_with(HashSet::new)
-                    .insert(ptr as usize);
-                // SAFETY: checked non-NULL, writable per the contract.
-                unsafe { out.write(ptr) };
-                HfStatus::Ok
-            }
-            Err(e) => fail(HfStatus::AssetError, e.to_string()),
-        }
+        // SAFETY: the caller's contract is `new_tracker`'s.
+        unsafe { new_tracker("hf_tracker_new_faces", options, max_faces as usize, out) }
     })
+}
+
+/// # Safety
+/// As `hf_tracker_new`.
+unsafe fn new_tracker(
+    what: &str,
+    options: *const HfOptions,
+    max_faces: usize,
+    out: *mut *mut HfTracker,
+) -> HfStatus {
+    if out.is_null() {
+        return fail(HfStatus::NullPointer, format!("{what}: out is NULL"));
+    }
+    let opts = if options.is_null() {
+        Ok(TrackerOptions::default())
+    } else {
+        // SAFETY: non-NULL and initialised per the contract.
+        options_from(unsafe { &*options })
+    };
+    let mut opts = match opts {
+        Ok(o) => o,
+        Err(s) => return s,
+    };
+    opts.session.max_faces = max_faces;
+    match FaceTracker::new(opts) {
+        Ok(inner) => {
+            let ptr = Box::into_raw(Box::new(HfTracker { inner }));
+            HANDLES
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .get_or_insert_with(HashSet::new)
+                .insert(ptr as usize);
+            // SAFETY: checked non-NULL, writable per the contract.
+            unsafe { out.write(ptr) };
+            HfStatus::Ok
+        }
+        Err(e) => fail(HfStatus::AssetError, e.to_string()),
+    }
+}
+
+/// The checks and the tracking `hf_tracker_process` and `hf_tracker_process_faces` share.
+///
+/// # Safety
+/// As `hf_tracker_process` (`out` excepted).
+unsafe fn process_frame(
+    what: &str,
+    tracker: *mut HfTracker,
+    pixels: *const u8,
+    (width, height, stride): (u32, u32, u32),
+    timestamp_us: u64,
+    camera: *const HfCamera,
+    world_from_camera: *const f32,
+) -> Result<holoface_client::tracker::FaceResult, HfStatus> {
+    if !registered(tracker) {
+        return Err(fail(
+            HfStatus::InvalidHandle,
+            format!("{what}: not a live tracker handle"),
+        ));
+    }
+    if pixels.is_null() || camera.is_null() {
+        return Err(fail(
+            HfStatus::NullPointer,
+            format!("{what}: pixels and camera must not be NULL"),
+        ));
+    }
+    let (w, h, s) = (width as usize, height as usize, stride as usize);
+    if w == 0 || h == 0 || s < w || w > 16_384 || h > 16_384 {
+        return Err(fail(
+            HfStatus::InvalidArgument,
+            format!("image {width}x{height} with stride {stride}"),
+        ));
+    }
+    // SAFETY: the caller guarantees `stride * height` readable bytes.
+    let data = unsafe { std::slice::from_raw_parts(pixels, s * h) };
+    let Ok(image) = GrayView::new(data, w, h, s) else {
+        return Err(fail(HfStatus::InvalidArgument, "image does not fit its buffer"));
+    };
+    // SAFETY: non-NULL, one HfCamera per the contract.
+    let cam = unsafe { *camera };
+    if ![cam.fx, cam.fy, cam.cx, cam.cy].iter().all(|v| v.is_finite()) || cam.fx <= 0.0 || cam.fy <= 0.0 {
+        return Err(fail(
+            HfStatus::InvalidArgument,
+            "camera intrinsics must be finite with fx, fy > 0",
+        ));
+    }
+    let pose = if world_from_camera.is_null() {
+        Pose::IDENTITY
+    } else {
+        // SAFETY: 16 floats per the contract.
+        let m: [f32; 16] = unsafe { std::ptr::read_unaligned(world_from_camera.cast::<[f32; 16]>()) };
+        match Pose::from_row_major_4x4(&m) {
+            Some(p) => p,
+            None => {
+                return Err(fail(
+                    HfStatus::InvalidArgument,
+                    "world_from_camera is not a rigid transform",
+                ));
+            }
+        }
+    };
+    let frame = Frame {
+        timestamp_us,
+        image,
+        intrinsics: Intrinsics {
+            fx: cam.fx,
+            fy: cam.fy,
+            cx: cam.cx,
+            cy: cam.cy,
+        },
+        world_from_camera: pose,
+    };
+    // SAFETY: registered handles are live boxes we created; the caller does not use one handle from
+    // two threads at once.
+    let t = unsafe { &mut *tracker };
+    let r = match t.inner.process(&frame) {
+        Ok(r) => r,
+        Err(e) => {
+            let status = match e {
+                holoface_client::tracker::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
+                _ => HfStatus::ProcessingError,
+            };
+            return Err(fail(status, e.to_string()));
+        }
+    };
+    Ok(r)
 }
 
 /// Processes one gray8 frame. `world_from_camera` is a row-major 4x4 camera-to-world matrix (16 floats) or
@@ -469,70 +621,23 @@ pub unsafe extern "C" fn hf_tracker_process(
                 "hf_tracker_process: not a live tracker handle",
             );
         }
-        if pixels.is_null() || camera.is_null() || out.is_null() {
-            return fail(
-                HfStatus::NullPointer,
-                "hf_tracker_process: pixels, camera and out must not be NULL",
-            );
+        if out.is_null() {
+            return fail(HfStatus::NullPointer, "hf_tracker_process: out must not be NULL");
         }
-        let (w, h, s) = (width as usize, height as usize, stride as usize);
-        if w == 0 || h == 0 || s < w || w > 16_384 || h > 16_384 {
-            return fail(
-                HfStatus::InvalidArgument,
-                format!("image {width}x{height} with stride {stride}"),
-            );
-        }
-        // SAFETY: the caller guarantees `stride * height` readable bytes.
-        let data = unsafe { std::slice::from_raw_parts(pixels, s * h) };
-        let Ok(image) = GrayView::new(data, w, h, s) else {
-            return fail(HfStatus::InvalidArgument, "image does not fit its buffer");
-        };
-        // SAFETY: non-NULL, one HfCamera per the contract.
-        let cam = unsafe { *camera };
-        if ![cam.fx, cam.fy, cam.cx, cam.cy].iter().all(|v| v.is_finite()) || cam.fx <= 0.0 || cam.fy <= 0.0 {
-            return fail(
-                HfStatus::InvalidArgument,
-                "camera intrinsics must be finite with fx, fy > 0",
-            );
-        }
-        let pose = if world_from_camera.is_null() {
-            Pose::IDENTITY
-        } else {
-            // SAFETY: 16 floats per the contract.
-            let m: [f32; 16] = unsafe { std::ptr::read_unaligned(world_from_camera.cast::<[f32; 16]>()) };
-            match Pose::from_row_major_4x4(&m) {
-                Some(p) => p,
-                None => {
-                    return fail(
-                        HfStatus::InvalidArgument,
-                        "world_from_camera is not a rigid transform",
-                    );
-                }
-            }
-        };
-        let frame = Frame {
-            timestamp_us,
-            image,
-            intrinsics: Intrinsics {
-                fx: cam.fx,
-                fy: cam.fy,
-                cx: cam.cx,
-                cy: cam.cy,
-            },
-            world_from_camera: pose,
-        };
-        // SAFETY: registered handles are live boxes we created; the caller does not use one handle from
-        // two threads at once.
-        let t = unsafe { &mut *tracker };
-        let r = match t.inner.process(&frame) {
+        // SAFETY: the caller's contract is `process_frame`'s.
+        let r = match unsafe {
+            process_frame(
+                "hf_tracker_process",
+                tracker,
+                pixels,
+                (width, height, stride),
+                timestamp_us,
+                camera,
+                world_from_camera,
+            )
+        } {
             Ok(r) => r,
-            Err(e) => {
-                let status = match e {
-                    holoface_client::tracker::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
-                    _ => HfStatus::ProcessingError,
-                };
-                return fail(status, e.to_string());
-            }
+            Err(status) => return status,
         };
         // SAFETY: writable per the contract.
         unsafe { out.write(to_c(&r)) };
@@ -540,17 +645,94 @@ pub unsafe extern "C" fn hf_tracker_process(
     })
 }
 
-fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
-    let q = |q: holoface_models::math3::Quat| [q.w, q.x, q.y, q.z];
-    let mut c = HfResult {
+/// Processes one gray8 frame like `hf_tracker_process` and reports every tracked face with its id. Set
+/// `out->struct_size = sizeof(HfFaces)` first.
+///
+/// # Safety
+/// As `hf_tracker_process`, with `out` pointing to one `HfFaces` whose `struct_size` is initialised.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_process_faces(
+    tracker: *mut HfTracker,
+    pixels: *const u8,
+    width: u32,
+    height: u32,
+    stride: u32,
+    timestamp_us: u64,
+    camera: *const HfCamera,
+    world_from_camera: *const f32,
+    out: *mut HfFaces,
+) -> HfStatus {
+    guard(|| {
+        if !registered(tracker) {
+            return fail(
+                HfStatus::InvalidHandle,
+                "hf_tracker_process_faces: not a live tracker handle",
+            );
+        }
+        if out.is_null() {
+            return fail(
+                HfStatus::NullPointer,
+                "hf_tracker_process_faces: out must not be NULL",
+            );
+        }
+        // SAFETY: non-NULL; the caller initialised `struct_size`, the first field (read alone, so a caller with
+        // a smaller struct is refused before anything is written).
+        let size = unsafe { std::ptr::read_unaligned(out.cast::<u32>()) };
+        let ours = size_of::<HfFaces>();
+        if size as usize != ours {
+            return fail(
+                HfStatus::InvalidArgument,
+                format!(
+                    "hf_tracker_process_faces: HfFaces.struct_size is {size}, this library's HfFaces is {ours} bytes \
+                     (set struct_size = sizeof(HfFaces); rebuild against this library's holoface.h)"
+                ),
+            );
+        }
+        // SAFETY: the caller's contract is `process_frame`'s.
+        let r = match unsafe {
+            process_frame(
+                "hf_tracker_process_faces",
+                tracker,
+                pixels,
+                (width, height, stride),
+                timestamp_us,
+                camera,
+                world_from_camera,
+            )
+        } {
+            Ok(r) => r,
+            Err(status) => return status,
+        };
+        // SAFETY: the sizes agree, so `out` is one writable `HfFaces` (written whole, never read).
+        unsafe { out.write(faces_to_c(&r, size)) };
+        HfStatus::Ok
+    })
+}
+
+fn answered_by_c(a: Option<AnsweredBy>) -> HfAnsweredBy {
+    match a {
+        None => HfAnsweredBy::None,
+        Some(AnsweredBy::RemoteDan) => HfAnsweredBy::RemoteDan,
+        Some(AnsweredBy::Krfws) => HfAnsweredBy::Krfws,
+        Some(AnsweredBy::LocalDan) => HfAnsweredBy::LocalDan,
+    }
+}
+
+fn no_face_code(reason: NoFaceReason) -> u32 {
+    match reason {
+        NoFaceReason::NotDetected => 1,
+        NoFaceReason::Rejected => 2,
+        NoFaceReason::NoAnswer => 3,
+        _ => 4,
+    }
+}
+
+/// An `HfResult` without a face.
+fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
+    HfResult {
         has_face: 0,
-        answered_by: match r.answered_by {
-            None => HfAnsweredBy::None,
-            Some(AnsweredBy::RemoteDan) => HfAnsweredBy::RemoteDan,
-            Some(AnsweredBy::Krfws) => HfAnsweredBy::Krfws,
-            Some(AnsweredBy::LocalDan) => HfAnsweredBy::LocalDan,
-        },
-        no_face_reason: 0,
+        answered_by,
+        no_face_reason,
         landmarks_px: [0.0; 136],
         camera_translation_m: [0.0; 3],
         camera_rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
@@ -563,36 +745,62 @@ fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
         smile: 0,
         brows_raised: 0,
         mouth_open: 0,
-    };
-    match &r.outcome {
-        FrameResult::Face(u) => {
-            c.has_face = 1;
-            for (i, p) in u.landmarks.iter().enumerate() {
-                c.landmarks_px[2 * i] = p.x;
-                c.landmarks_px[2 * i + 1] = p.y;
-            }
-            c.camera_translation_m = u.fit.translation.to_array();
-            c.camera_rotation_wxyz = q(u.fit.rotation);
-            c.world_position_m = u.world.position.to_array();
-            c.world_rotation_wxyz = q(u.world.rotation);
-            c.predicted_position_m = u.predicted_position.to_array();
-            c.display_position_m = u.display.0.to_array();
-            c.display_rotation_wxyz = q(u.display.1);
-            c.weights = u.fit.weights.0;
-            c.smile = u8::from(u.attributes.smile);
-            c.brows_raised = u8::from(u.attributes.brows_raised);
-            c.mouth_open = u8::from(u.attributes.mouth_open);
-        }
-        FrameResult::NoFace(reason) => {
-            c.no_face_reason = match reason {
-                NoFaceReason::NotDetected => 1,
-                NoFaceReason::Rejected => 2,
-                NoFaceReason::NoAnswer => 3,
-                _ => 4,
-            };
-        }
     }
+}
+
+fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
+    let q = |q: holoface_models::math3::Quat| [q.w, q.x, q.y, q.z];
+    let mut c = empty_result(answered_by, 0);
+    c.has_face = 1;
+    for (i, p) in u.landmarks.iter().enumerate() {
+        c.landmarks_px[2 * i] = p.x;
+        c.landmarks_px[2 * i + 1] = p.y;
+    }
+    c.camera_translation_m = u.fit.translation.to_array();
+    c.camera_rotation_wxyz = q(u.fit.rotation);
+    c.world_position_m = u.world.position.to_array();
+    c.world_rotation_wxyz = q(u.world.rotation);
+    c.predicted_position_m = u.predicted_position.to_array();
+    c.display_position_m = u.display.0.to_array();
+    c.display_rotation_wxyz = q(u.display.1);
+    c.weights = u.fit.weights.0;
+    c.smile = u8::from(u.attributes.smile);
+    c.brows_raised = u8::from(u.attributes.brows_raised);
+    c.mouth_open = u8::from(u.attributes.mouth_open);
     c
+}
+
+fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
+    let by = answered_by_c(r.answered_by);
+    match &r.outcome {
+        FrameResult::Face(u) => face_to_c(u, by),
+        FrameResult::NoFace(reason) => empty_result(by, no_face_code(*reason)),
+    }
+}
+
+fn faces_to_c(r: &holoface_client::tracker::FaceResult, struct_size: u32) -> HfFaces {
+    let none = HfFace {
+        id: 0,
+        face: empty_result(HfAnsweredBy::None, 0),
+    };
+    let mut out = HfFaces {
+        struct_size,
+        count: 0,
+        no_face_reason: 0,
+        faces: [none; HF_MAX_FACES],
+    };
+    for (slot, f) in out.faces.iter_mut().zip(&r.faces) {
+        *slot = HfFace {
+            id: f.id,
+            face: face_to_c(&f.update, answered_by_c(Some(f.update.answered_by))),
+        };
+    }
+    out.count = u32::try_from(r.faces.len().min(HF_MAX_FACES)).unwrap_or(0);
+    out.no_face_reason = match &r.outcome {
+        FrameResult::NoFace(reason) if r.faces.is_empty() => no_face_code(*reason),
+        _ => 0,
+    };
+    out
 }
 
 /// The tracker's link to the alignment server: `HF_LINK_STATE_LOCAL` without a server, else whether it is up
@@ -745,6 +953,40 @@ mod tests {
         // SAFETY: valid pointers.
         assert_eq!(unsafe { hf_tracker_new(&o, &mut t) }, HfStatus::InvalidArgument);
         assert!(last_error().contains("server_fingerprint"));
+    }
+
+    #[test]
+    fn several_face_calls_check_their_arguments() {
+        let mut t = std::ptr::null_mut();
+        for bad in [0, HF_MAX_FACES as u32 + 1] {
+            // SAFETY: valid out pointer; max_faces is checked first.
+            let s = unsafe { hf_tracker_new_faces(std::ptr::null(), bad, &mut t) };
+            assert_eq!(s, HfStatus::InvalidArgument, "max_faces {bad}");
+            assert!(last_error().contains("max_faces"), "{}", last_error());
+        }
+        let px = [0u8; 16];
+        let cam = HfCamera {
+            fx: 1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: 0.0,
+        };
+        let mut out = std::mem::MaybeUninit::<HfFaces>::uninit();
+        // SAFETY: the handle is checked before anything else is touched.
+        let s = unsafe {
+            hf_tracker_process_faces(
+                0xdead_beef_usize as *mut HfTracker,
+                px.as_ptr(),
+                4,
+                4,
+                4,
+                0,
+                &cam,
+                std::ptr::null(),
+                out.as_mut_ptr(),
+            )
+        };
+        assert_eq!(s, HfStatus::InvalidHandle);
     }
 
     #[test]

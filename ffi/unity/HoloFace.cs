@@ -39,6 +39,25 @@ namespace HoloFace
         public byte smile, browsRaised, mouthOpen;
     }
 
+    /// <summary>One face of a several-face tracker: its stable id and its answer.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfFace
+    {
+        public uint id;
+        public HfResult face;
+    }
+
+    /// <summary>Every face of one frame (hf_tracker_process_faces); structSize must be Marshal.SizeOf(HfFaces).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfFaces
+    {
+        public const int MaxFaces = 8; // HF_MAX_FACES
+        public uint structSize;
+        public uint count;
+        public uint noFaceReason;
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = MaxFaces)] public HfFace[] faces;
+    }
+
     public enum HfLinkState { Local = 0, Connecting = 1, Up = 2, Retrying = 3, Failed = 4, Stopped = 5 }
     public enum HfLinkFailure
     {
@@ -72,6 +91,9 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_new(ref HfOptions options, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_process(IntPtr tracker, byte[] pixels, uint width, uint height,
             uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, out HfResult result);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_new_faces(ref HfOptions options, uint maxFaces, out IntPtr tracker);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_process_faces(IntPtr tracker, byte[] pixels, uint width, uint height,
+            uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, ref HfFaces faces);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_link_status(IntPtr tracker, out HfLinkStatus status);
         [DllImport(Lib)] static extern IntPtr hf_last_error();
@@ -84,7 +106,8 @@ namespace HoloFace
     {
         IntPtr handle;
 
-        public FaceTracker(string server = null, string fingerprint = null, string token = null)
+        /// <param name="maxFaces">Faces tracked at once (1..HfFaces.MaxFaces); read them with ProcessFaces.</param>
+        public FaceTracker(string server = null, string fingerprint = null, string token = null, uint maxFaces = 1)
         {
             Native.hf_options_default(out var o);
             var strings = new[] { server, fingerprint, token };
@@ -93,7 +116,7 @@ namespace HoloFace
             {
                 for (int i = 0; i < 3; i++) ptrs[i] = strings[i] == null ? IntPtr.Zero : Marshal.StringToCoTaskMemUTF8(strings[i]);
                 o.server = ptrs[0]; o.serverFingerprint = ptrs[1]; o.token = ptrs[2];
-                var s = Native.hf_tracker_new(ref o, out handle);
+                var s = maxFaces == 1 ? Native.hf_tracker_new(ref o, out handle) : Native.hf_tracker_new_faces(ref o, maxFaces, out handle);
                 if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             }
             finally
@@ -105,17 +128,35 @@ namespace HoloFace
         /// <param name="worldFromCamera">Row-major 4x4 camera-to-world matrix (e.g. from the headset's locatable camera).</param>
         public HfResult Process(byte[] gray, int width, int height, ulong timestampUs, HfCamera camera, float[] worldFromCamera)
         {
+            CheckFrame(gray, width, height, worldFromCamera);
+            var s = Native.hf_tracker_process(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
+                worldFromCamera, out var r);
+            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            return r;
+        }
+
+        /// <summary>Every face of the frame, oldest track first, each with its stable id (empty: no face).</summary>
+        public HfFace[] ProcessFaces(byte[] gray, int width, int height, ulong timestampUs, HfCamera camera, float[] worldFromCamera)
+        {
+            CheckFrame(gray, width, height, worldFromCamera);
+            var all = new HfFaces { structSize = (uint)Marshal.SizeOf(typeof(HfFaces)), faces = new HfFace[HfFaces.MaxFaces] };
+            var s = Native.hf_tracker_process_faces(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
+                worldFromCamera, ref all);
+            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            var faces = new HfFace[Math.Min(all.count, (uint)HfFaces.MaxFaces)];
+            Array.Copy(all.faces, faces, faces.Length);
+            return faces;
+        }
+
+        // The C API reads width * height bytes and 16 floats: check here, where the array lengths are known.
+        void CheckFrame(byte[] gray, int width, int height, float[] worldFromCamera)
+        {
             if (handle == IntPtr.Zero) throw new ObjectDisposedException(nameof(FaceTracker));
-            // The C API reads width * height bytes and 16 floats: check here, where the array lengths are known.
             if (gray == null) throw new ArgumentNullException(nameof(gray));
             if (width <= 0 || height <= 0 || (long)width * height > gray.Length)
                 throw new ArgumentException($"image {width}x{height} needs {(long)width * height} bytes, got {gray.Length}", nameof(gray));
             if (worldFromCamera != null && worldFromCamera.Length != 16)
                 throw new ArgumentException($"worldFromCamera needs 16 floats (row-major 4x4), got {worldFromCamera.Length}", nameof(worldFromCamera));
-            var s = Native.hf_tracker_process(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
-                worldFromCamera, out var r);
-            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
-            return r;
         }
 
         /// <summary>The link to the alignment server: Local without a server; Retrying/Failed say why frames are
