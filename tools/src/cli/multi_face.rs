@@ -28,7 +28,8 @@ use holoface_models::metrics::nme49;
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use super::tracking_losses::{FRAME_H, FRAME_W, cut_face_with_margin};
+use super::tracking_losses::{FRAME_H, FRAME_W};
+use super::tracking_losses::{SequenceExport, cut_face_with_margin};
 use crate::args::RuntimeArgs;
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
@@ -248,7 +249,7 @@ fn track(
     aligner: &mut dyn Aligner,
     people: &[Person],
     which: &[usize],
-    mut export: Option<&mut Export>,
+    mut export: Option<&mut SequenceExport>,
 ) -> anyhow::Result<Run> {
     let opts = SessionOptions {
         max_faces: which.len(),
@@ -279,7 +280,17 @@ fn track(
             world_from_camera: cam,
         };
         if let Some(e) = export.as_deref_mut() {
-            e.push(i, frame.timestamp_us, &image, &cam, &truths)?;
+            let faces: Vec<Vec<[f32; 2]>> = truths
+                .iter()
+                .map(|lm| lm.iter().map(|p| [p.x, p.y]).collect())
+                .collect();
+            e.push(
+                i,
+                frame.timestamp_us,
+                &image,
+                &cam,
+                &json!({"frame": i, "faces_landmarks_px": faces}),
+            )?;
         }
         let step = holoface_client::frame_loop::step_faces(&mut session, aligner, &frame)?;
         if let Some(dir) = args
@@ -300,55 +311,6 @@ fn track(
             std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))?;
         }
         run.detector_runs += usize::from(step.detected);
-        if let Some(dir) = args
-            .snapshots
-            .as_ref()
-            .filter(|_| i + 1 == args.frames.min(30) && which.len() > 1)
-        {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-            let canvas = crate::annotate::annotate(
-                &image,
-                i,
-                &step.faces.faces,
-                step.faces.no_face_reason(),
-                model,
-                &SCENE_CAMERA,
-            );
-            let path = dir.join(format!("scene_{}.png", which.len()));
-            std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))?;
-        }
-        run.detector_runs += usize::from(step.detected);
-        if std::env::var_os("MF_DEBUG").is_some()
-            && step
-                .faces
-                .outcomes
-                .iter()
-                .any(|o| !matches!(o.result, holoface_client::session::FrameResult::Face(_)))
-        {
-            eprintln!(
-                "n={} frame {i}: {:?}",
-                which.len(),
-                step.faces
-                    .outcomes
-                    .iter()
-                    .map(|o| (
-                        o.id,
-                        match o.result {
-                            holoface_client::session::FrameResult::Face(u) =>
-                                format!("face {:?}", holoface_models::geometry::centroid(&u.landmarks)),
-                            holoface_client::session::FrameResult::NoFace(r) => format!("{r:?}"),
-                        }
-                    ))
-                    .collect::<Vec<_>>()
-            );
-            eprintln!(
-                "   cands {:?}",
-                step.candidates
-                    .iter()
-                    .map(|c| (c.track, holoface_models::geometry::centroid(&c.init)))
-                    .collect::<Vec<_>>()
-            );
-        }
         run.ids.extend(step.faces.faces.iter().map(|f| f.id));
         run.most_at_once = run.most_at_once.max(step.faces.faces.len());
         let matches = match_faces(&step.faces.faces, &truths);
@@ -357,62 +319,6 @@ fn track(
         }
     }
     Ok(run)
-}
-
-/// `--write-sequence`: the scene's video, pose sidecar and truth.
-struct Export {
-    video: holoface_client::video::Mp4Writer,
-    poses: std::io::BufWriter<std::fs::File>,
-    truth: std::io::BufWriter<std::fs::File>,
-}
-
-impl Export {
-    fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let file = |name: &str| -> anyhow::Result<_> {
-            let p = dir.join(name);
-            Ok(std::io::BufWriter::new(
-                std::fs::File::create(&p).with_context(|| format!("creating {}", p.display()))?,
-            ))
-        };
-        Ok(Self {
-            video: holoface_client::video::Mp4Writer::create(
-                &dir.join("sequence.mp4"),
-                FRAME_W,
-                FRAME_H,
-                fps.round() as u32,
-            )?,
-            poses: file("poses.jsonl")?,
-            truth: file("truth.jsonl")?,
-        })
-    }
-
-    fn push(
-        &mut self,
-        i: usize,
-        t_us: u64,
-        image: &GrayImage,
-        cam: &Pose,
-        truths: &[[Point2; 68]],
-    ) -> anyhow::Result<()> {
-        use std::io::Write;
-        self.video.push(image)?;
-        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
-        let faces: Vec<Vec<[f32; 2]>> = truths
-            .iter()
-            .map(|lm| lm.iter().map(|p| [p.x, p.y]).collect())
-            .collect();
-        serde_json::to_writer(&mut self.truth, &json!({"frame": i, "faces_landmarks_px": faces}))?;
-        self.truth.write_all(b"\n")?;
-        Ok(())
-    }
-
-    fn finish(mut self) -> anyhow::Result<u64> {
-        use std::io::Write;
-        self.poses.flush()?;
-        self.truth.flush()?;
-        self.video.finish()
-    }
 }
 
 /// Runs `holoface multi-face`.
@@ -463,7 +369,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         let all: Vec<usize> = (0..n).collect();
         let mut export = match args.write_sequence.as_deref() {
-            Some(dir) if scenes.is_empty() => Some(Export::create(dir, args.fps)?),
+            Some(dir) if scenes.is_empty() => Some(SequenceExport::create(dir, args.fps)?),
             _ => None,
         };
         let together = track(&args, &model, &mut *aligner, &people, &all, export.as_mut())?;

@@ -241,15 +241,16 @@ impl Runner {
     }
 }
 
-/// Writes a sequence's MP4, pose sidecar and truth file.
-struct SequenceExport {
+/// Writes a sequence's MP4 (`sequence.mp4`), pose sidecar (`poses.jsonl`) and truth file (`truth.jsonl`, one
+/// JSON line per frame); `multi-face --write-sequence` uses it too.
+pub(crate) struct SequenceExport {
     video: holoface_client::video::Mp4Writer,
     poses: std::io::BufWriter<std::fs::File>,
     truth: std::io::BufWriter<std::fs::File>,
 }
 
 impl SequenceExport {
-    fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
+    pub(crate) fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         let file = |name: &str| -> anyhow::Result<_> {
             let p = dir.join(name);
@@ -269,23 +270,23 @@ impl SequenceExport {
         })
     }
 
-    fn push(
+    /// Frame `i`: the image, the camera pose, and the frame's truth line.
+    pub(crate) fn push(
         &mut self,
         i: usize,
         t_us: u64,
         image: &GrayImage,
         cam: &Pose,
-        truth: &[Point2; 68],
+        truth: &serde_json::Value,
     ) -> anyhow::Result<()> {
         self.video.push(image)?;
         holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
-        let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
-        serde_json::to_writer(&mut self.truth, &json!({"frame": i, "landmarks_px": lm}))?;
+        serde_json::to_writer(&mut self.truth, truth)?;
         self.truth.write_all(b"\n")?;
         Ok(())
     }
 
-    fn finish(mut self) -> anyhow::Result<u64> {
+    pub(crate) fn finish(mut self) -> anyhow::Result<u64> {
         self.poses.flush()?;
         self.truth.flush()?;
         self.video.finish()
@@ -367,7 +368,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if n == 0
                 && let Some(e) = export.as_mut()
             {
-                e.push(i, t_us, &image, &cam, &truth)?;
+                let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
+                e.push(i, t_us, &image, &cam, &json!({"frame": i, "landmarks_px": lm}))?;
             }
         }
         if n == 0
