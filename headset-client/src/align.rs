@@ -201,6 +201,7 @@ impl<E: InferenceEngine> Aligner for DanAligner<E> {
                 let bad = |e: image::ImageError| AlignError::BadOutput(format!("crop codec {codec}: {e}"));
                 let crop = codec.encode(self.crop.as_slice(), 112, 112).map_err(bad)?;
                 let req = holoface_protocol::FrameRequest {
+                    track_id: 0,
                     frame_id: 0,
                     captured_at_us: 0,
                     deadline_ms: 0,

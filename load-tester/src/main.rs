@@ -284,6 +284,7 @@ async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
         }
         k += 1;
         let req = FrameRequest {
+            track_id: 0,
             frame_id: k,
             captured_at_us: due.duration_since(start).as_micros() as u64,
             deadline_ms: u16::try_from(deadline.as_millis()).unwrap_or(u16::MAX),

@@ -73,6 +73,7 @@ fn jpeg(pixels: &[u8], quality: u8) -> Vec<u8> {
 
 fn request(encoding: CropEncoding, data: Vec<u8>) -> Message {
     FrameRequest {
+        track_id: 0,
         frame_id: 123_456,
         captured_at_us: 1_700_000_000_000_000,
         deadline_ms: 66,
@@ -94,6 +95,7 @@ fn landmarks68() -> Vec<[f32; 2]> {
 
 fn reply() -> Message {
     FrameReply {
+        track_id: 0,
         frame_id: 123_456,
         outcome: ReplyOutcome::Landmarks {
             landmarks: landmarks68(),

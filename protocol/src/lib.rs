@@ -68,8 +68,12 @@ pub use recording::{
 ///
 /// History: 1, the first; 2 adds [`DropReason::ModelOutput`] (a version-1
 /// client is sent [`DropReason::Overloaded`] instead, see
-/// [`DropReason::for_version`]).
-pub const PROTOCOL_VERSION: u16 = 2;
+/// [`DropReason::for_version`]); 3 adds the track id of a frame
+/// ([`FrameRequest::track_id`], echoed in [`FrameReply::track_id`]): a
+/// trailing field present only for a non-zero track, so every version-1/2
+/// message is a version-3 message of track 0, and a client sends a non-zero
+/// track only to a server whose welcome says 3 or more.
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// The oldest protocol version a server still serves.
 pub const MIN_PROTOCOL_VERSION: u16 = 1;

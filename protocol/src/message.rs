@@ -449,6 +449,11 @@ pub struct FrameRequest {
     pub deadline_ms: u16,
     /// The pixels. Landmarks in the reply are in this crop's pixel frame.
     pub crop: Crop,
+    /// Which of the client's tracked faces this crop is (protocol version 3; echoed in the reply). The
+    /// server's batcher keys supersede and expiry by (client, track), so a newer crop of one face never
+    /// drops another face's. A non-zero track travels as [`Message::TAG_TRACKED_FRAME_REQUEST`] (the track
+    /// id, then this layout); track 0 is the version-1/2 message, byte for byte.
+    pub track_id: u16,
 }
 
 impl Encode for FrameRequest {
@@ -473,6 +478,7 @@ impl Decode for FrameRequest {
             captured_at_us: get_u64(buf)?,
             deadline_ms: get_u16(buf)?,
             crop: Crop::decode(buf)?,
+            track_id: 0,
         })
     }
 }
@@ -507,6 +513,8 @@ pub struct FrameReply {
     pub frame_id: u64,
     /// Landmarks or the reason the frame was dropped.
     pub outcome: ReplyOutcome,
+    /// The request's `track_id` (version 3; non-zero ones travel as [`Message::TAG_TRACKED_FRAME_REPLY`]).
+    pub track_id: u16,
 }
 
 const OUTCOME_LANDMARKS: u8 = 0;
@@ -581,7 +589,22 @@ impl Decode for FrameReply {
                 });
             }
         };
-        Ok(Self { frame_id, outcome })
+        Ok(Self {
+            frame_id,
+            outcome,
+            track_id: 0,
+        })
+    }
+}
+
+/// The track id of a tracked frame message: never 0 (track 0 has its own, untracked tag).
+fn get_track(buf: &mut Bytes) -> Result<u16, DecodeError> {
+    match get_u16(buf)? {
+        0 => Err(DecodeError::UnknownValue {
+            field: "track_id (0 is sent untracked)",
+            value: 0,
+        }),
+        t => Ok(t),
     }
 }
 
@@ -689,13 +712,21 @@ impl Message {
     pub const TAG_GOAWAY: u8 = 0x05;
     /// Tag of [`Message::Error`].
     pub const TAG_ERROR: u8 = 0x06;
+    /// Tag of a [`Message::FrameRequest`] with a non-zero track id (version 3): `u16` track id, then the
+    /// [`Self::TAG_FRAME_REQUEST`] body.
+    pub const TAG_TRACKED_FRAME_REQUEST: u8 = 0x07;
+    /// Tag of a [`Message::FrameReply`] with a non-zero track id (version 3): `u16` track id, then the
+    /// [`Self::TAG_FRAME_REPLY`] body.
+    pub const TAG_TRACKED_FRAME_REPLY: u8 = 0x08;
 
     /// The message's tag byte.
     pub const fn tag(&self) -> u8 {
         match self {
             Self::ClientHello(_) => Self::TAG_CLIENT_HELLO,
             Self::ServerWelcome(_) => Self::TAG_SERVER_WELCOME,
+            Self::FrameRequest(m) if m.track_id != 0 => Self::TAG_TRACKED_FRAME_REQUEST,
             Self::FrameRequest(_) => Self::TAG_FRAME_REQUEST,
+            Self::FrameReply(m) if m.track_id != 0 => Self::TAG_TRACKED_FRAME_REPLY,
             Self::FrameReply(_) => Self::TAG_FRAME_REPLY,
             Self::Goaway(_) => Self::TAG_GOAWAY,
             Self::Error(_) => Self::TAG_ERROR,
@@ -704,13 +735,27 @@ impl Message {
 
     /// The exact number of bytes [`Message::encode`] appends (tag included).
     pub fn encoded_len(&self) -> usize {
-        1 + match self {
-            Self::ClientHello(m) => m.encoded_len(),
-            Self::ServerWelcome(m) => m.encoded_len(),
-            Self::FrameRequest(m) => m.encoded_len(),
-            Self::FrameReply(m) => m.encoded_len(),
-            Self::Goaway(m) => m.encoded_len(),
-            Self::Error(m) => m.encoded_len(),
+        1 + self.track().map_or(0, |_| 2)
+            + match self {
+                Self::ClientHello(m) => m.encoded_len(),
+                Self::ServerWelcome(m) => m.encoded_len(),
+                Self::FrameRequest(m) => m.encoded_len(),
+                Self::FrameReply(m) => m.encoded_len(),
+                Self::Goaway(m) => m.encoded_len(),
+                Self::Error(m) => m.encoded_len(),
+            }
+    }
+
+    /// A frame request's or reply's non-zero track id (it selects the tracked tag).
+    const fn track(&self) -> Option<u16> {
+        match self {
+            Self::FrameRequest(FrameRequest { track_id, .. })
+            | Self::FrameReply(FrameReply { track_id, .. })
+                if *track_id != 0 =>
+            {
+                Some(*track_id)
+            }
+            _ => None,
         }
     }
 
@@ -723,6 +768,9 @@ impl Message {
         let start = buf.len();
         buf.reserve(self.encoded_len());
         buf.put_u8(self.tag());
+        if let Some(track) = self.track() {
+            buf.put_u16_le(track);
+        }
         let res = match self {
             Self::ClientHello(m) => m.encode(buf),
             Self::ServerWelcome(m) => m.encode(buf),
@@ -756,6 +804,20 @@ impl Message {
             Self::TAG_SERVER_WELCOME => Self::ServerWelcome(ServerWelcome::decode(&mut buf)?),
             Self::TAG_FRAME_REQUEST => Self::FrameRequest(FrameRequest::decode(&mut buf)?),
             Self::TAG_FRAME_REPLY => Self::FrameReply(FrameReply::decode(&mut buf)?),
+            Self::TAG_TRACKED_FRAME_REQUEST => {
+                let track_id = get_track(&mut buf)?;
+                Self::FrameRequest(FrameRequest {
+                    track_id,
+                    ..FrameRequest::decode(&mut buf)?
+                })
+            }
+            Self::TAG_TRACKED_FRAME_REPLY => {
+                let track_id = get_track(&mut buf)?;
+                Self::FrameReply(FrameReply {
+                    track_id,
+                    ..FrameReply::decode(&mut buf)?
+                })
+            }
             Self::TAG_GOAWAY => Self::Goaway(Goaway::decode(&mut buf)?),
             Self::TAG_ERROR => Self::Error(ErrorMsg::decode(&mut buf)?),
             other => {
@@ -942,6 +1004,7 @@ mod tests {
     #[test]
     fn frame_request_layout() {
         let msg = Message::FrameRequest(FrameRequest {
+            track_id: 0,
             frame_id: 0x0102,
             captured_at_us: 7,
             deadline_ms: 33,
@@ -962,8 +1025,47 @@ mod tests {
     }
 
     #[test]
+    fn a_track_id_travels_under_its_own_tag_and_track_0_is_the_version_2_layout() {
+        let req = |track_id| {
+            Message::FrameRequest(FrameRequest {
+                frame_id: 0x0102,
+                captured_at_us: 7,
+                deadline_ms: 33,
+                crop: Crop::raw(2, 1, vec![0xaa, 0xbb]),
+                track_id,
+            })
+        };
+        let v2 = req(0).to_bytes().unwrap();
+        let v3 = req(0x0304).to_bytes().unwrap();
+        assert_eq!(
+            v2[0],
+            Message::TAG_FRAME_REQUEST,
+            "track 0: the version-2 message"
+        );
+        assert_eq!(&v3[..3], &[Message::TAG_TRACKED_FRAME_REQUEST, 0x04, 0x03]);
+        assert_eq!(&v3[3..], &v2[1..], "then the same body");
+        assert_eq!(Message::decode(v3).unwrap(), req(0x0304));
+        // Track 0 under the tracked tag is not canonical.
+        let mut zero = vec![Message::TAG_TRACKED_FRAME_REQUEST, 0, 0];
+        zero.extend_from_slice(&v2[1..]);
+        let e = Message::decode(Bytes::from(zero)).unwrap_err().to_string();
+        assert!(e.contains("track_id"), "{e}");
+        let reply = Message::FrameReply(FrameReply {
+            frame_id: 9,
+            outcome: ReplyOutcome::Dropped {
+                reason: DropReason::Superseded,
+            },
+            track_id: 2,
+        });
+        let b = reply.to_bytes().unwrap();
+        assert_eq!(&b[..3], &[Message::TAG_TRACKED_FRAME_REPLY, 2, 0]);
+        assert_eq!(Message::decode(b).unwrap(), reply);
+    }
+
+    #[test]
     fn frame_reply_layouts() {
         let msg = Message::FrameReply(FrameReply {
+            track_id: 0,
             frame_id: 9,
             outcome: ReplyOutcome::Landmarks {
                 landmarks: vec![[0.5, 2.0]],
@@ -987,6 +1089,7 @@ mod tests {
         round_trip(msg, &expected);
 
         let msg = Message::FrameReply(FrameReply {
+            track_id: 0,
             frame_id: 1,
             outcome: ReplyOutcome::Dropped {
                 reason: DropReason::Expired,
@@ -1012,6 +1115,7 @@ mod tests {
     #[test]
     fn raw_112_request_size() {
         let msg = Message::FrameRequest(FrameRequest {
+            track_id: 0,
             frame_id: 1,
             captured_at_us: 2,
             deadline_ms: 66,
@@ -1019,6 +1123,7 @@ mod tests {
         });
         assert_eq!(msg.encoded_len(), 12_572);
         let reply = Message::FrameReply(FrameReply {
+            track_id: 0,
             frame_id: 1,
             outcome: ReplyOutcome::Landmarks {
                 landmarks: vec![[0.0; 2]; 68],
@@ -1034,6 +1139,7 @@ mod tests {
     #[test]
     fn decode_slices_pixels_without_copying() {
         let msg = Message::FrameRequest(FrameRequest {
+            track_id: 0,
             frame_id: 1,
             captured_at_us: 2,
             deadline_ms: 3,
@@ -1159,6 +1265,7 @@ mod tests {
             })
         );
         let req = Message::FrameRequest(FrameRequest {
+            track_id: 0,
             frame_id: 0,
             captured_at_us: 0,
             deadline_ms: 0,
@@ -1178,6 +1285,7 @@ mod tests {
             text: "a".into(),
         });
         let b = Message::FrameReply(FrameReply {
+            track_id: 0,
             frame_id: 2,
             outcome: ReplyOutcome::Dropped {
                 reason: DropReason::Overloaded,

@@ -41,6 +41,7 @@ fn messages() -> Vec<Message> {
         }
         .into(),
         FrameRequest {
+            track_id: 0,
             frame_id: 7,
             captured_at_us: 1_000_000,
             deadline_ms: 66,
@@ -48,6 +49,7 @@ fn messages() -> Vec<Message> {
         }
         .into(),
         FrameReply {
+            track_id: 0,
             frame_id: 7,
             outcome: ReplyOutcome::Landmarks {
                 landmarks: vec![[31.0, 41.0], [79.5, 40.5]],
@@ -58,6 +60,7 @@ fn messages() -> Vec<Message> {
         }
         .into(),
         FrameReply {
+            track_id: 0,
             frame_id: 8,
             outcome: ReplyOutcome::Dropped {
                 reason: DropReason::Superseded,

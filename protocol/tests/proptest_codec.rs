@@ -125,12 +125,13 @@ fn server_welcome() -> impl Strategy<Value = ServerWelcome> {
 }
 
 fn frame_request() -> impl Strategy<Value = FrameRequest> {
-    (any::<u64>(), any::<u64>(), any::<u16>(), crop()).prop_map(
-        |(frame_id, captured_at_us, deadline_ms, crop)| FrameRequest {
+    (any::<u64>(), any::<u64>(), any::<u16>(), crop(), any::<u16>()).prop_map(
+        |(frame_id, captured_at_us, deadline_ms, crop, track_id)| FrameRequest {
             frame_id,
             captured_at_us,
             deadline_ms,
             crop,
+            track_id,
         },
     )
 }
@@ -145,8 +146,13 @@ fn frame_reply() -> impl Strategy<Value = FrameReply> {
         },
     );
     let dropped = prop::sample::select(DropReason::ALL).prop_map(|reason| ReplyOutcome::Dropped { reason });
-    (any::<u64>(), prop_oneof![landmarks, dropped])
-        .prop_map(|(frame_id, outcome)| FrameReply { frame_id, outcome })
+    (any::<u64>(), prop_oneof![landmarks, dropped], any::<u16>()).prop_map(|(frame_id, outcome, track_id)| {
+        FrameReply {
+            frame_id,
+            outcome,
+            track_id,
+        }
+    })
 }
 
 fn message() -> impl Strategy<Value = Message> {
@@ -271,13 +277,16 @@ proptest! {
         prop_assert_eq!(wire.len(), msg.encoded_len());
         prop_assert_eq!(Message::decode(wire.clone()).unwrap(), msg.clone());
 
-        // The body types round-trip through Encode/Decode on their own too.
-        let mut body = wire.slice(1..);
+        // The body types round-trip through Encode/Decode on their own too (a tracked frame's body follows
+        // its track id; the body itself carries no track).
+        let tracked = matches!(wire[0], Message::TAG_TRACKED_FRAME_REQUEST | Message::TAG_TRACKED_FRAME_REPLY);
+        let track_id = if tracked { u16::from_le_bytes([wire[1], wire[2]]) } else { 0 };
+        let mut body = wire.slice(if tracked { 3 } else { 1 }..);
         let again: Message = match &msg {
             Message::ClientHello(_) => ClientHello::decode(&mut body).unwrap().into(),
             Message::ServerWelcome(_) => ServerWelcome::decode(&mut body).unwrap().into(),
-            Message::FrameRequest(_) => FrameRequest::decode(&mut body).unwrap().into(),
-            Message::FrameReply(_) => FrameReply::decode(&mut body).unwrap().into(),
+            Message::FrameRequest(_) => FrameRequest { track_id, ..FrameRequest::decode(&mut body).unwrap() }.into(),
+            Message::FrameReply(_) => FrameReply { track_id, ..FrameReply::decode(&mut body).unwrap() }.into(),
             Message::Goaway(_) => Goaway::decode(&mut body).unwrap().into(),
             Message::Error(_) => ErrorMsg::decode(&mut body).unwrap().into(),
         };
@@ -547,6 +556,7 @@ fn encode_never_writes_what_decode_refuses() {
     assert!(Message::from(over).encode(&mut BytesMut::new()).is_err());
 
     let biggest = Message::FrameRequest(FrameRequest {
+        track_id: 0,
         frame_id: u64::MAX,
         captured_at_us: u64::MAX,
         deadline_ms: u16::MAX,

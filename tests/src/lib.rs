@@ -218,6 +218,7 @@ pub fn frame(frame_id: u64, seed: u8, deadline_ms: u16) -> FrameRequest {
         })
         .collect();
     FrameRequest {
+        track_id: 0,
         frame_id,
         captured_at_us: frame_id * 33_333,
         deadline_ms,

@@ -110,7 +110,11 @@ pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Resul
             reason: reason.for_version(ctx.version),
         },
     };
-    ctx.sink.send(FrameReply { frame_id, outcome });
+    ctx.sink.send(FrameReply {
+        frame_id,
+        outcome,
+        track_id: 0,
+    });
     // The stream (and its flow-control credit) is released only now, so a
     // client cannot have more than max_in_flight frames being worked on.
     drop(recv);

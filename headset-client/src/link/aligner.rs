@@ -154,6 +154,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         let id = self.next_id;
         self.next_id += 1;
         let req = FrameRequest {
+            track_id: 0,
             frame_id: id,
             captured_at_us: self.clock.now().saturating_duration_since(self.epoch).as_micros() as u64,
             deadline_ms: u16::try_from(self.opts.deadline.as_millis()).unwrap_or(u16::MAX),
@@ -408,6 +409,7 @@ mod tests {
         /// The server's answer: the mean shape in crop pixels (the initial shape, mapped back).
         fn reply(frame_id: u64) -> holoface_protocol::FrameReply {
             holoface_protocol::FrameReply {
+                track_id: 0,
                 frame_id,
                 outcome: ReplyOutcome::Landmarks {
                     landmarks: holoface_models::shape::dan_mean_shape()
