@@ -16,11 +16,16 @@
 //!
 //! # Policy
 //!
-//! * **Bounded per client**: each client has a FIFO of at most
-//!   `per_client_queue` frames; a newer frame evicts the oldest
-//!   ([`DropReason::Superseded`]), and a frame older than one already queued
-//!   for the same client is superseded on arrival. A global bound
-//!   (`max_queued`) sheds new frames with [`DropReason::Overloaded`].
+//! * **Bounded per face**: a queue is keyed by (client, track): one headset
+//!   sends a crop per tracked face per frame, each under its face's track id
+//!   (protocol version 3; older clients send track 0 only). Each key has a
+//!   FIFO of at most `per_client_queue` crops; a newer crop evicts the oldest
+//!   ([`DropReason::Superseded`]), and a crop older than one already queued
+//!   for the same key is superseded on arrival, so a newer crop of one face
+//!   never drops another face's. A global bound (`max_queued`) sheds new
+//!   crops with [`DropReason::Overloaded`]. (What one client may have queued
+//!   in all is bounded before the batcher: each queued crop holds one of its
+//!   `max_in_flight` frame streams.)
 //! * **Deadlines**: a frame whose deadline has passed is dropped with
 //!   [`DropReason::Expired`] and never reaches the engine.
 //! * **When to fire** ([`BatchPolicy`]): the driver asks for a batch only
@@ -31,10 +36,13 @@
 //!   [`BatchPolicy::MaxWait`] a partial batch waits until its oldest frame has
 //!   waited `max_wait` (fuller batches at the cost of latency). Either way a
 //!   batch fires as soon as `max_batch` frames are queued.
-//! * **Fairness**: batches are filled round-robin over clients with queued
-//!   frames, one frame per client per round; the rotation continues across
-//!   batches, so a client with a deep queue cannot starve others and an idle
-//!   engine slot is never left empty while any frame is waiting.
+//! * **Fairness by faces**: batches are filled round-robin over the
+//!   (client, track) keys with queued crops, one crop per face per round; the
+//!   rotation continues across batches, so a deep queue cannot starve others,
+//!   a headset with three faces gets three slots a round where a one-face
+//!   headset gets one (the same service per face), the faces of one frame
+//!   batch together, and an idle engine slot is never left empty while any
+//!   crop is waiting.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -43,6 +51,9 @@ use holoface_protocol::DropReason;
 
 /// Identifies a client (one QUIC connection) inside the server.
 pub type ClientId = u64;
+
+/// One face of one client: what supersede, expiry and fairness are keyed by.
+pub type QueueKey = (ClientId, u16);
 
 /// When an idle engine gets a partial batch.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -83,7 +94,9 @@ impl Default for BatcherConfig {
 pub struct Pending<T> {
     /// The client that sent it.
     pub client: ClientId,
-    /// The client's frame number (strictly increasing per client).
+    /// Which of the client's faces it is (the request's track id; 0 for a one-face client).
+    pub track: u16,
+    /// The client's frame number (strictly increasing per track).
     pub frame_id: u64,
     /// When it arrived at the server.
     pub arrived: Instant,
@@ -105,7 +118,7 @@ pub struct Dropped<T> {
 /// Frames to run through the engine together.
 #[derive(Debug)]
 pub struct Batch<T> {
-    /// The frames, at most `max_batch`, in round-robin client order.
+    /// The frames, at most `max_batch`, in round-robin (client, track) order.
     pub items: Vec<Pending<T>>,
     /// When the batch was formed (the `now` passed to `poll_batch`).
     pub formed_at: Instant,
@@ -116,9 +129,9 @@ pub struct Batch<T> {
 #[derive(Debug)]
 pub struct DynamicBatcher<T> {
     cfg: BatcherConfig,
-    queues: HashMap<ClientId, VecDeque<Pending<T>>>,
-    /// Clients with a non-empty queue, in service order.
-    ring: VecDeque<ClientId>,
+    queues: HashMap<QueueKey, VecDeque<Pending<T>>>,
+    /// Keys with a non-empty queue, in service order.
+    ring: VecDeque<QueueKey>,
     len: usize,
     dropped: VecDeque<Dropped<T>>,
     draining: bool,
@@ -165,13 +178,14 @@ impl<T> DynamicBatcher<T> {
         if item.expires <= now {
             return self.drop_item(item, DropReason::Expired);
         }
-        let queue = self.queues.entry(item.client).or_default();
+        let key = (item.client, item.track);
+        let queue = self.queues.entry(key).or_default();
         if queue
             .back()
             .is_some_and(|newest| newest.frame_id >= item.frame_id)
         {
-            // An older frame arriving after a newer one (streams complete out
-            // of order): the newer one already supersedes it.
+            // An older crop of this face arriving after a newer one (streams
+            // complete out of order): the newer one already supersedes it.
             return self.drop_item(item, DropReason::Superseded);
         }
         let was_empty = queue.is_empty();
@@ -181,7 +195,6 @@ impl<T> DynamicBatcher<T> {
         } else if self.len >= self.cfg.max_queued {
             return self.drop_item(item, DropReason::Overloaded);
         }
-        let client = item.client;
         queue.push_back(item);
         if let Some(old) = evicted {
             self.dropped.push_back(Dropped {
@@ -192,7 +205,7 @@ impl<T> DynamicBatcher<T> {
             self.len += 1;
         }
         if was_empty {
-            self.ring.push_back(client);
+            self.ring.push_back(key);
         }
     }
 
@@ -241,10 +254,10 @@ impl<T> DynamicBatcher<T> {
         }
         let mut items = Vec::with_capacity(self.cfg.max_batch.min(self.len));
         while items.len() < self.cfg.max_batch {
-            let Some(client) = self.ring.pop_front() else {
+            let Some(key) = self.ring.pop_front() else {
                 break;
             };
-            let Some(queue) = self.queues.get_mut(&client) else {
+            let Some(queue) = self.queues.get_mut(&key) else {
                 continue;
             };
             if let Some(item) = queue.pop_front() {
@@ -252,9 +265,9 @@ impl<T> DynamicBatcher<T> {
                 self.len -= 1;
             }
             if queue.is_empty() {
-                self.queues.remove(&client);
+                self.queues.remove(&key);
             } else {
-                self.ring.push_back(client);
+                self.ring.push_back(key);
             }
         }
         Some(Batch {
@@ -290,12 +303,19 @@ impl<T> DynamicBatcher<T> {
             .min()
     }
 
-    /// Forgets a client that went away; its queued frames are discarded
-    /// without a reply (there is nobody to answer). Returns how many.
+    /// Forgets a client that went away; its queued frames (of every track)
+    /// are discarded without a reply (there is nobody to answer). Returns how many.
     pub fn remove_client(&mut self, client: ClientId) -> usize {
-        let n = self.queues.remove(&client).map_or(0, |q| q.len());
+        let mut n = 0;
+        self.queues.retain(|(c, _), q| {
+            let gone = *c == client;
+            if gone {
+                n += q.len();
+            }
+            !gone
+        });
         self.len -= n;
-        self.ring.retain(|c| *c != client);
+        self.ring.retain(|(c, _)| *c != client);
         n
     }
 
@@ -363,8 +383,13 @@ mod tests {
     }
 
     fn item(clock: &Clock, client: ClientId, frame_id: u64, at_ms: u64, deadline_ms: u64) -> Pending<()> {
+        tracked(clock, (client, 0), frame_id, at_ms, deadline_ms)
+    }
+
+    fn tracked(clock: &Clock, key: QueueKey, frame_id: u64, at_ms: u64, deadline_ms: u64) -> Pending<()> {
         Pending {
-            client,
+            client: key.0,
+            track: key.1,
             frame_id,
             arrived: clock.at(at_ms),
             expires: clock.at(at_ms + deadline_ms),
@@ -604,6 +629,76 @@ mod tests {
         let batch = b.poll_batch(c.at(4)).unwrap();
         assert_eq!(ids(&batch), vec![(2, 1)]);
         assert!(drops(&mut b).is_empty());
+    }
+
+    fn keys(batch: &Batch<()>) -> Vec<(QueueKey, u64)> {
+        batch
+            .items
+            .iter()
+            .map(|i| ((i.client, i.track), i.frame_id))
+            .collect()
+    }
+
+    /// One headset, three faces, one frame: all three crops batch together, and the next frame's crop of
+    /// one face supersedes only that face's queued crop.
+    #[test]
+    fn faces_of_one_client_batch_together_and_supersede_only_their_own_track() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 0, 1));
+        for track in 1..=3 {
+            b.push(tracked(&c, (7, track), 10, 0, 100), c.at(0));
+        }
+        assert!(
+            drops(&mut b).is_empty(),
+            "same frame id on three tracks: none supersedes another"
+        );
+        assert_eq!(b.len(), 3);
+        // Frame 11 of face 2 arrives before the engine took frame 10.
+        b.push(tracked(&c, (7, 2), 11, 1, 100), c.at(1));
+        assert_eq!(drops(&mut b), vec![(7, 10, DropReason::Superseded)]);
+        // A late crop of frame 10 for face 3 (already queued at 10) is a duplicate of this face, superseded.
+        b.push(tracked(&c, (7, 3), 9, 1, 100), c.at(1));
+        assert_eq!(drops(&mut b), vec![(7, 9, DropReason::Superseded)]);
+        let batch = b.poll_batch(c.at(1)).unwrap();
+        let mut got = keys(&batch);
+        got.sort_unstable();
+        assert_eq!(got, vec![((7, 1), 10), ((7, 2), 11), ((7, 3), 10)]);
+    }
+
+    /// Fairness counts faces: a three-face headset gets three slots a round, a one-face headset one, and
+    /// neither starves the other.
+    #[test]
+    fn fairness_is_by_faces() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(2, 0, 4));
+        for f in 1..=2 {
+            for track in 1..=3 {
+                b.push(tracked(&c, (1, track), f, 0, 100), c.at(0));
+            }
+            b.push(tracked(&c, (2, 0), f, 0, 100), c.at(0));
+        }
+        let served: Vec<ClientId> = std::iter::from_fn(|| b.poll_batch(c.at(0)))
+            .flat_map(|batch| batch.items.into_iter().map(|i| i.client))
+            .collect();
+        assert_eq!(served.len(), 8);
+        // First round: the three faces of client 1 and the one face of client 2, in arrival order.
+        assert_eq!(&served[..4], &[1, 1, 1, 2]);
+        assert_eq!(&served[4..], &[1, 1, 1, 2]);
+    }
+
+    #[test]
+    fn removing_a_client_forgets_every_track() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(cfg(8, 0, 1));
+        for track in 1..=3 {
+            b.push(tracked(&c, (1, track), 1, 0, 100), c.at(0));
+        }
+        b.push(tracked(&c, (2, 5), 1, 0, 100), c.at(0));
+        assert_eq!(b.remove_client(1), 3);
+        assert_eq!(b.len(), 1);
+        let batch = b.poll_batch(c.at(0)).unwrap();
+        assert_eq!(keys(&batch), vec![((2, 5), 1)]);
+        assert!(b.is_empty());
     }
 
     #[test]

@@ -158,7 +158,8 @@ pub struct LimitsConfig {
     /// unvalidated peers get a QUIC Retry [default: max(max_clients, 16)].
     #[arg(long)]
     pub max_pending: Option<usize>,
-    /// Frames one client may have in flight (open frame streams) [default: 2].
+    /// Crops one client may have in flight (open frame streams; a headset sends one per tracked face per
+    /// frame) [default: 8].
     #[arg(long)]
     pub max_in_flight: Option<u16>,
     /// Frames older than this (or their own deadline) are dropped, ms [default: 100; at least 1].
@@ -167,8 +168,8 @@ pub struct LimitsConfig {
     /// Bound on graceful shutdown, ms [default: 5000].
     #[arg(long)]
     pub shutdown_timeout_ms: Option<u64>,
-    /// Frames per second one client may send (1 s burst); above it the
-    /// client is closed with Overloaded; 0 = unlimited [default: 240].
+    /// Crops (frame streams) per second one client may send, 1 s burst; a frame with three faces counts
+    /// three. Above it the client is closed with Overloaded; 0 = unlimited [default: 240].
     #[arg(long)]
     pub max_frame_rate: Option<u32>,
 }
@@ -511,7 +512,7 @@ impl ServerConfig {
         if max_clients == 0 {
             return Err(invalid("limits.max_clients must be at least 1".into()));
         }
-        let max_in_flight = self.limits.max_in_flight.unwrap_or(2).max(1);
+        let max_in_flight = self.limits.max_in_flight.unwrap_or(8).max(1);
         if let Some(addr) = self.internal.metrics_listen
             && !is_internal_addr(addr.ip())
         {
@@ -790,7 +791,7 @@ mod tests {
         assert_eq!(s.listen, DEFAULT_LISTEN.parse().unwrap());
         assert_eq!(s.batch.max_batch, 8);
         assert_eq!(s.batch.per_client_queue, 1);
-        assert_eq!(s.max_in_flight, 2);
+        assert_eq!(s.max_in_flight, 8);
         assert_eq!(s.reply_channel, ReplyChannel::Datagram);
         assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
         assert_eq!(s.metrics_listen, None);

@@ -93,6 +93,19 @@ pub trait Aligner {
     ) -> Result<Alignment, AlignError> {
         self.align(image, init)
     }
+
+    /// Aligns every face of one frame: one answer per candidate, in order. Default: one after another
+    /// ([`align_from`]); the remote aligner sends every face's crop at once and waits once.
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        faces
+            .iter()
+            .map(|c| align_from(self, image, &c.init, c.source))
+            .collect()
+    }
 }
 
 /// Where the initial shape of a frame came from.
@@ -103,6 +116,17 @@ pub enum InitSource {
     Detection,
     /// The previous frame's landmarks (motion-compensated when enabled).
     Tracking,
+}
+
+/// One face to align in a frame: a tracked face (its id) or a new detection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Candidate {
+    /// The tracked face's id; `None` for a new detection (it gets an id when its alignment is accepted).
+    pub track: Option<u32>,
+    /// Initial 68-point shape (image pixels).
+    pub init: [Point2; 68],
+    /// Where it came from.
+    pub source: InitSource,
 }
 
 /// Aligns from a prepared initial shape: [`Aligner::align_detection`] after a detection,

@@ -102,10 +102,11 @@ pub fn step_faces<A: Aligner + ?Sized>(
     let candidates = session.prepare_faces(frame)?;
     let detected = session.detector_runs() != runs;
     let t1 = Instant::now();
-    let alignments = candidates
-        .iter()
-        .map(|c| align_from(aligner, &frame.image, &c.init, c.source).map(Some))
-        .collect::<Result<Vec<_>, _>>()?;
+    let alignments: Vec<Option<Alignment>> = aligner
+        .align_faces(&frame.image, &candidates)?
+        .into_iter()
+        .map(Some)
+        .collect();
     let t2 = Instant::now();
     let faces = session.complete_faces(frame, &alignments);
     Ok(FacesStep {

@@ -74,16 +74,7 @@ pub const DETECTION_OVERLAP_IOU: f32 = 0.3;
 /// the younger one is dropped.
 pub const DUPLICATE_TRACK_IOU: f32 = 0.5;
 
-/// One face to align in a frame: a tracked face (its id) or a new detection.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Candidate {
-    /// The tracked face's id; `None` for a new detection (it gets an id when its alignment is accepted).
-    pub track: Option<u32>,
-    /// Initial 68-point shape (image pixels).
-    pub init: [Point2; 68],
-    /// Where it came from.
-    pub source: InitSource,
-}
+pub use crate::align::Candidate;
 
 /// A face tracked in one frame, with its stable id.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -204,6 +204,8 @@ impl FaceTracker {
             } => {
                 let mut cfg = ConnectConfig::new(*server, *fingerprint, token.clone());
                 cfg.encodings = vec![codec.encoding()];
+                // One crop per tracked face per frame, all in flight together.
+                cfg.max_in_flight = u16::try_from(opts.session.max_faces.max(1)).unwrap_or(u16::MAX);
                 let link = RemoteLink::start(cfg, Backoff::default())?;
                 watch = Some(link.watch());
                 let link_opts = LinkOptions {

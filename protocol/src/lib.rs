@@ -70,9 +70,10 @@ pub use recording::{
 /// client is sent [`DropReason::Overloaded`] instead, see
 /// [`DropReason::for_version`]); 3 adds the track id of a frame
 /// ([`FrameRequest::track_id`], echoed in [`FrameReply::track_id`]): a
-/// trailing field present only for a non-zero track, so every version-1/2
-/// message is a version-3 message of track 0, and a client sends a non-zero
-/// track only to a server whose welcome says 3 or more.
+/// non-zero track travels under its own message tags (the track id, then the
+/// unchanged body), so every version-1/2 message is a version-3 message of
+/// track 0; a client sends a non-zero track only to a server whose welcome
+/// says 3 or more (a version-1/2 client that does is closed ProtocolViolation).
 pub const PROTOCOL_VERSION: u16 = 3;
 
 /// The oldest protocol version a server still serves.

@@ -130,6 +130,75 @@ async fn a_version_1_client_is_served_at_version_1() {
     server.shutdown().await.unwrap();
 }
 
+/// A headset with three faces sends one crop per face for the same camera frame, each under its track
+/// id: each reply carries its track and that crop's landmarks, and a newer frame of one face does not
+/// drop another face's crop (the server orders frames per track).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_faces_of_one_frame_are_answered_per_track() {
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut h = hello(TEST_TOKEN);
+    h.max_in_flight = 6;
+    let mut client = within("connect", TestClient::connect(server.addr, server.fingerprint, h))
+        .await
+        .unwrap();
+    assert_eq!(
+        client.welcome.max_in_flight, 6,
+        "granted up to the server's limit (8)"
+    );
+    let seeds = [(1_u16, 11_u8), (2, 12), (3, 13)];
+    for frame_id in [40_u64, 41] {
+        for (track, seed) in seeds {
+            let mut f = frame(frame_id, seed, DEADLINE_MS);
+            f.track_id = track;
+            within("send", client.send_frame(&f)).await.unwrap();
+        }
+        let mut got = Vec::new();
+        for _ in 0..seeds.len() {
+            got.push(within("reply", client.next_reply()).await.unwrap());
+        }
+        got.sort_by_key(|r| r.track_id);
+        for (reply, (track, seed)) in got.iter().zip(seeds) {
+            assert_eq!((reply.frame_id, reply.track_id), (frame_id, track));
+            assert_landmarks(reply, &reference(seed));
+        }
+    }
+    // The same frame id on the same track again is still a duplicate.
+    let mut f = frame(41, 11, DEADLINE_MS);
+    f.track_id = 1;
+    let _ = client.send_frame(&f).await;
+    assert_eq!(
+        within("close", client.close_code()).await,
+        Some(CloseCode::ProtocolViolation)
+    );
+    server.shutdown().await.unwrap();
+}
+
+/// A client that said version 2 in its hello cannot send a track id (it would be served as one face).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_track_id_from_a_version_2_client_is_a_protocol_violation() {
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut old = hello(TEST_TOKEN);
+    old.version = 2;
+    let mut client = within(
+        "connect v2",
+        TestClient::connect(server.addr, server.fingerprint, old),
+    )
+    .await
+    .unwrap();
+    let reply = within("track 0 is served", client.request(&frame(1, 4, DEADLINE_MS)))
+        .await
+        .unwrap();
+    assert_landmarks(&reply, &reference(4));
+    let mut f = frame(2, 4, DEADLINE_MS);
+    f.track_id = 3;
+    let _ = client.send_frame(&f).await;
+    assert_eq!(
+        within("close", client.close_code()).await,
+        Some(CloseCode::ProtocolViolation)
+    );
+    server.shutdown().await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replies_on_a_stream_when_configured() {
     let expected = reference(5);

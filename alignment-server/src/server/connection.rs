@@ -135,7 +135,7 @@ async fn serve_connection(
         client,
         shared: Arc::clone(shared),
         sink,
-        newest: std::sync::Mutex::new(None),
+        newest: std::sync::Mutex::new(super::frame::NewestFrames::default()),
         read_timeout: settings.hello_timeout.max(settings.max_frame_age),
         version: hello.version,
     });

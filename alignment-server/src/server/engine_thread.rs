@@ -190,6 +190,7 @@ mod tests {
             replies.push(rx);
             items.push(crate::batcher::Pending {
                 client: u64::from(k),
+                track: 0,
                 frame_id: 1,
                 arrived: now,
                 expires: now + Duration::from_secs(1),

@@ -28,8 +28,8 @@ pub(super) struct ConnCtx {
     pub(super) client: ClientId,
     pub(super) shared: Arc<Shared>,
     pub(super) sink: ReplySink,
-    /// Highest frame id seen (`None` before the first frame).
-    pub(super) newest: std::sync::Mutex<Option<u64>>,
+    /// Highest frame id seen per track.
+    pub(super) newest: std::sync::Mutex<NewestFrames>,
     pub(super) read_timeout: Duration,
     /// The protocol version this client speaks (replies use only what it decodes).
     pub(super) version: u16,
@@ -92,7 +92,16 @@ pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Resul
     };
     let metrics = &ctx.shared.metrics;
     metrics.frames_received.fetch_add(1, Ordering::Relaxed);
-    let frame_id = req.frame_id;
+    let (frame_id, track_id) = (req.frame_id, req.track_id);
+    if track_id != 0 && ctx.version < 3 {
+        return Err(Fault::new(
+            CloseCode::ProtocolViolation,
+            format!(
+                "a track id needs protocol version 3 (this client said {})",
+                ctx.version
+            ),
+        ));
+    }
     let outcome = align(&ctx, req).await?;
     let outcome = match outcome {
         FrameOutcome::Landmarks {
@@ -113,7 +122,7 @@ pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Resul
     ctx.sink.send(FrameReply {
         frame_id,
         outcome,
-        track_id: 0,
+        track_id,
     });
     // The stream (and its flow-control credit) is released only now, so a
     // client cannot have more than max_in_flight frames being worked on.
@@ -121,28 +130,62 @@ pub(super) async fn frame_task(mut recv: RecvStream, ctx: Arc<ConnCtx>) -> Resul
     Ok(())
 }
 
-/// Where a frame's id stands against the newest id seen on its connection.
+/// Where a frame's id stands against the newest id seen for its track on its connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum FrameOrder {
-    /// Newer than every frame so far (now the newest).
+    /// Newer than every frame of this track so far (now the newest).
     Newest,
-    /// The newest id again: a protocol violation.
+    /// The newest id of this track again: a protocol violation.
     Duplicate,
-    /// Older than the newest: superseded.
+    /// Older than the track's newest: superseded.
     Older,
 }
 
-/// Classifies `id` and records it when it is the newest. Every `u64` is a valid id, `u64::MAX` included.
-fn order_frame(newest: &std::sync::Mutex<Option<u64>>, id: u64) -> FrameOrder {
-    let mut n = newest.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    match *n {
-        Some(prev) if id == prev => FrameOrder::Duplicate,
-        Some(prev) if id < prev => FrameOrder::Older,
-        _ => {
-            *n = Some(id);
-            FrameOrder::Newest
+/// Tracks remembered per connection. A headset tracks a handful of faces and never reuses a retired
+/// face's track id soon; beyond this many the track whose newest frame is oldest is forgotten (its next
+/// crop, if any, simply counts as newest), so a client cycling through track ids cannot grow server state.
+pub(super) const TRACKS_REMEMBERED: usize = 64;
+
+/// The newest frame id of each track of one connection (track 0 is a one-face client's only track).
+#[derive(Debug, Default)]
+pub(super) struct NewestFrames {
+    tracks: Vec<(u16, u64)>,
+}
+
+impl NewestFrames {
+    /// Classifies `id` of `track` and records it when it is the newest. Every `u64` is a valid id,
+    /// `u64::MAX` included. Several tracks may carry the same id (one camera frame, several faces).
+    fn order(&mut self, track: u16, id: u64) -> FrameOrder {
+        match self.tracks.iter_mut().find(|(t, _)| *t == track) {
+            Some((_, prev)) if id == *prev => FrameOrder::Duplicate,
+            Some((_, prev)) if id < *prev => FrameOrder::Older,
+            Some((_, prev)) => {
+                *prev = id;
+                FrameOrder::Newest
+            }
+            None => {
+                if self.tracks.len() >= TRACKS_REMEMBERED
+                    && let Some(stalest) = self
+                        .tracks
+                        .iter()
+                        .enumerate()
+                        .min_by_key(|(_, (_, newest))| *newest)
+                        .map(|(i, _)| i)
+                {
+                    self.tracks.swap_remove(stalest);
+                }
+                self.tracks.push((track, id));
+                FrameOrder::Newest
+            }
         }
     }
+}
+
+fn order_frame(newest: &std::sync::Mutex<NewestFrames>, track: u16, id: u64) -> FrameOrder {
+    newest
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .order(track, id)
 }
 
 async fn align(ctx: &ConnCtx, req: FrameRequest) -> Result<FrameOutcome, Fault> {
@@ -151,12 +194,12 @@ async fn align(ctx: &ConnCtx, req: FrameRequest) -> Result<FrameOutcome, Fault> 
         metrics.count_drop(reason);
         Ok(FrameOutcome::Dropped(reason))
     };
-    match order_frame(&ctx.newest, req.frame_id) {
+    match order_frame(&ctx.newest, req.track_id, req.frame_id) {
         FrameOrder::Newest => {}
         FrameOrder::Duplicate => {
             return Err(Fault::new(
                 CloseCode::ProtocolViolation,
-                format!("duplicate frame_id {}", req.frame_id),
+                format!("duplicate frame_id {} (track {})", req.frame_id, req.track_id),
             ));
         }
         FrameOrder::Older => return dropped(DropReason::Superseded),
@@ -174,6 +217,7 @@ async fn align(ctx: &ConnCtx, req: FrameRequest) -> Result<FrameOutcome, Fault> 
     let (tx, rx) = oneshot::channel();
     let pending = Pending {
         client: ctx.client,
+        track: req.track_id,
         frame_id: req.frame_id,
         arrived,
         expires: arrived + budget,
@@ -195,17 +239,51 @@ mod tests {
 
     #[test]
     fn frame_ids_order_across_the_whole_u64_range() {
-        let n = std::sync::Mutex::new(None);
-        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Newest);
+        let n = std::sync::Mutex::new(NewestFrames::default());
+        assert_eq!(order_frame(&n, 0, u64::MAX), FrameOrder::Newest);
         // MAX - 1 after MAX is an older frame, not a duplicate.
-        assert_eq!(order_frame(&n, u64::MAX - 1), FrameOrder::Older);
-        assert_eq!(order_frame(&n, u64::MAX), FrameOrder::Duplicate);
-        let n = std::sync::Mutex::new(None);
-        assert_eq!(order_frame(&n, 0), FrameOrder::Newest);
-        assert_eq!(order_frame(&n, 0), FrameOrder::Duplicate);
-        assert_eq!(order_frame(&n, 5), FrameOrder::Newest);
-        assert_eq!(order_frame(&n, 3), FrameOrder::Older);
-        assert_eq!(order_frame(&n, 6), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 0, u64::MAX - 1), FrameOrder::Older);
+        assert_eq!(order_frame(&n, 0, u64::MAX), FrameOrder::Duplicate);
+        let n = std::sync::Mutex::new(NewestFrames::default());
+        assert_eq!(order_frame(&n, 0, 0), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 0, 0), FrameOrder::Duplicate);
+        assert_eq!(order_frame(&n, 0, 5), FrameOrder::Newest);
+        assert_eq!(order_frame(&n, 0, 3), FrameOrder::Older);
+        assert_eq!(order_frame(&n, 0, 6), FrameOrder::Newest);
+    }
+
+    /// The faces of one frame share its id; each track is ordered on its own, and out-of-order arrival
+    /// across tracks never supersedes another face's crop.
+    #[test]
+    fn frame_ids_are_ordered_per_track() {
+        let n = std::sync::Mutex::new(NewestFrames::default());
+        assert_eq!(order_frame(&n, 2, 10), FrameOrder::Newest);
+        assert_eq!(
+            order_frame(&n, 1, 10),
+            FrameOrder::Newest,
+            "same frame, another face"
+        );
+        assert_eq!(
+            order_frame(&n, 3, 9),
+            FrameOrder::Newest,
+            "an older frame of a new track"
+        );
+        assert_eq!(order_frame(&n, 1, 10), FrameOrder::Duplicate);
+        assert_eq!(order_frame(&n, 2, 9), FrameOrder::Older);
+        assert_eq!(order_frame(&n, 3, 11), FrameOrder::Newest);
+    }
+
+    /// Cycling through track ids keeps at most TRACKS_REMEMBERED of them; the stalest goes first.
+    #[test]
+    fn remembered_tracks_are_bounded() {
+        let mut n = NewestFrames::default();
+        for t in 0..10_000_u16 {
+            assert_eq!(n.order(t, u64::from(t) + 100), FrameOrder::Newest);
+        }
+        assert_eq!(n.tracks.len(), TRACKS_REMEMBERED);
+        // The newest tracks are still ordered; the first ones were forgotten.
+        assert_eq!(n.order(9_999, 50), FrameOrder::Older);
+        assert_eq!(n.order(0, 1), FrameOrder::Newest);
     }
 
     #[test]

@@ -142,6 +142,7 @@ mod tests {
         let (tx, rx) = oneshot::channel();
         let msg = SchedMsg::Submit(Pending {
             client,
+            track: 0,
             frame_id: 1,
             arrived: at,
             expires: at + Duration::from_secs(1),

@@ -10,8 +10,11 @@ use holoface_models::image::GrayView;
 use holoface_protocol::{FrameRequest, ReplyOutcome, ServerWelcome};
 
 use super::policy::{FallbackPolicy, Mode, PolicyConfig, Route};
-use super::{Clock, CropCodec, Link, LinkEvent, RemoteLink, SystemClock, WaitError};
-use crate::align::{AlignError, Aligner, Alignment, AnsweredBy, crop_from_image, landmarks_from_crop};
+use super::{Clock, CropCodec, Link, LinkEvent, RemoteLink, SystemClock};
+use crate::align::{
+    AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource, align_from, crop_from_image,
+    landmarks_from_crop,
+};
 
 /// Settings of the linked aligner.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -66,7 +69,7 @@ pub struct LinkedAligner<A, K = RemoteLink, C = SystemClock> {
     next_id: u64,
     crop: Crop112,
     canonical: Option<(Arc<ServerWelcome>, [Point2; 68])>,
-    probes: VecDeque<(u64, Instant)>,
+    probes: VecDeque<Probe>,
     report: FrameReport,
 }
 
@@ -134,14 +137,16 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         Some(c)
     }
 
-    /// Cuts and encodes the crop and queues it; the similarity and frame id, or `None` when the crop
-    /// cannot be made (then the frame is simply aligned locally).
+    /// Cuts and encodes one face's crop and queues it as `frame_id` of `track_id`; the similarity, or
+    /// `None` when the crop cannot be made (then that face is simply aligned locally).
     fn send_crop(
         &mut self,
         image: &GrayView<'_>,
         init: &[Point2; 68],
         welcome: &Arc<ServerWelcome>,
-    ) -> Option<(holoface_models::geometry::Similarity2, u64)> {
+        frame_id: u64,
+        track_id: u16,
+    ) -> Option<holoface_models::geometry::Similarity2> {
         let canonical = self.canonical(welcome)?;
         let sim = crop_from_image(init, &canonical).ok()?;
         crop_bilinear(image, &sim, &mut self.crop).ok()?;
@@ -151,31 +156,33 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
             .for_encoding(welcome.encoding)
             .encode(self.crop.as_slice(), 112, 112)
             .ok()?;
-        let id = self.next_id;
-        self.next_id += 1;
         let req = FrameRequest {
-            track_id: 0,
-            frame_id: id,
+            track_id,
+            frame_id,
             captured_at_us: self.clock.now().saturating_duration_since(self.epoch).as_micros() as u64,
             deadline_ms: u16::try_from(self.opts.deadline.as_millis()).unwrap_or(u16::MAX),
             crop,
         };
-        self.report.sent_bytes = holoface_protocol::Message::FrameRequest(req.clone()).encoded_len();
+        let len = holoface_protocol::Message::FrameRequest(req.clone()).encoded_len();
         self.link.send(req).ok()?;
-        Some((sim, id))
+        self.report.sent_bytes += len;
+        Some(sim)
     }
 
     /// Books a link event against the outstanding probes.
     fn on_event(
         policy: &mut FallbackPolicy,
-        probes: &mut VecDeque<(u64, Instant)>,
+        probes: &mut VecDeque<Probe>,
         deadline: Duration,
         ev: LinkEvent,
     ) {
         match ev {
             LinkEvent::Reply(r, at) => {
-                if let Some(i) = probes.iter().position(|(id, _)| *id == r.frame_id) {
-                    let (_, sent) = probes.remove(i).unwrap_or((0, at));
+                if let Some(i) = probes
+                    .iter()
+                    .position(|p| p.frame_id == r.frame_id && p.track_id == r.track_id)
+                {
+                    let sent = probes.remove(i).map_or(at, |p| p.sent);
                     let timely = at.saturating_duration_since(sent) <= deadline;
                     if timely && matches!(r.outcome, ReplyOutcome::Landmarks { .. }) {
                         policy.on_answer(at);
@@ -196,8 +203,8 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         let (policy, probes, deadline) = (&mut self.policy, &mut self.probes, self.opts.deadline);
         self.link
             .drain(&mut |ev| Self::on_event(policy, probes, deadline, ev));
-        while let Some(&(_, sent)) = self.probes.front() {
-            if now.saturating_duration_since(sent) <= self.opts.deadline {
+        while let Some(p) = self.probes.front() {
+            if now.saturating_duration_since(p.sent) <= self.opts.deadline {
                 break;
             }
             self.probes.pop_front();
@@ -205,94 +212,189 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         }
     }
 
-    /// The local aligner's answer: on a detection frame its detection path (KRFWS: several starts), as a
-    /// headset without a link would run it; otherwise one tracked alignment.
-    fn local(
-        &mut self,
-        image: &GrayView<'_>,
-        init: &[Point2; 68],
-        detection: bool,
-    ) -> Result<Alignment, AlignError> {
-        let a = if detection {
-            self.local.align_detection(image, init)?
-        } else {
-            self.local.align(image, init)?
-        };
-        self.report.answered_by = Some(a.answered_by);
-        Ok(a)
+    /// The local aligner's answer for one face: after a detection its detection path (KRFWS: several
+    /// starts), as a headset without a link would run it; otherwise one tracked alignment.
+    fn local(&mut self, image: &GrayView<'_>, face: &Candidate) -> Result<Alignment, AlignError> {
+        align_from(&mut self.local, image, &face.init, face.source)
     }
 
-    /// One frame: remote first when the policy routes there, the local aligner when it cannot answer.
+    /// Which track each face's crop travels under: a lone face is track 0 (the version-1/2 message, byte
+    /// for byte); with several, a tracked face's id (mod 32767, plus 1) or, for a new detection, 32768 +
+    /// its place in the frame. `None` for a face that cannot go remote: a second face to a server older
+    /// than version 3 (it orders frames per connection), or an id colliding with another face's.
+    fn wire_tracks(faces: &[Candidate], server_version: u16) -> Vec<Option<u16>> {
+        if faces.len() == 1 {
+            return vec![Some(0)];
+        }
+        let mut tracks: Vec<Option<u16>> = Vec::with_capacity(faces.len());
+        for (i, face) in faces.iter().enumerate() {
+            let track = if server_version < 3 {
+                (i == 0).then_some(0)
+            } else {
+                match face.track {
+                    Some(id) => u16::try_from(id % 0x7FFF).ok().map(|t| t + 1),
+                    None => u16::try_from(i).ok().and_then(|i| 0x8000_u16.checked_add(i)),
+                }
+            };
+            let unique = track.filter(|t| !tracks.contains(&Some(*t)));
+            tracks.push(unique);
+        }
+        tracks
+    }
+
+    /// One frame: every face's crop to the server at once when the policy routes there, one wait for all
+    /// their replies (until the deadline), and the local aligner for each face the server did not answer
+    /// in time, so every face of the frame has an answer.
     fn align_frame(
         &mut self,
         image: &GrayView<'_>,
-        init: &[Point2; 68],
-        detection: bool,
-    ) -> Result<Alignment, AlignError> {
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
         let now = self.clock.now();
         self.report = FrameReport::default();
         self.settle_probes(now);
         let status = self.link.status();
         self.report.link = Some(status.state());
         let welcome = status.welcome().cloned();
-        let result = match (self.policy.route(now, welcome.is_some()), welcome) {
-            (Route::Remote, Some(welcome)) => match self.send_crop(image, init, &welcome) {
-                Some((sim, id)) => {
-                    let (policy, probes, deadline) = (&mut self.policy, &mut self.probes, self.opts.deadline);
-                    let waited = self.link.wait_reply(id, now + deadline, &mut |ev| {
-                        Self::on_event(policy, probes, deadline, ev)
-                    });
-                    let remote = match waited {
-                        Ok((r, at)) => match r.outcome {
-                            ReplyOutcome::Landmarks {
-                                landmarks, face_prob, ..
-                            } => {
-                                self.policy.on_answer(at);
-                                self.report.remote_rtt_us =
-                                    Some(at.saturating_duration_since(now).as_micros() as u64);
-                                landmarks_from_crop(&landmarks, face_prob, &sim, welcome.face_threshold).ok()
-                            }
-                            ReplyOutcome::Dropped { .. } => {
-                                self.policy.on_miss(at);
-                                None
-                            }
-                        },
-                        Err(WaitError::Deadline | WaitError::Stopped) => {
-                            self.policy.on_miss(self.clock.now());
-                            None
-                        }
-                        // The policy already saw the Down event.
-                        Err(WaitError::Down(_)) => None,
-                    };
-                    match remote {
-                        Some(mut a) => {
-                            a.answered_by = AnsweredBy::RemoteDan;
-                            self.report.answered_by = Some(AnsweredBy::RemoteDan);
-                            Ok(a)
-                        }
-                        None => {
-                            self.report.fell_back = true;
-                            self.local(image, init, detection)
-                        }
+        let frame_id = self.next_id;
+        self.next_id += 1;
+        let mut remote: Vec<Option<Alignment>> = vec![None; faces.len()];
+        let mut sent_any = false;
+        match (self.policy.route(now, welcome.is_some()), welcome) {
+            (Route::Remote, Some(welcome)) => {
+                let tracks = Self::wire_tracks(faces, welcome.version);
+                // (face index, track, crop similarity, reply)
+                let mut sent = Vec::with_capacity(faces.len());
+                for (i, (face, track)) in faces.iter().zip(&tracks).enumerate() {
+                    if let Some(track) = *track
+                        && let Some(sim) = self.send_crop(image, &face.init, &welcome, frame_id, track)
+                    {
+                        sent.push((i, track, sim, None));
                     }
                 }
-                None => self.local(image, init, detection),
-            },
+                sent_any = !sent.is_empty();
+                if sent_any {
+                    self.wait_replies(now, frame_id, &welcome, &mut sent, &mut remote);
+                }
+            }
             (Route::Local { probe: true }, Some(welcome)) => {
                 // At most `max_in_flight` probes outstanding: a server slower than the frame rate would
                 // otherwise see each probe superseded by the next and never look healthy.
-                if self.probes.len() < usize::from(welcome.max_in_flight.max(1))
-                    && let Some((_, id)) = self.send_crop(image, init, &welcome)
-                {
-                    self.probes.push_back((id, now));
+                let tracks = Self::wire_tracks(faces, welcome.version);
+                for (face, track) in faces.iter().zip(tracks) {
+                    if self.probes.len() >= usize::from(welcome.max_in_flight.max(1)) {
+                        break;
+                    }
+                    if let Some(track_id) = track
+                        && self
+                            .send_crop(image, &face.init, &welcome, frame_id, track_id)
+                            .is_some()
+                    {
+                        self.probes.push_back(Probe {
+                            frame_id,
+                            track_id,
+                            sent: now,
+                        });
+                    }
                 }
-                self.local(image, init, detection)
             }
-            _ => self.local(image, init, detection),
-        };
+            _ => {}
+        }
+        let mut out = Vec::with_capacity(faces.len());
+        for (face, answer) in faces.iter().zip(remote) {
+            match answer {
+                Some(a) => out.push(a),
+                None => {
+                    self.report.fell_back |= sent_any;
+                    out.push(self.local(image, face)?);
+                }
+            }
+        }
+        self.report.answered_by = out.first().map(|a| a.answered_by);
         self.report.mode = Some(self.policy.mode());
-        result
+        Ok(out)
     }
+
+    /// Waits once, until the deadline, for the replies to every crop in `sent`; fills `remote` with the
+    /// server's answers and tells the policy how the frame went: answered when every face was, else one
+    /// miss (a frame that misses counts once, however many faces it has).
+    fn wait_replies(
+        &mut self,
+        now: Instant,
+        frame_id: u64,
+        welcome: &ServerWelcome,
+        sent: &mut [SentCrop],
+        remote: &mut [Option<Alignment>],
+    ) {
+        let deadline = self.opts.deadline;
+        let mut waiting = sent.len();
+        let mut down = false;
+        let (policy, probes) = (&mut self.policy, &mut self.probes);
+        let waited = self.link.wait_until(now + deadline, &mut |ev| {
+            match ev {
+                LinkEvent::Reply(r, at) if r.frame_id == frame_id => {
+                    if let Some(slot) = sent.iter_mut().find(|s| s.1 == r.track_id && s.3.is_none()) {
+                        slot.3 = Some((r.outcome, at));
+                        waiting -= 1;
+                    }
+                }
+                ev @ LinkEvent::Down(..) => {
+                    down = true;
+                    Self::on_event(policy, probes, deadline, ev);
+                }
+                ev => Self::on_event(policy, probes, deadline, ev),
+            }
+            waiting == 0 || down
+        });
+        let mut last = None;
+        let mut all_answered = true;
+        for (i, _, sim, reply) in sent.iter_mut() {
+            let answer = match reply.take() {
+                Some((
+                    ReplyOutcome::Landmarks {
+                        landmarks, face_prob, ..
+                    },
+                    at,
+                )) => {
+                    last = Some(last.map_or(at, |l: Instant| l.max(at)));
+                    landmarks_from_crop(&landmarks, face_prob, sim, welcome.face_threshold).ok()
+                }
+                Some((ReplyOutcome::Dropped { .. }, _)) | None => None,
+            };
+            all_answered &= answer.is_some();
+            remote[*i] = answer.map(|mut a| {
+                a.answered_by = AnsweredBy::RemoteDan;
+                a
+            });
+        }
+        if let Some(at) = last {
+            self.report.remote_rtt_us = Some(at.saturating_duration_since(now).as_micros() as u64);
+        }
+        match (waited, all_answered) {
+            // The policy already saw the Down event.
+            _ if down => {}
+            (Ok(()), true) => self.policy.on_answer(last.unwrap_or(now)),
+            (Ok(()), false) => self.policy.on_miss(last.unwrap_or(now)),
+            (Err(_), _) => self.policy.on_miss(self.clock.now()),
+        }
+    }
+}
+
+/// A crop of this frame sent for its answer: (face index, track id, crop similarity, the reply and when
+/// it came).
+type SentCrop = (
+    usize,
+    u16,
+    holoface_models::geometry::Similarity2,
+    Option<(ReplyOutcome, Instant)>,
+);
+
+/// A probe crop sent while in Local mode.
+#[derive(Clone, Copy, Debug)]
+struct Probe {
+    frame_id: u64,
+    track_id: u16,
+    sent: Instant,
 }
 
 impl<A: Aligner, K: Link, C: Clock> Aligner for LinkedAligner<A, K, C> {
@@ -301,7 +403,7 @@ impl<A: Aligner, K: Link, C: Clock> Aligner for LinkedAligner<A, K, C> {
     }
 
     fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
-        self.align_frame(image, init, false)
+        self.align_one(image, init, InitSource::Tracking)
     }
 
     /// A detection frame: DAN when the link answers (its crop does not depend on the start), else the local
@@ -311,13 +413,41 @@ impl<A: Aligner, K: Link, C: Clock> Aligner for LinkedAligner<A, K, C> {
         image: &GrayView<'_>,
         init: &[Point2; 68],
     ) -> Result<Alignment, AlignError> {
-        self.align_frame(image, init, true)
+        self.align_one(image, init, InitSource::Detection)
+    }
+
+    /// Every face's crop goes out at once (each under its track id) and the frame waits once for all the
+    /// replies; each face the server misses is answered by the local aligner.
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        self.align_frame(image, faces)
+    }
+}
+
+impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
+    fn align_one(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        source: InitSource,
+    ) -> Result<Alignment, AlignError> {
+        let face = Candidate {
+            track: None,
+            init: *init,
+            source,
+        };
+        let mut out = self.align_frame(image, std::slice::from_ref(&face))?;
+        out.pop().ok_or(AlignError::DegenerateInit)
     }
 }
 
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
+    use super::super::WaitError;
     use super::*;
     use crate::align::{Confidence, LandmarkSet};
 
@@ -382,7 +512,10 @@ mod tests {
         clock: std::rc::Rc<FakeClock>,
         up: Option<Arc<ServerWelcome>>,
         script: std::cell::RefCell<VecDeque<Answer>>,
-        pending: std::cell::RefCell<Vec<(u64, Instant)>>,
+        /// (frame id, track id, when its reply is due)
+        pending: std::cell::RefCell<Vec<(u64, u16, Instant)>>,
+        /// Every request sent: (frame id, track id).
+        requests: std::cell::RefCell<Vec<(u64, u16)>>,
         sent: std::cell::Cell<usize>,
     }
 
@@ -407,9 +540,9 @@ mod tests {
         }
 
         /// The server's answer: the mean shape in crop pixels (the initial shape, mapped back).
-        fn reply(frame_id: u64) -> holoface_protocol::FrameReply {
+        fn reply(frame_id: u64, track_id: u16) -> holoface_protocol::FrameReply {
             holoface_protocol::FrameReply {
-                track_id: 0,
+                track_id,
                 frame_id,
                 outcome: ReplyOutcome::Landmarks {
                     landmarks: holoface_models::shape::dan_mean_shape()
@@ -433,42 +566,48 @@ mod tests {
         }
         fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
             self.sent.set(self.sent.get() + 1);
+            self.requests.borrow_mut().push((req.frame_id, req.track_id));
             if let Some(Answer::After(d)) = self.script.borrow_mut().pop_front() {
                 self.pending
                     .borrow_mut()
-                    .push((req.frame_id, self.clock.now() + d));
+                    .push((req.frame_id, req.track_id, self.clock.now() + d));
             }
             Ok(())
         }
-        fn wait_reply(
+        fn wait_until(
             &self,
-            frame_id: u64,
             deadline: Instant,
-            _: &mut dyn FnMut(LinkEvent),
-        ) -> Result<(holoface_protocol::FrameReply, Instant), WaitError> {
-            let mut pending = self.pending.borrow_mut();
-            match pending
-                .iter()
-                .position(|&(id, due)| id == frame_id && due <= deadline)
-            {
-                Some(i) => {
-                    let (_, due) = pending.remove(i);
-                    self.clock.0.set(due.max(self.clock.now()));
-                    Ok((Self::reply(frame_id), due))
-                }
-                None => {
-                    self.clock.0.set(deadline);
-                    Err(WaitError::Deadline)
+            each: &mut dyn FnMut(LinkEvent) -> bool,
+        ) -> Result<(), WaitError> {
+            loop {
+                let next = {
+                    let mut pending = self.pending.borrow_mut();
+                    let first = pending
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, p)| p.2 <= deadline)
+                        .min_by_key(|(_, p)| p.2)
+                        .map(|(i, _)| i);
+                    first.map(|i| pending.remove(i))
+                };
+                let Some((id, track, due)) = next else {
+                    self.clock.0.set(deadline.max(self.clock.now()));
+                    return Err(WaitError::Deadline);
+                };
+                self.clock.0.set(due.max(self.clock.now()));
+                if each(LinkEvent::Reply(Self::reply(id, track), due)) {
+                    return Ok(());
                 }
             }
         }
         fn drain(&self, each: &mut dyn FnMut(LinkEvent)) {
             let now = self.clock.now();
             let mut pending = self.pending.borrow_mut();
-            let (due, later): (Vec<_>, Vec<_>) = pending.iter().partition(|&&(_, at)| at <= now);
+            let (due, later): (Vec<_>, Vec<_>) = pending.iter().partition(|&&(_, _, at)| at <= now);
             *pending = later;
-            for (id, at) in due {
-                each(LinkEvent::Reply(Self::reply(id), at));
+            drop(pending);
+            for (id, track, at) in due {
+                each(LinkEvent::Reply(Self::reply(id, track), at));
             }
         }
     }
@@ -488,6 +627,7 @@ mod tests {
             up: up.then(FakeLink::welcome),
             script: std::cell::RefCell::new(script.iter().copied().collect()),
             pending: std::cell::RefCell::new(Vec::new()),
+            requests: std::cell::RefCell::new(Vec::new()),
             sent: std::cell::Cell::new(0),
         };
         let opts = LinkOptions::default();
@@ -609,5 +749,126 @@ mod tests {
         assert_eq!(r.answered_by, AnsweredBy::Krfws);
         assert!(a.last_report().fell_back);
         assert_eq!((a.local.detection, a.local.tracked), (1, n));
+    }
+
+    fn three_faces(init: &[Point2; 68]) -> Vec<Candidate> {
+        let shifted = |dx: f32| init.map(|p| Point2::new(p.x + dx, p.y));
+        vec![
+            Candidate {
+                track: Some(4),
+                init: shifted(-20.0),
+                source: InitSource::Tracking,
+            },
+            Candidate {
+                track: Some(9),
+                init: shifted(0.0),
+                source: InitSource::Tracking,
+            },
+            Candidate {
+                track: None,
+                init: shifted(20.0),
+                source: InitSource::Detection,
+            },
+        ]
+    }
+
+    /// Three faces in one frame: three crops of one frame id under three tracks, one wait for all of them,
+    /// and the face whose reply misses the deadline answered by the local aligner's detection path.
+    #[test]
+    fn several_faces_go_out_together_and_each_miss_is_answered_locally() {
+        let ok = Answer::After(Duration::from_millis(5));
+        let (mut a, clock) = linked(true, &[ok; 40]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        run_until_remote(&mut a, &clock, &image, &init);
+        let faces = three_faces(&init);
+
+        // All three answer (at 5, 7 and 6 ms): the frame waits for the slowest only.
+        a.link.script.borrow_mut().clear();
+        a.link.script.borrow_mut().extend([
+            ok,
+            Answer::After(Duration::from_millis(7)),
+            Answer::After(Duration::from_millis(6)),
+        ]);
+        a.link.requests.borrow_mut().clear();
+        let (local_before, t0) = ((a.local.tracked, a.local.detection), clock.now());
+        let out = a.align_faces(&image, &faces).unwrap();
+        assert_eq!(
+            clock.now() - t0,
+            Duration::from_millis(7),
+            "one wait for the three"
+        );
+        assert!(out.iter().all(|r| r.answered_by == AnsweredBy::RemoteDan));
+        for (r, f) in out.iter().zip(&faces) {
+            assert!(r.landmarks.iter().zip(&f.init).all(|(p, q)| p.dist(*q) < 1e-3));
+        }
+        let requests = a.link.requests.borrow().clone();
+        let frame_id = requests[0].0;
+        assert_eq!(
+            requests,
+            vec![(frame_id, 5), (frame_id, 10), (frame_id, 0x8002)],
+            "one frame id, a track per face"
+        );
+        assert_eq!((a.local.tracked, a.local.detection), local_before);
+        assert_eq!(a.last_report().remote_rtt_us, Some(7_000));
+        assert!(!a.last_report().fell_back);
+
+        // The third face's reply never comes: the frame waits its deadline once, the local detection path
+        // answers that face, the other two keep the server's answer; the frame counts as one miss.
+        clock.0.set(clock.now() + FRAME);
+        a.link.script.borrow_mut().extend([ok, ok, Answer::Silent]);
+        let t0 = clock.now();
+        let out = a.align_faces(&image, &faces).unwrap();
+        assert_eq!(clock.now() - t0, LinkOptions::default().deadline);
+        let by: Vec<_> = out.iter().map(|r| r.answered_by).collect();
+        assert_eq!(
+            by,
+            vec![AnsweredBy::RemoteDan, AnsweredBy::RemoteDan, AnsweredBy::Krfws]
+        );
+        assert_eq!(a.local.detection, local_before.1 + 1);
+        assert!(a.last_report().fell_back);
+        assert_eq!(a.policy().mode(), Mode::Remote, "one miss does not fall back");
+    }
+
+    /// A server older than version 3 orders frames per connection: only the first face goes to it (as
+    /// track 0), the others are aligned locally.
+    #[test]
+    fn a_version_2_server_gets_one_face_per_frame() {
+        let ok = Answer::After(Duration::from_millis(5));
+        let (mut a, clock) = linked(true, &[ok; 40]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        run_until_remote(&mut a, &clock, &image, &init);
+        let mut old = (*FakeLink::welcome()).clone();
+        old.version = 2;
+        a.link.up = Some(Arc::new(old));
+        a.link.requests.borrow_mut().clear();
+        let out = a.align_faces(&image, &three_faces(&init)).unwrap();
+        let by: Vec<_> = out.iter().map(|r| r.answered_by).collect();
+        assert_eq!(
+            by,
+            vec![AnsweredBy::RemoteDan, AnsweredBy::Krfws, AnsweredBy::Krfws]
+        );
+        let requests = a.link.requests.borrow().clone();
+        assert_eq!(requests.len(), 1);
+        assert_eq!(requests[0].1, 0);
+    }
+
+    /// Wire tracks never collide within a frame, and a lone face is track 0.
+    #[test]
+    fn wire_tracks_are_unique_per_frame() {
+        let init = [Point2::default(); 68];
+        let face = |track| Candidate {
+            track,
+            init,
+            source: InitSource::Tracking,
+        };
+        type L = Linked;
+        assert_eq!(L::wire_tracks(&[face(Some(7))], 3), vec![Some(0)]);
+        assert_eq!(
+            L::wire_tracks(&[face(Some(0)), face(Some(0x7FFF)), face(None)], 3),
+            vec![Some(1), None, Some(0x8002)],
+            "ids 0 and 32767 map to one track: the second face is aligned locally"
+        );
     }
 }

@@ -3,7 +3,7 @@
 //! * [`connection`]: one connection (handshake, frame streams, replies), async; shared with the load tester.
 //! * [`RemoteLink`]: owns a background thread with a single-threaded tokio runtime that keeps a
 //!   connection up (reconnecting with exponential backoff) and gives the frame loop a blocking API:
-//!   [`RemoteLink::send`] and [`RemoteLink::wait_reply`] with a deadline.
+//!   [`RemoteLink::send`] and [`RemoteLink::wait_until`] (or [`RemoteLink::wait_reply`]) with a deadline.
 //! * [`policy`]: the IO-free fallback state machine (misses, hold-off, hysteresis).
 //! * [`LinkedAligner`]: an [`crate::align::Aligner`] that asks the server first and answers the **same
 //!   frame** with the local aligner when the reply misses its deadline or the link is down.
@@ -271,15 +271,46 @@ impl RemoteLink {
         deadline: Instant,
         mut other: impl FnMut(LinkEvent),
     ) -> Result<(FrameReply, Instant), WaitError> {
+        let mut got = None;
+        let mut down = None;
+        self.wait_until(deadline, &mut |ev| match ev {
+            LinkEvent::Reply(r, at) if r.frame_id == frame_id => {
+                got = Some((r, at));
+                true
+            }
+            LinkEvent::Down(at, why) => {
+                down = Some(why.clone());
+                other(LinkEvent::Down(at, why));
+                true
+            }
+            ev => {
+                other(ev);
+                false
+            }
+        })?;
+        match (got, down) {
+            (Some(r), _) => Ok(r),
+            (None, Some(why)) => Err(WaitError::Down(why)),
+            (None, None) => Err(WaitError::Deadline),
+        }
+    }
+
+    /// Hands every event to `each` until it returns `true` (`Ok`), the deadline passes
+    /// ([`WaitError::Deadline`]) or the link thread is gone ([`WaitError::Stopped`]). The frame loop waits
+    /// this way for all the faces of one frame at once.
+    pub fn wait_until(
+        &self,
+        deadline: Instant,
+        each: &mut dyn FnMut(LinkEvent) -> bool,
+    ) -> Result<(), WaitError> {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             match self.events.recv_timeout(left) {
-                Ok(LinkEvent::Reply(r, at)) if r.frame_id == frame_id => return Ok((r, at)),
-                Ok(LinkEvent::Down(at, why)) => {
-                    other(LinkEvent::Down(at, why.clone()));
-                    return Err(WaitError::Down(why));
+                Ok(ev) => {
+                    if each(ev) {
+                        return Ok(());
+                    }
                 }
-                Ok(ev) => other(ev),
                 Err(mpsc::RecvTimeoutError::Timeout) => return Err(WaitError::Deadline),
                 Err(mpsc::RecvTimeoutError::Disconnected) => return Err(WaitError::Stopped),
             }
@@ -321,13 +352,10 @@ pub trait Link {
     fn status(&self) -> LinkStatus;
     /// Queues a frame for sending (never blocks).
     fn send(&self, req: FrameRequest) -> Result<(), WaitError>;
-    /// Waits until `deadline` for the reply to `frame_id`; every other event goes to `other`.
-    fn wait_reply(
-        &self,
-        frame_id: u64,
-        deadline: Instant,
-        other: &mut dyn FnMut(LinkEvent),
-    ) -> Result<(FrameReply, Instant), WaitError>;
+    /// Hands every event to `each` until it returns `true`, the deadline passes
+    /// ([`WaitError::Deadline`]) or the link is gone ([`WaitError::Stopped`]).
+    fn wait_until(&self, deadline: Instant, each: &mut dyn FnMut(LinkEvent) -> bool)
+    -> Result<(), WaitError>;
     /// Events that arrived since the last call (non-blocking).
     fn drain(&self, each: &mut dyn FnMut(LinkEvent));
 }
@@ -339,13 +367,12 @@ impl Link for RemoteLink {
     fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
         Self::send(self, req)
     }
-    fn wait_reply(
+    fn wait_until(
         &self,
-        frame_id: u64,
         deadline: Instant,
-        other: &mut dyn FnMut(LinkEvent),
-    ) -> Result<(FrameReply, Instant), WaitError> {
-        Self::wait_reply(self, frame_id, deadline, other)
+        each: &mut dyn FnMut(LinkEvent) -> bool,
+    ) -> Result<(), WaitError> {
+        Self::wait_until(self, deadline, each)
     }
     fn drain(&self, each: &mut dyn FnMut(LinkEvent)) {
         Self::drain(self, each);

@@ -161,29 +161,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let scene = load_scene(&args)?;
 
     // The server, in-process on loopback, behind a relay that can cut the link.
-    let token = format!("demo-{:016x}", {
-        use std::hash::{BuildHasher, Hasher};
-        std::collections::hash_map::RandomState::new()
-            .build_hasher()
-            .finish()
-    });
-    let mut settings = alignment_server::config::Settings::for_loopback(
-        &token,
-        args.runtime.dan_model.clone(),
-        args.runtime.ort_dylib(),
-    )?;
-    settings.engine.intra_threads = args.server_threads;
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()?;
-    let server = rt.block_on(alignment_server::Server::bind(settings))?;
-    let (server_addr, fingerprint) = (server.local_addr()?, server.fingerprint());
-    let (stop_server, stopped) = tokio::sync::oneshot::channel::<()>();
-    let server_task = rt.spawn(server.run(async move {
-        let _ = stopped.await;
-    }));
-    let relay = rt.block_on(UdpRelay::start(server_addr))?;
+    let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
+    let (server_addr, fingerprint, token) = (server.addr, server.fingerprint, server.token.clone());
+    let relay = server.runtime().block_on(UdpRelay::start(server_addr))?;
     println!(
         "server on {server_addr} (certificate {fingerprint}), client via relay {}",
         relay.addr()
@@ -319,12 +299,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     });
     let switches = aligner.policy().switches();
     drop(aligner);
-    let _ = stop_server.send(());
-    match rt.block_on(server_task) {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => eprintln!("server stopped with an error: {e}"),
-        Err(e) => eprintln!("server task failed: {e}"),
-    }
+    drop(relay);
+    server.stop();
 
     let strip_path = args.out.join("strip.png");
     std::fs::write(&strip_path, strip_png(&strip))

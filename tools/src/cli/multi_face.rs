@@ -44,6 +44,9 @@ pub enum SceneAligner {
     Krfws,
     /// DAN in-process through ONNX Runtime.
     Dan,
+    /// DAN on an alignment server started in this process, over QUIC on loopback: every face's crop of a
+    /// frame goes out at once, and KRFWS answers each face whose reply misses `--deadline-ms`.
+    Remote,
 }
 
 /// Arguments of `holoface multi-face`.
@@ -83,6 +86,16 @@ pub struct Args {
     /// Also draw each scene's first frame with the tracked faces and their ids (`scene_N.png`) here.
     #[arg(long)]
     pub snapshots: Option<PathBuf>,
+    /// With `--aligner remote`: how long a frame waits for the server's replies before KRFWS answers the
+    /// faces it missed, ms.
+    #[arg(long, default_value_t = 33)]
+    pub deadline_ms: u64,
+    /// Deliver frames at `--fps`, as a live camera does (otherwise as fast as they are processed).
+    #[arg(long)]
+    pub realtime: bool,
+    /// With `--aligner remote`: ONNX Runtime threads of the in-process server.
+    #[arg(long, default_value_t = 2)]
+    pub server_threads: usize,
     /// Runtime assets.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
@@ -240,6 +253,25 @@ struct Run {
     ids: std::collections::BTreeSet<u32>,
     most_at_once: usize,
     detector_runs: usize,
+    /// Per frame: time from the frame's arrival to its answer (prepare + align + complete), ms.
+    frame_ms: Vec<f64>,
+    /// Faces aligned, and how many of them the server answered.
+    aligned: usize,
+    remote: usize,
+}
+
+impl Run {
+    /// The frame-time and remote-share summary of this run.
+    fn timing_json(&self) -> serde_json::Value {
+        json!({
+            "frames_answered": self.frame_ms.len(),
+            "frame_ms_p50": crate::stats::percentile(&self.frame_ms, 0.5),
+            "frame_ms_p99": crate::stats::percentile(&self.frame_ms, 0.99),
+            "frame_ms_max": crate::stats::percentile(&self.frame_ms, 1.0),
+            "faces_aligned": self.aligned,
+            "faces_answered_remote_pct": 100.0 * self.remote as f64 / self.aligned.max(1) as f64,
+        })
+    }
 }
 
 /// Tracks one rendered sequence of `which` (with `max_faces` = its size) and tallies the faces in it.
@@ -266,10 +298,20 @@ fn track(
         ids: std::collections::BTreeSet::new(),
         most_at_once: 0,
         detector_runs: 0,
+        frame_ms: Vec::with_capacity(args.frames),
+        aligned: 0,
+        remote: 0,
     };
     let mut owner = std::collections::HashMap::new();
+    let start = std::time::Instant::now();
     for i in 0..args.frames {
         let t = i as f64 / args.fps;
+        if args.realtime
+            && let Some(wait) = (start + std::time::Duration::from_secs_f64(t))
+                .checked_duration_since(std::time::Instant::now())
+        {
+            std::thread::sleep(wait);
+        }
         let cam = headset(args.headset_yaw_deg, t);
         let all = render(people, which, &cam, t, &mut image)?;
         let truths: Vec<[Point2; 68]> = which.iter().map(|&k| all[k]).collect();
@@ -293,6 +335,13 @@ fn track(
             )?;
         }
         let step = holoface_client::frame_loop::step_faces(&mut session, aligner, &frame)?;
+        let timings = &step.timings;
+        run.frame_ms
+            .push((timings.prepare + timings.align + timings.complete).as_secs_f64() * 1e3);
+        for a in step.alignments.iter().flatten() {
+            run.aligned += 1;
+            run.remote += usize::from(a.answered_by == holoface_client::align::AnsweredBy::RemoteDan);
+        }
         if let Some(dir) = args
             .snapshots
             .as_ref()
@@ -335,9 +384,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .unwrap_or_else(|| default_data_root().join("faces68/train"));
     let samples = load_folder(&root, Split::Validation, true)?;
     let model = args.candide.load()?;
+    let mut server = None;
     let mut aligner: Box<dyn Aligner> = match args.aligner {
         SceneAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
         SceneAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+        SceneAligner::Remote => {
+            let (s, a) = remote_aligner(&args)?;
+            server = Some(s);
+            Box::new(a)
+        }
     };
     let mut scenes = Vec::new();
     println!(
@@ -417,6 +472,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             together.ids.len(),
             together.detector_runs
         );
+        let timing = together.timing_json();
+        println!(
+            "      frames answered {}/{}, frame time p50 {:.1} ms, p99 {:.1} ms, faces answered by the server {:.1} %",
+            together.frame_ms.len(),
+            args.frames,
+            timing["frame_ms_p50"].as_f64().unwrap_or(f64::NAN),
+            timing["frame_ms_p99"].as_f64().unwrap_or(f64::NAN),
+            timing["faces_answered_remote_pct"].as_f64().unwrap_or(f64::NAN),
+        );
         scenes.push(json!({
             "faces": n,
             "frames": args.frames,
@@ -426,14 +490,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "detector_runs": together.detector_runs,
             "losses": losses,
             "reacquisitions": reacquired,
+            "timing": timing,
             "per_face": per_face,
         }));
+    }
+    drop(aligner);
+    if let Some(server) = server {
+        server.stop();
     }
     let report = json!({
         "aligner": format!("{:?}", args.aligner).to_lowercase(),
         "fps": args.fps,
         "headset_yaw_deg": args.headset_yaw_deg,
         "detect_every": args.detect_every,
+        "realtime": args.realtime,
+        "deadline_ms": (args.aligner == SceneAligner::Remote).then_some(args.deadline_ms),
         "scenes": scenes,
     });
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -443,6 +514,48 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", args.out.display()))?;
     println!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// The in-process server and the headset's remote aligner (KRFWS for what the server misses), connected
+/// and past its start-up hold-off (probes must answer for a second before frames go remote), so the scenes
+/// measure the remote path from their first frame.
+fn remote_aligner(
+    args: &Args,
+) -> anyhow::Result<(
+    crate::loopback::LoopbackServer,
+    holoface_client::link::LinkedAligner<holoface_client::align::KrfwsAligner>,
+)> {
+    use holoface_client::link::{
+        Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, Mode, RemoteLink,
+    };
+    let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
+    let mut cfg = ConnectConfig::new(server.addr, server.fingerprint, server.token.clone());
+    cfg.client_name = "holoface-multi-face".into();
+    let codec = CropCodec::default();
+    cfg.encodings = vec![codec.encoding()];
+    // One crop per face per frame in flight.
+    cfg.max_in_flight = u16::try_from(args.counts.iter().copied().max().unwrap_or(1)).unwrap_or(u16::MAX);
+    let link = RemoteLink::start(cfg, Backoff::default())?;
+    let opts = LinkOptions {
+        deadline: std::time::Duration::from_millis(args.deadline_ms),
+        codec,
+        ..LinkOptions::default()
+    };
+    let mut aligner = LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts);
+    let blank = GrayImage::zeros(FRAME_W, FRAME_H);
+    let init = dan_mean_shape().map(|p| Point2::new(p.x + 260.0, p.y + 180.0));
+    let give_up = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    while aligner.policy().mode() != Mode::Remote {
+        if std::time::Instant::now() > give_up {
+            bail!(
+                "the loopback server did not answer in time: {:?}",
+                aligner.link().status()
+            );
+        }
+        aligner.align(&blank.view(), &init)?;
+        std::thread::sleep(std::time::Duration::from_millis(33));
+    }
+    Ok((server, aligner))
 }
 
 /// See [`MAX_NOSE_OFFSET`] and [`MIN_EYE_PX`].

@@ -96,6 +96,8 @@ fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_cli
         .map_err(|e| anyhow::anyhow!("--fingerprint: {e}"))?;
     let mut cfg = ConnectConfig::new(server, fingerprint, args.token.clone());
     cfg.encodings = vec![args.crop_encoding.encoding()];
+    // One crop per tracked face per frame, all in flight together.
+    cfg.max_in_flight = args.max_faces.max(1);
     let link = RemoteLink::start(cfg, Backoff::default())?;
     let watch = link.watch();
     let opts = LinkOptions {
