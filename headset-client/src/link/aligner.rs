@@ -507,7 +507,7 @@ mod tests {
     }
 
     /// A link whose server answers from a script, on the shared fake clock: a sent frame's reply becomes
-    /// due at send time + its delay; `wait_reply` and `drain` hand out the replies that are due.
+    /// due at send time + its delay; `wait_until` and `drain` hand out the replies that are due.
     struct FakeLink {
         clock: std::rc::Rc<FakeClock>,
         up: Option<Arc<ServerWelcome>>,

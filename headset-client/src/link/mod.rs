@@ -3,7 +3,7 @@
 //! * [`connection`]: one connection (handshake, frame streams, replies), async; shared with the load tester.
 //! * [`RemoteLink`]: owns a background thread with a single-threaded tokio runtime that keeps a
 //!   connection up (reconnecting with exponential backoff) and gives the frame loop a blocking API:
-//!   [`RemoteLink::send`] and [`RemoteLink::wait_until`] (or [`RemoteLink::wait_reply`]) with a deadline.
+//!   [`RemoteLink::send`] and [`RemoteLink::wait_until`] with a deadline.
 //! * [`policy`]: the IO-free fallback state machine (misses, hold-off, hysteresis).
 //! * [`LinkedAligner`]: an [`crate::align::Aligner`] that asks the server first and answers the **same
 //!   frame** with the local aligner when the reply misses its deadline or the link is down.
@@ -116,7 +116,7 @@ pub enum LinkEvent {
     Down(Instant, LinkFailure),
 }
 
-/// Why [`RemoteLink::wait_reply`] returned without the reply.
+/// Why [`RemoteLink::wait_until`] returned before its caller was done.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum WaitError {
     /// The deadline passed.
@@ -262,37 +262,6 @@ impl RemoteLink {
     /// Queues a frame for sending (never blocks). Frames queued while the link is down are discarded.
     pub fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
         self.frames.send(req).map_err(|_| WaitError::Stopped)
-    }
-
-    /// Waits until `deadline` for the reply to `frame_id`; every other event is passed to `other`.
-    pub fn wait_reply(
-        &self,
-        frame_id: u64,
-        deadline: Instant,
-        mut other: impl FnMut(LinkEvent),
-    ) -> Result<(FrameReply, Instant), WaitError> {
-        let mut got = None;
-        let mut down = None;
-        self.wait_until(deadline, &mut |ev| match ev {
-            LinkEvent::Reply(r, at) if r.frame_id == frame_id => {
-                got = Some((r, at));
-                true
-            }
-            LinkEvent::Down(at, why) => {
-                down = Some(why.clone());
-                other(LinkEvent::Down(at, why));
-                true
-            }
-            ev => {
-                other(ev);
-                false
-            }
-        })?;
-        match (got, down) {
-            (Some(r), _) => Ok(r),
-            (None, Some(why)) => Err(WaitError::Down(why)),
-            (None, None) => Err(WaitError::Deadline),
-        }
     }
 
     /// Hands every event to `each` until it returns `true` (`Ok`), the deadline passes
