@@ -117,6 +117,19 @@ impl PlanarScene {
         std::array::from_fn(|i| h.apply(self.landmarks[i]))
     }
 
+    /// Whether image point `p` falls on the picture under `h` (in front of the camera): what a picture
+    /// drawn nearer covers of the ones behind it.
+    pub fn covers(&self, h: &Homography, p: Point2) -> bool {
+        let Some(hi) = h.inverse() else { return false };
+        let (x, y) = (f64::from(p.x), f64::from(p.y));
+        let m = hi.0;
+        let w = m[2][0] * x + m[2][1] * y + m[2][2];
+        let u = (m[0][0] * x + m[0][1] * y + m[0][2]) / w;
+        let v = (m[1][0] * x + m[1][1] * y + m[1][2]) / w;
+        let (pw, ph) = (self.photo.width() as f64, self.photo.height() as f64);
+        w > 0.0 && (0.0..pw - 1.0).contains(&u) && (0.0..ph - 1.0).contains(&v)
+    }
+
     /// Renders the photo through `h` into `out` (bilinear; `background` outside the picture or behind
     /// the camera).
     pub fn render(&self, h: &Homography, out: &mut GrayImage, background: u8) -> anyhow::Result<()> {
@@ -204,6 +217,33 @@ mod tests {
         let hi = h.inverse().unwrap();
         let q = hi.apply(h.apply(Point2::new(10.0, 20.0)));
         assert!((q.x - 10.0).abs() < 1e-3 && (q.y - 20.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_picture_covers_its_own_pixels_and_nothing_beside_or_behind_the_camera() {
+        let s = scene();
+        let plane = Pose {
+            rotation: Mat3::IDENTITY,
+            translation: Vec3::new(0.0, 0.0, 0.6),
+        };
+        let h = s.homography(&K, &Pose::IDENTITY, &plane);
+        let centre = h.apply(Point2::new(100.0, 100.0));
+        assert!(s.covers(&h, centre));
+        let corner = h.apply(Point2::new(1.0, 1.0));
+        assert!(s.covers(&h, corner));
+        for p in [
+            h.apply(Point2::new(-5.0, 100.0)),
+            h.apply(Point2::new(100.0, 205.0)),
+        ] {
+            assert!(!s.covers(&h, p), "{p:?} is off the picture");
+        }
+        // A picture behind the camera covers nothing.
+        let behind = Pose {
+            rotation: Mat3::IDENTITY,
+            translation: Vec3::new(0.0, 0.0, -0.6),
+        };
+        let hb = s.homography(&K, &Pose::IDENTITY, &behind);
+        assert!(!s.covers(&hb, centre));
     }
 
     #[test]

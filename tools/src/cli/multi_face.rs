@@ -70,6 +70,10 @@ pub struct Args {
     /// While fewer than N faces are tracked, run the detector every this many frames.
     #[arg(long, default_value_t = 10)]
     pub detect_every: u32,
+    /// Horizontal spacing of the pictures' rest positions, centimetres. At the default the pictures touch
+    /// and their motion makes them cover each other at times; five fill the 640-px view.
+    #[arg(long, default_value_t = 17.0)]
+    pub spacing_cm: f64,
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
     pub aligner: SceneAligner,
@@ -101,12 +105,10 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-/// Largest scene: five pictures side by side fill the 640-px view at this spacing and depth. The depth
+/// Largest scene: five pictures side by side fill the 640-px view at the default spacing and this depth. The depth
 /// keeps every face about 95 px wide, which the detector (BlazeFace short range, the frame letterboxed into
 /// 128 px) still finds; farther faces are below its smallest anchor.
 const MAX_FACES: usize = 5;
-/// Horizontal spacing of the pictures' rest positions, metres.
-const SPACING_M: f64 = 0.17;
 /// Depth of the nearest picture, metres; the others step back by `DEPTH_STEP_M` each.
 const NEAR_M: f64 = 0.74;
 const DEPTH_STEP_M: f64 = 0.03;
@@ -165,6 +167,9 @@ struct FaceTally {
     reacquisitions: usize,
     last_id: Option<u32>,
     matched_before: bool,
+    /// Per frame: NME49 of the face's match (none when unmatched) and the share of its 68 true landmarks
+    /// that a nearer picture covers.
+    per_frame: Vec<(Option<f64>, f64)>,
 }
 
 impl FaceTally {
@@ -174,9 +179,11 @@ impl FaceTally {
         &mut self,
         me: usize,
         matched: Option<(u32, f64)>,
+        covered: f64,
         owner: &mut std::collections::HashMap<u32, usize>,
     ) {
         self.frames += 1;
+        self.per_frame.push((matched.map(|m| m.1), covered));
         match matched {
             Some((id, e)) => {
                 self.matched += 1;
@@ -203,6 +210,27 @@ impl FaceTally {
     fn nme_pct(&self) -> f64 {
         100.0 * self.nme_sum / self.matched.max(1) as f64
     }
+
+    /// Mean share of the face's landmarks covered by nearer pictures, percent.
+    fn covered_pct(&self) -> f64 {
+        100.0 * self.per_frame.iter().map(|f| f.1).sum::<f64>() / self.frames.max(1) as f64
+    }
+
+    /// NME49 (percent) here and in `alone` over the frames where nothing covers the face here and it is
+    /// matched in both runs, and how many such frames there are: the several-face tracker against the
+    /// single-face one with occlusion, which no tracker undoes, taken out.
+    fn uncovered_vs(&self, alone: &Self) -> (f64, f64, usize) {
+        let (mut here, mut there, mut n) = (0.0, 0.0, 0usize);
+        for (&(a, covered), &(b, _)) in self.per_frame.iter().zip(&alone.per_frame) {
+            if let (Some(a), Some(b), true) = (a, b, covered == 0.0) {
+                here += a;
+                there += b;
+                n += 1;
+            }
+        }
+        let pct = |sum: f64| 100.0 * sum / n.max(1) as f64;
+        (pct(here), pct(there), n)
+    }
 }
 
 /// Greedy matching of tracked faces to true faces (smallest NME49 first, each at most once).
@@ -227,23 +255,35 @@ fn match_faces(faces: &[TrackedFace], truths: &[[Point2; 68]]) -> Vec<Option<(u3
     out
 }
 
-/// Renders frame `i` of a scene with the pictures `which` (far to near) and returns the truths of all.
+/// Renders frame `i` of a scene with the pictures `which` (far to near) and returns, for every person,
+/// the true landmarks and the share of them that nearer pictures cover (0 for those not in `which`).
 fn render(
     people: &[Person],
     which: &[usize],
     cam: &Pose,
     t: f64,
     image: &mut GrayImage,
-) -> anyhow::Result<Vec<[Point2; 68]>> {
+) -> anyhow::Result<Vec<([Point2; 68], f64)>> {
     image.as_bytes_mut().fill(90);
     let mut order: Vec<usize> = which.to_vec();
     order.sort_by(|&a, &b| people[b].rest.z.total_cmp(&people[a].rest.z));
-    let mut truths = vec![[Point2::default(); 68]; people.len()];
+    let mut truths = vec![([Point2::default(); 68], 0.0); people.len()];
+    let mut drawn = Vec::with_capacity(order.len());
     for &k in &order {
         let p = &people[k];
         let h = p.scene.homography(&SCENE_CAMERA, cam, &p.pose(t));
         p.scene.render_over(&h, image)?;
-        truths[k] = p.scene.landmarks_in(&h);
+        truths[k].0 = p.scene.landmarks_in(&h);
+        drawn.push((k, h));
+    }
+    for (i, (k, _)) in drawn.iter().enumerate() {
+        let nearer = &drawn[i + 1..];
+        let covered = truths[*k]
+            .0
+            .iter()
+            .filter(|&&q| nearer.iter().any(|(j, h)| people[*j].scene.covers(h, q)))
+            .count();
+        truths[*k].1 = covered as f64 / 68.0;
     }
     Ok(truths)
 }
@@ -314,7 +354,7 @@ fn track(
         }
         let cam = headset(args.headset_yaw_deg, t);
         let all = render(people, which, &cam, t, &mut image)?;
-        let truths: Vec<[Point2; 68]> = which.iter().map(|&k| all[k]).collect();
+        let truths: Vec<[Point2; 68]> = which.iter().map(|&k| all[k].0).collect();
         let frame = Frame {
             timestamp_us: (t * 1e6).round() as u64,
             image: image.view(),
@@ -364,7 +404,7 @@ fn track(
         run.most_at_once = run.most_at_once.max(step.faces.faces.len());
         let matches = match_faces(&step.faces.faces, &truths);
         for (k, (tally, m)) in run.tallies.iter_mut().zip(matches).enumerate() {
-            tally.record(k, m, &mut owner);
+            tally.record(k, m, all[which[k]].1, &mut owner);
         }
     }
     Ok(run)
@@ -377,6 +417,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if args.frames == 0 || !(args.fps.is_finite() && args.fps > 0.0) {
         bail!("--frames and --fps must be positive");
+    }
+    if !(args.spacing_cm.is_finite() && (0.0..=100.0).contains(&args.spacing_cm)) {
+        bail!("--spacing-cm must be within 0..=100");
     }
     let root = args
         .data
@@ -408,7 +451,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let Some(lm) = sample.landmarks else { continue };
             let (photo, lm) = cut_face_with_margin(&sample.image, &lm, PICTURE_MARGIN)
                 .with_context(|| sample.name.clone())?;
-            let x = (k as f64 - (n as f64 - 1.0) / 2.0) * SPACING_M;
+            let x = (k as f64 - (n as f64 - 1.0) / 2.0) * args.spacing_cm / 100.0;
             people.push(Person {
                 name: sample.name.clone(),
                 scene: PlanarScene::life_size(photo, lm).with_context(|| sample.name.clone())?,
@@ -437,15 +480,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         let mut per_face = Vec::new();
         let mut line = String::new();
+        let mut covered_line = String::new();
         for (k, tally) in together.tallies.iter().enumerate() {
             let alone = track(&args, &model, &mut *aligner, &people, &[k], None)?;
             let solo = &alone.tallies[0];
             let rel = together_vs_alone(tally.nme_pct(), solo.nme_pct());
+            let (clear, clear_alone, clear_frames) = tally.uncovered_vs(solo);
             line.push_str(&format!(
                 "  {:.2}/{:.2} ({:+.1} %)",
                 tally.nme_pct(),
                 solo.nme_pct(),
                 rel
+            ));
+            covered_line.push_str(&format!(
+                "  {:.0} % covered, uncovered {clear_frames} frames {clear:.2}/{clear_alone:.2} ({:+.1} %)",
+                tally.covered_pct(),
+                together_vs_alone(clear, clear_alone)
             ));
             per_face.push(json!({
                 "face": people[k].name,
@@ -453,6 +503,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "nme49_alone_pct": solo.nme_pct(),
                 "nme49_relative_change_pct": rel,
                 "tracked_frames_pct": 100.0 * tally.matched as f64 / tally.frames.max(1) as f64,
+                "covered_landmarks_pct": tally.covered_pct(),
+                "uncovered_frames_matched_both": clear_frames,
+                "nme49_uncovered_pct": clear,
+                "nme49_uncovered_alone_pct": clear_alone,
+                "nme49_uncovered_relative_change_pct": together_vs_alone(clear, clear_alone),
                 "tracked_frames_alone_pct": 100.0 * solo.matched as f64 / solo.frames.max(1) as f64,
                 "id_switches": tally.id_switches,
                 "losses": tally.losses,
@@ -472,6 +527,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             together.ids.len(),
             together.detector_runs
         );
+        println!("      per face:{covered_line}");
         let timing = together.timing_json();
         println!(
             "      frames answered {}/{}, frame time p50 {:.1} ms, p99 {:.1} ms, faces answered by the server {:.1} %",
@@ -503,6 +559,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "fps": args.fps,
         "headset_yaw_deg": args.headset_yaw_deg,
         "detect_every": args.detect_every,
+        "spacing_cm": args.spacing_cm,
         "realtime": args.realtime,
         "deadline_ms": (args.aligner == SceneAligner::Remote).then_some(args.deadline_ms),
         "scenes": scenes,
