@@ -5,8 +5,8 @@
 //! * The KRFWS aligner lives beside it once the model is trained (`krfws` module).
 
 use holoface_inference::{BatchTensor, EngineError, InferenceEngine, LandmarkOut};
-use holoface_models::crop::{Crop112, crop_bilinear};
-use holoface_models::geometry::{Point2, Similarity2};
+use holoface_models::crop::{Crop112, blank_outside, crop_bilinear};
+use holoface_models::geometry::{Point2, Rect, Similarity2};
 use holoface_models::image::GrayView;
 use serde::Serialize;
 use thiserror::Error;
@@ -143,6 +143,41 @@ pub fn align_from(
     }
 }
 
+/// Each face's own region in a frame with several: its initial landmarks' box grown by this fraction on
+/// every side (the start may sit a little off the face).
+const OWN_MARGIN: f32 = 0.10;
+/// Each other face's region: its initial landmarks' box grown by this fraction on every side (cheeks and
+/// forehead beyond the landmarks; hair and ears farther out are left).
+const OTHER_MARGIN: f32 = 0.15;
+
+/// What to blank out of one face's DAN crop when the frame has several: the other faces' regions, minus
+/// the face's own ([`blank_outside`]). DAN, trained on one face per crop, otherwise drifts toward a
+/// neighbour inside its crop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Neighbours {
+    keep: Rect,
+    others: Vec<Rect>,
+}
+
+impl Neighbours {
+    /// For face `i` of `faces`; `None` when it is alone (or its start has no extent).
+    pub fn of(faces: &[Candidate], i: usize) -> Option<Self> {
+        let keep = Rect::bounding(&faces.get(i)?.init)?.grown(OWN_MARGIN);
+        let others: Vec<Rect> = faces
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i)
+            .filter_map(|(_, f)| Rect::bounding(&f.init).map(|r| r.grown(OTHER_MARGIN)))
+            .collect();
+        (!others.is_empty()).then_some(Self { keep, others })
+    }
+
+    /// Blanks the other faces out of `crop` (made through `crop_from_image`).
+    pub fn blank(&self, crop: &mut Crop112, crop_from_image: &Similarity2) {
+        blank_outside(crop, crop_from_image, &self.keep, &self.others);
+    }
+}
+
 /// The similarity that maps `init` onto the canonical crop shape.
 pub fn crop_from_image(init: &[Point2; 68], canonical: &[Point2; 68]) -> Result<Similarity2, AlignError> {
     if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
@@ -216,8 +251,35 @@ impl<E: InferenceEngine> Aligner for DanAligner<E> {
     }
 
     fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        self.align_among(image, init, None)
+    }
+
+    /// One face after another, each crop with the other faces blanked out ([`Neighbours`]).
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        (0..faces.len())
+            .map(|i| self.align_among(image, &faces[i].init, Neighbours::of(faces, i).as_ref()))
+            .collect()
+    }
+}
+
+impl<E: InferenceEngine> DanAligner<E> {
+    /// One face: its crop (the other faces blanked out of it when `neighbours` says where they are), one
+    /// inference, the landmarks mapped back.
+    fn align_among(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        neighbours: Option<&Neighbours>,
+    ) -> Result<Alignment, AlignError> {
         let sim = crop_from_image(init, &self.canonical)?;
         crop_bilinear(image, &sim, &mut self.crop)?;
+        if let Some(n) = neighbours {
+            n.blank(&mut self.crop, &sim);
+        }
         self.batch.clear();
         match self.wire {
             None => self.batch.push(self.crop.as_slice())?,

@@ -5,7 +5,7 @@
 
 use thiserror::Error;
 
-use crate::geometry::Similarity2;
+use crate::geometry::{Point2, Rect, Similarity2};
 use crate::image::GrayView;
 
 /// Side of the DAN crop in pixels.
@@ -63,6 +63,28 @@ pub fn crop_bilinear(
     dst: &mut Crop112,
 ) -> Result<(), CropError> {
     warp_bilinear(src, crop_from_image, CROP_SIZE, CROP_SIZE, &mut dst.0[..])
+}
+
+/// Blanks the other faces out of one face's crop: every crop pixel whose image point lies in one of
+/// `others` and not in `keep` becomes 0, the value a crop reads outside the image, which is how DAN saw
+/// "nothing here" in training (crops running off the photo). With several faces close together, a
+/// neighbour's face inside a crop pulls DAN's landmarks toward it (measured in BENCHMARKS.md, "Several
+/// faces"); the face itself (`keep`) is never blanked, even where a neighbour's box overlaps it.
+pub fn blank_outside(crop: &mut Crop112, crop_from_image: &Similarity2, keep: &Rect, others: &[Rect]) {
+    let Some(image_from_crop) = crop_from_image.inverse() else {
+        return;
+    };
+    if others.is_empty() {
+        return;
+    }
+    for v in 0..CROP_SIZE {
+        for u in 0..CROP_SIZE {
+            let p = image_from_crop.apply(Point2::new(u as f32, v as f32));
+            if !keep.contains(p) && others.iter().any(|r| r.contains(p)) {
+                crop.0[v * CROP_SIZE + u] = 0;
+            }
+        }
+    }
 }
 
 /// Bilinear, zero-filled warp of `src` into a `width`×`height` buffer through `dst_from_src`.
@@ -220,6 +242,37 @@ mod tests {
         let mut out = vec![0; 4];
         warp_bilinear(&v, &s, 2, 2, &mut out).unwrap();
         assert_eq!(out, vec![50, 50, 50, 50]);
+    }
+
+    #[test]
+    fn blanking_zeroes_the_other_faces_and_never_the_face_itself() {
+        // Crop = image scaled by 2 (image point (x, y) is crop pixel (2x, 2y)).
+        let img = vec![200u8; 100 * 100];
+        let v = GrayView::new(&img, 100, 100, 100).unwrap();
+        let sim = Similarity2::from_parts(2.0, 0.0, 0.0, 0.0);
+        let mut crop = Crop112::default();
+        crop_bilinear(&v, &sim, &mut crop).unwrap();
+        let at = |c: &Crop112, x: usize, y: usize| c.0[2 * y * CROP_SIZE + 2 * x];
+        let keep = Rect {
+            x0: 0.0,
+            y0: 0.0,
+            x1: 30.0,
+            y1: 55.0,
+        };
+        let other = Rect {
+            x0: 20.0,
+            y0: 0.0,
+            x1: 55.0,
+            y1: 55.0,
+        };
+        let mut none = crop.clone();
+        blank_outside(&mut none, &sim, &keep, &[]);
+        assert_eq!(none, crop, "nothing to blank without other faces");
+        blank_outside(&mut crop, &sim, &keep, &[other]);
+        assert_eq!(at(&crop, 10, 10), 200, "the face itself");
+        assert_eq!(at(&crop, 25, 10), 200, "where the boxes overlap, the face wins");
+        assert_eq!(at(&crop, 40, 10), 0, "the other face");
+        assert_eq!(at(&crop, 10, 54), 200);
     }
 
     #[test]

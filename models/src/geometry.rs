@@ -235,6 +235,20 @@ impl Rect {
         }
         Some(r)
     }
+    /// The box grown by `frac` of its width (left and right) and of its height (top and bottom).
+    pub fn grown(&self, frac: f32) -> Self {
+        let (dx, dy) = (frac * self.width(), frac * self.height());
+        Self {
+            x0: self.x0 - dx,
+            y0: self.y0 - dy,
+            x1: self.x1 + dx,
+            y1: self.y1 + dy,
+        }
+    }
+    /// Whether `p` lies in the box (edges included).
+    pub fn contains(&self, p: Point2) -> bool {
+        (self.x0..=self.x1).contains(&p.x) && (self.y0..=self.y1).contains(&p.y)
+    }
     /// Intersection over union with `other` (0 when either is empty).
     pub fn iou(&self, other: &Self) -> f32 {
         let ix = (self.x1.min(other.x1) - self.x0.max(other.x0)).max(0.0);

@@ -12,8 +12,8 @@ use holoface_protocol::{FrameRequest, ReplyOutcome, ServerWelcome};
 use super::policy::{FallbackPolicy, Mode, PolicyConfig, Route};
 use super::{Clock, CropCodec, Link, LinkEvent, RemoteLink, SystemClock};
 use crate::align::{
-    AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource, align_from, crop_from_image,
-    landmarks_from_crop,
+    AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource, Neighbours, align_from,
+    crop_from_image, landmarks_from_crop,
 };
 
 /// Settings of the linked aligner.
@@ -137,19 +137,23 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         Some(c)
     }
 
-    /// Cuts and encodes one face's crop and queues it as `frame_id` of `track_id`; the similarity, or
-    /// `None` when the crop cannot be made (then that face is simply aligned locally).
+    /// Cuts and encodes one face's crop (the frame's other faces blanked out of it, as the in-process
+    /// DAN aligner does) and queues it as `frame_id` of `track_id`; the similarity, or `None` when the
+    /// crop cannot be made (then that face is simply aligned locally).
     fn send_crop(
         &mut self,
         image: &GrayView<'_>,
-        init: &[Point2; 68],
+        faces: &[Candidate],
+        i: usize,
         welcome: &Arc<ServerWelcome>,
-        frame_id: u64,
-        track_id: u16,
+        (frame_id, track_id): (u64, u16),
     ) -> Option<holoface_models::geometry::Similarity2> {
         let canonical = self.canonical(welcome)?;
-        let sim = crop_from_image(init, &canonical).ok()?;
+        let sim = crop_from_image(&faces.get(i)?.init, &canonical).ok()?;
         crop_bilinear(image, &sim, &mut self.crop).ok()?;
+        if let Some(n) = Neighbours::of(faces, i) {
+            n.blank(&mut self.crop, &sim);
+        }
         let crop = self
             .opts
             .codec
@@ -265,9 +269,9 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
                 let tracks = Self::wire_tracks(faces, welcome.version);
                 // (face index, track, crop similarity, reply)
                 let mut sent = Vec::with_capacity(faces.len());
-                for (i, (face, track)) in faces.iter().zip(&tracks).enumerate() {
+                for (i, track) in tracks.iter().enumerate() {
                     if let Some(track) = *track
-                        && let Some(sim) = self.send_crop(image, &face.init, &welcome, frame_id, track)
+                        && let Some(sim) = self.send_crop(image, faces, i, &welcome, (frame_id, track))
                     {
                         sent.push((i, track, sim, None));
                     }
@@ -281,13 +285,13 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
                 // At most `max_in_flight` probes outstanding: a server slower than the frame rate would
                 // otherwise see each probe superseded by the next and never look healthy.
                 let tracks = Self::wire_tracks(faces, welcome.version);
-                for (face, track) in faces.iter().zip(tracks) {
+                for (i, track) in tracks.into_iter().enumerate() {
                     if self.probes.len() >= usize::from(welcome.max_in_flight.max(1)) {
                         break;
                     }
                     if let Some(track_id) = track
                         && self
-                            .send_crop(image, &face.init, &welcome, frame_id, track_id)
+                            .send_crop(image, faces, i, &welcome, (frame_id, track_id))
                             .is_some()
                     {
                         self.probes.push_back(Probe {
@@ -516,6 +520,8 @@ mod tests {
         pending: std::cell::RefCell<Vec<(u64, u16, Instant)>>,
         /// Every request sent: (frame id, track id).
         requests: std::cell::RefCell<Vec<(u64, u16)>>,
+        /// The last request's crop, decoded.
+        last_crop: std::cell::RefCell<Vec<u8>>,
         sent: std::cell::Cell<usize>,
     }
 
@@ -567,6 +573,7 @@ mod tests {
         fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
             self.sent.set(self.sent.get() + 1);
             self.requests.borrow_mut().push((req.frame_id, req.track_id));
+            *self.last_crop.borrow_mut() = CropCodec::decode(&req.crop).unwrap_or_default();
             if let Some(Answer::After(d)) = self.script.borrow_mut().pop_front() {
                 self.pending
                     .borrow_mut()
@@ -628,6 +635,7 @@ mod tests {
             script: std::cell::RefCell::new(script.iter().copied().collect()),
             pending: std::cell::RefCell::new(Vec::new()),
             requests: std::cell::RefCell::new(Vec::new()),
+            last_crop: std::cell::RefCell::new(Vec::new()),
             sent: std::cell::Cell::new(0),
         };
         let opts = LinkOptions::default();
@@ -828,6 +836,46 @@ mod tests {
         assert_eq!(a.local.detection, local_before.1 + 1);
         assert!(a.last_report().fell_back);
         assert_eq!(a.policy().mode(), Mode::Remote, "one miss does not fall back");
+    }
+
+    /// With several faces, each crop has the other faces blanked out of it (0, what a crop reads off the
+    /// image); a lone face's crop is the image as it is.
+    #[test]
+    fn a_face_crop_has_the_other_faces_blanked_out() {
+        let ok = Answer::After(Duration::from_millis(5));
+        let (mut a, clock) = linked(true, &[ok; 40]);
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        run_until_remote(&mut a, &clock, &image, &init);
+        let blanked = |crop: &[u8]| crop.iter().filter(|&&p| p == 0).count();
+        let lone = a.link.last_crop.borrow().clone();
+        assert_eq!(lone.len(), 112 * 112);
+        assert_eq!(blanked(&lone), 0, "nothing blanked around a lone face");
+
+        // Two faces 60 px apart: alone, neither crop is blanked; together, the second face's crop has the
+        // first (on its left) blanked and its own side untouched.
+        let shifted = |dx: f32| init.map(|p| Point2::new(p.x + dx, p.y));
+        let faces = [0.0, 60.0].map(|dx| Candidate {
+            track: Some(dx as u32),
+            init: shifted(dx - 20.0),
+            source: InitSource::Tracking,
+        });
+        a.link.script.borrow_mut().extend([ok, ok]);
+        a.align(&image, &faces[0].init).unwrap();
+        assert_eq!(blanked(&a.link.last_crop.borrow()), 0);
+        a.align_faces(&image, &faces[..1]).unwrap();
+        assert_eq!(blanked(&a.link.last_crop.borrow()), 0);
+        a.link.script.borrow_mut().extend([ok, ok]);
+        let sent = a.link.requests.borrow().len();
+        a.align_faces(&image, &faces).unwrap();
+        assert_eq!(a.link.requests.borrow().len(), sent + 2);
+        let second = a.link.last_crop.borrow().clone();
+        let (left, right): (Vec<u8>, Vec<u8>) = second.chunks(112).map(|row| (row[5], row[106])).unzip();
+        assert!(
+            left.iter().filter(|&&p| p == 0).count() > 50,
+            "the neighbour on the left is blanked"
+        );
+        assert!(right.iter().all(|&p| p == 100), "the face's own side is not");
     }
 
     /// A server older than version 3 orders frames per connection: only the first face goes to it (as
