@@ -19,7 +19,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
+.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
 
 all: test
 
@@ -112,6 +112,29 @@ $(SAMPLE): $(VENV)/.eval-installed
 	rm -rf .cache/samples/wheel
 
 sample: $(SAMPLE)
+
+# Several-faces smoke test: the 1927 Solvay conference photograph (Benjamin Couprie; 29 people, faces about
+# 50 px), as the rustface crate ships it (test.png, with rustface's own detection boxes drawn in; the crate is
+# BSD-2-Clause, its LICENSE is kept beside the photo; the photograph, published in 1927, is listed as public
+# domain in the US by Wikimedia Commons). The crate's and the extracted file's sha256 are pinned.
+RUSTFACE_VERSION := 0.1.7
+RUSTFACE_SHA256 := 6a0e639a994b9e6eb2367f09054af0f3b27ad461aaf8e82ba97607b81ebf815e
+GROUP_PHOTO_SHA256 := eb854bcafbe7e0e13fb1b8073a1e6c30b67e06b463f919325c4a20b13a3c8e0c
+GROUP_PHOTO := .cache/samples/solvay-1927.png
+export HOLOFACE_GROUP_PHOTO := $(abspath $(GROUP_PHOTO))
+$(GROUP_PHOTO):
+	rm -rf .cache/samples/rustface && mkdir -p .cache/samples/rustface
+	curl -sSfL --retry 3 -o .cache/samples/rustface/rustface.crate \
+	  https://static.crates.io/crates/rustface/rustface-$(RUSTFACE_VERSION).crate
+	echo "$(RUSTFACE_SHA256)  .cache/samples/rustface/rustface.crate" | sha256sum -c --quiet
+	tar -xzf .cache/samples/rustface/rustface.crate -C .cache/samples/rustface \
+	  rustface-$(RUSTFACE_VERSION)/test.png rustface-$(RUSTFACE_VERSION)/LICENSE
+	echo "$(GROUP_PHOTO_SHA256)  .cache/samples/rustface/rustface-$(RUSTFACE_VERSION)/test.png" | sha256sum -c --quiet
+	cp .cache/samples/rustface/rustface-$(RUSTFACE_VERSION)/LICENSE .cache/samples/solvay-1927.LICENSE
+	mv .cache/samples/rustface/rustface-$(RUSTFACE_VERSION)/test.png $@
+	rm -rf .cache/samples/rustface
+
+group-photo: $(GROUP_PHOTO)
 setup: venv ort detector sample
 
 ## ---- main job -----------------------------------------------------------------------------------
@@ -141,7 +164,7 @@ deps-check:
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
 
-unit: setup golden ort-gpu dan-fp16
+unit: setup golden ort-gpu dan-fp16 group-photo
 	$(CARGO) nextest run --locked --workspace --profile ci
 	$(CARGO) test --locked --workspace --doc -q
 

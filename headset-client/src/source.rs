@@ -28,6 +28,19 @@ pub struct ImageSequence {
 }
 
 impl ImageSequence {
+    /// One image file as a one-frame sequence (a photograph).
+    pub fn single(path: &Path, fps: f64) -> anyhow::Result<Self> {
+        if !(fps.is_finite() && fps > 0.0) {
+            bail!("frame rate must be positive, got {fps}");
+        }
+        Ok(Self {
+            paths: vec![path.to_path_buf()],
+            next: 0,
+            fps,
+            intrinsics: None,
+        })
+    }
+
     /// Lists the images of `dir`.
     pub fn open(dir: &Path, fps: f64, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
         let paths: Vec<PathBuf> = list_images(dir)?.into_iter().map(|(_, p)| p).collect();
@@ -187,6 +200,13 @@ fn is_mp4(path: &Path) -> bool {
     }
 }
 
+/// Whether `path` is a PNG or JPEG image, by extension.
+fn is_image(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
 /// Whether `path` is a YUV4MPEG2 stream: by extension, else by its magic bytes.
 fn is_y4m(path: &Path) -> bool {
     use std::io::Read;
@@ -202,7 +222,7 @@ fn is_y4m(path: &Path) -> bool {
     }
 }
 
-/// Opens a frame source: a folder of images, an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-` for
+/// Opens a frame source: a folder of images, one image (a photograph: one frame), an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-` for
 /// standard input: a live camera piped through ffmpeg), or a recorded stream (`.hfrec`); with a pose sidecar
 /// (see [`crate::poses`]) the frames take their camera-to-world poses from it. `fps` times the frames of an
 /// image folder and of a `.y4m` whose header has no frame rate.
@@ -213,7 +233,9 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
     } else if path.is_dir() {
         Box::new(ImageSequence::open(path, fps, None)?)
     } else if path.is_file() {
-        if is_mp4(path) {
+        if is_image(path) {
+            Box::new(ImageSequence::single(path, fps)?)
+        } else if is_mp4(path) {
             Box::new(crate::video::Mp4Source::open(path, None)?)
         } else if is_y4m(path) {
             let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
@@ -293,6 +315,28 @@ mod tests {
             "{err}"
         );
         std::fs::remove_file(path).ok();
+    }
+
+    #[test]
+    fn one_image_file_is_a_one_frame_source_and_a_corrupt_one_an_error() {
+        let dir = std::env::temp_dir().join(format!("holoface-source-photo-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let photo = dir.join("group.PNG");
+        image::GrayImage::from_pixel(20, 10, image::Luma([77]))
+            .save_with_format(&photo, image::ImageFormat::Png)
+            .unwrap();
+        let mut src = open_source(&photo, 30.0, None).unwrap();
+        let f = src.next_frame().unwrap().expect("the photo");
+        assert_eq!((f.index, f.image.width(), f.image.height()), (0, 20, 10));
+        assert_eq!(f.image.as_bytes()[0], 77);
+        assert!(src.next_frame().unwrap().is_none(), "one frame");
+
+        let bad = dir.join("bad.jpg");
+        std::fs::write(&bad, b"not a jpeg").unwrap();
+        let mut src = open_source(&bad, 30.0, None).unwrap();
+        let err = format!("{:#}", src.next_frame().unwrap_err());
+        assert!(err.contains("bad.jpg"), "the error names the file: {err}");
+        std::fs::remove_dir_all(dir).ok();
     }
 
     #[test]

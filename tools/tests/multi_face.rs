@@ -145,3 +145,94 @@ fn track_follows_every_face_of_a_recorded_scene_with_stable_ids() {
         tracked[2]
     );
 }
+
+/// A real photograph of many people for a smoke test: the 1927 Solvay conference (29 people, faces about
+/// 50 px in 1666 x 1136), resolved by the set-up from the rustface crate. With enough detector tiles
+/// `holoface track` finds most of them, each once, every one in the photograph above its printed caption
+/// and face-sized; with the several-face default (3 x 3 tiles) the faces are too small to find.
+#[test]
+fn a_group_photograph_gives_most_of_its_faces_each_once() {
+    let photo = std::env::var_os("HOLOFACE_GROUP_PHOTO").map_or_else(
+        || common::workspace().join(".cache/samples/solvay-1927.png"),
+        Into::into,
+    );
+    assert!(
+        std::path::Path::new(&photo).is_file(),
+        "{} missing: run `make group-photo`",
+        std::path::Path::new(&photo).display()
+    );
+    let d = tmp("group-photo");
+    let out = d.join("track.jsonl");
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        std::path::Path::new(&photo).to_str().unwrap(),
+        "--max-faces",
+        "40",
+        "--detect-tiles",
+        "10",
+        "--out",
+        out.to_str().unwrap(),
+        "--log",
+        "warn",
+    ]);
+    assert!(ok, "{text}");
+    let lines = common::json_lines(&out);
+    assert_eq!(lines.len(), 1, "a photograph is one frame");
+    let faces = lines[0]["faces"].as_array().unwrap();
+    assert!(
+        (24..=29).contains(&faces.len()),
+        "most of the 29 faces, never more: {} found",
+        faces.len()
+    );
+    let boxes: Vec<[f64; 4]> = faces
+        .iter()
+        .map(|f| {
+            let lm = f["landmarks_px"].as_array().unwrap();
+            let (xs, ys): (Vec<f64>, Vec<f64>) = lm
+                .iter()
+                .map(|p| (p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
+                .unzip();
+            let min = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+            let max = |v: &[f64]| v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            [min(&xs), min(&ys), max(&xs), max(&ys)]
+        })
+        .collect();
+    for (f, b) in faces.iter().zip(&boxes) {
+        let w = b[2] - b[0];
+        assert!((25.0..=90.0).contains(&w), "a face-sized face: {b:?} {}", f["id"]);
+        assert!(b[0] >= 0.0 && b[2] <= 1666.0, "{b:?}");
+        assert!(b[3] < 860.0, "above the caption (from y = 865 down): {b:?}");
+    }
+    let ids: std::collections::BTreeSet<u64> = faces.iter().map(|f| f["id"].as_u64().unwrap()).collect();
+    assert_eq!(ids.len(), faces.len(), "one id per face");
+    for (i, a) in boxes.iter().enumerate() {
+        for b in &boxes[i + 1..] {
+            let ix = (a[2].min(b[2]) - a[0].max(b[0])).max(0.0);
+            let iy = (a[3].min(b[3]) - a[1].max(b[1])).max(0.0);
+            let area = |r: &[f64; 4]| (r[2] - r[0]) * (r[3] - r[1]);
+            let iou = ix * iy / (area(a) + area(b) - ix * iy);
+            assert!(iou < 0.3, "a face found twice: {a:?} and {b:?}");
+        }
+    }
+
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        std::path::Path::new(&photo).to_str().unwrap(),
+        "--max-faces",
+        "40",
+        "--out",
+        out.to_str().unwrap(),
+        "--log",
+        "warn",
+    ]);
+    assert!(ok, "{text}");
+    let lines = common::json_lines(&out);
+    assert!(
+        lines[0]["faces"].as_array().unwrap().len() < 5,
+        "3 x 3 tiles cannot see 50-px faces in a 1666-px photo: {}",
+        lines[0]
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}
