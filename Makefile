@@ -237,11 +237,12 @@ fuzz:
 bench: setup
 	$(CARGO) bench --workspace
 
-# Side-by-side accuracy table: our aligners and dlib's 68-point predictor on the validation split.
+# Side-by-side accuracy table on the validation split: DAN alone, the remote answer (what the server sends:
+# JPEG q75, DAN, refinement cascade), KRFWS and dlib's 68-point predictor.
 compare: setup venv-peer
 	$(CARGO) build --release -p holoface-tools
-	./target/release/holoface eval --split validation --init detector --aligner dan,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
-	./target/release/holoface eval --split validation --init gt-box --aligner dan,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
+	./target/release/holoface eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
+	./target/release/holoface eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
@@ -273,6 +274,14 @@ train-dan-spread: venv-train
 DAN_RUN ?= runs/dan-w0.5
 export-dan: venv-train
 	$(PY) models/dan/export_onnx.py --ckpt $(DAN_RUN)/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)
+
+# The server's refinement cascade (models/REFINER_MODEL_CARD.md): DAN's answers on augmented training crops,
+# then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining.
+REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror
+train-refiner: setup
+	$(CARGO) build --release -p holoface-tools
+	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
+	  --cache runs/refiner/dan-answers.bin
 
 train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1

@@ -84,7 +84,7 @@ def config_schema() -> dict[str, set[str]] | None:
     src = CONFIG_RS.read_text()
     sections = {
         "QuicConfig": "quic", "AuthConfig": "auth", "LimitsConfig": "limits", "BatchConfig": "batch",
-        "EngineConfig": "engine", "InternalConfig": "internal", "LogConfig": "log",
+        "EngineConfig": "engine", "RefineConfig": "refine", "InternalConfig": "internal", "LogConfig": "log",
     }
     schema: dict[str, set[str]] = {}
     for struct, section in sections.items():

@@ -29,6 +29,9 @@ pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
 /// Default model path (relative to the working directory).
 pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
 
+/// Default refinement-cascade model path (relative to the working directory).
+pub const DEFAULT_REFINE_MODEL: &str = "models/assets/refiner.bin";
+
 /// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).
 pub const MIN_IDLE_TIMEOUT_MS: u64 = 100;
 
@@ -225,6 +228,19 @@ pub struct EngineConfig {
     pub instances: Option<usize>,
 }
 
+/// `[refine]`: the refinement cascade after DAN.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RefineConfig {
+    /// Refine DAN's landmarks with the cascade (more precise answers; every client version benefits)
+    /// [default: true].
+    #[arg(long = "refine", num_args = 0..=1, default_missing_value = "true", env = "HOLOFACE_REFINE")]
+    pub enabled: Option<bool>,
+    /// The refinement cascade's model file [default: models/assets/refiner.bin].
+    #[arg(long = "refine-model", env = "HOLOFACE_REFINE_MODEL")]
+    pub model: Option<PathBuf>,
+}
+
 /// `[internal]`: the metrics/health listener.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -285,6 +301,9 @@ pub struct ServerConfig {
     #[command(flatten)]
     #[allow(missing_docs)]
     pub engine: EngineConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub refine: RefineConfig,
     #[command(flatten)]
     #[allow(missing_docs)]
     pub internal: InternalConfig,
@@ -355,6 +374,11 @@ impl EngineConfig {
         )
     }
 }
+impl RefineConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, enabled, model)
+    }
+}
 impl InternalConfig {
     fn merge(self, lo: Self) -> Self {
         merge_fields!(self, lo, metrics_listen)
@@ -376,6 +400,7 @@ impl ServerConfig {
             limits: self.limits.merge(lower.limits),
             batch: self.batch.merge(lower.batch),
             engine: self.engine.merge(lower.engine),
+            refine: self.refine.merge(lower.refine),
             internal: self.internal.merge(lower.internal),
             log: self.log.merge(lower.log),
         }
@@ -589,6 +614,16 @@ impl ServerConfig {
                 spin: self.engine.spin.unwrap_or(false),
             },
             engine_instances,
+            refine_model: match (self.refine.enabled.unwrap_or(true), self.refine.model) {
+                (true, model) => Some(model.unwrap_or_else(|| PathBuf::from(DEFAULT_REFINE_MODEL))),
+                (false, None) => None,
+                (false, Some(m)) => {
+                    return Err(invalid(format!(
+                        "refine.model = {} is set but refine.enabled = false: drop one of them",
+                        m.display()
+                    )));
+                }
+            },
             metrics_listen: self.internal.metrics_listen,
         })
     }
@@ -648,14 +683,22 @@ pub struct Settings {
     pub engine: OnnxOptions,
     /// Engine instances fed by the batcher.
     pub engine_instances: usize,
+    /// The refinement cascade run after DAN (`None`: off).
+    pub refine_model: Option<PathBuf>,
     /// Internal metrics listener.
     pub metrics_listen: Option<SocketAddr>,
 }
 
 impl Settings {
     /// Settings for tests and benchmarks: loopback on an ephemeral port,
-    /// self-signed certificate, one token, everything else default.
-    pub fn for_loopback(token: &str, model: PathBuf, ort_dylib: PathBuf) -> Result<Self, ConfigError> {
+    /// self-signed certificate, one token, the refinement cascade `refine_model` (`None`: off),
+    /// everything else default.
+    pub fn for_loopback(
+        token: &str,
+        model: PathBuf,
+        refine_model: Option<PathBuf>,
+        ort_dylib: PathBuf,
+    ) -> Result<Self, ConfigError> {
         let cfg = ServerConfig {
             quic: QuicConfig {
                 listen: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
@@ -669,6 +712,10 @@ impl Settings {
                 model: Some(model),
                 ort_dylib: Some(ort_dylib),
                 ..EngineConfig::default()
+            },
+            refine: RefineConfig {
+                enabled: Some(refine_model.is_some()),
+                model: refine_model,
             },
             ..ServerConfig::default()
         };
@@ -794,6 +841,11 @@ mod tests {
         assert_eq!(s.max_in_flight, 8);
         assert_eq!(s.reply_channel, ReplyChannel::Datagram);
         assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+        assert_eq!(
+            s.refine_model,
+            Some(PathBuf::from(DEFAULT_REFINE_MODEL)),
+            "refinement is on by default"
+        );
         assert_eq!(s.metrics_listen, None);
         assert!(matches!(s.tls, TlsSource::SelfSigned { ref names } if names == &["localhost"]));
     }
@@ -929,6 +981,36 @@ mod tests {
             "{e}"
         );
         assert!(!e.contains("config file"), "{e}");
+    }
+
+    #[test]
+    fn refinement_is_configured_by_file_flag_and_environment() {
+        let from = |args: &[&str], toml: &'static str| {
+            ServerConfig::parse_and_merge(args.iter().copied(), |_| Ok(toml.to_owned()))
+                .and_then(ServerConfig::resolve)
+        };
+        let off = from(&["s", "--token", "t", "-c", "f"], "[refine]\nenabled = false\n").unwrap();
+        assert_eq!(off.refine_model, None);
+        let other = from(
+            &["s", "--token", "t", "-c", "f"],
+            "[refine]\nmodel = \"/srv/r.bin\"\n",
+        )
+        .unwrap();
+        assert_eq!(other.refine_model, Some(PathBuf::from("/srv/r.bin")));
+        // The flag turns it back on over the file.
+        let on = from(
+            &["s", "--token", "t", "--refine", "-c", "f"],
+            "[refine]\nenabled = false\n",
+        )
+        .unwrap();
+        assert_eq!(on.refine_model, Some(PathBuf::from(DEFAULT_REFINE_MODEL)));
+        let both = from(
+            &["s", "--token", "t", "-c", "f"],
+            "[refine]\nenabled = false\nmodel = \"/srv/r.bin\"\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(both.contains("refine.enabled = false"), "{both}");
     }
 
     #[test]

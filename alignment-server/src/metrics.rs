@@ -111,6 +111,8 @@ pub struct Metrics {
     pub queue_wait_us: Histogram,
     /// Engine time per batch, microseconds.
     pub inference_us: Histogram,
+    /// Refinement-cascade time per crop refined, microseconds.
+    pub refine_us: Histogram,
     /// Inference calls that failed.
     pub inference_errors: AtomicU64,
     /// Clients' QUIC round-trip time, sampled every few seconds, microseconds.
@@ -157,6 +159,7 @@ impl Metrics {
             batch_size: Histogram::new(&bounds),
             queue_wait_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_us: Histogram::new(LATENCY_BOUNDS_US),
+            refine_us: Histogram::new(LATENCY_BOUNDS_US),
             inference_errors: AtomicU64::new(0),
             model_output_errors: AtomicU64::new(0),
             client_rtt_us: Histogram::new(LATENCY_BOUNDS_US),
@@ -167,15 +170,23 @@ impl Metrics {
         }
     }
 
-    /// Records what the server runs, for `holoface_engine_info` (the first call wins).
-    pub fn set_engine_info(&self, model: &ModelInfo, execution: &Execution, instances: usize) {
+    /// Records what the server runs, for `holoface_engine_info` (the first call wins); `refiner` is the
+    /// refinement cascade's identity (`none` when off).
+    pub fn set_engine_info(
+        &self,
+        model: &ModelInfo,
+        execution: &Execution,
+        instances: usize,
+        refiner: Option<&str>,
+    ) {
         let _ = self.engine_info.set(format!(
-            "model=\"{}\",version=\"{}\",precision=\"{}\",provider=\"{}\",fallback=\"{}\",instances=\"{instances}\"",
+            "model=\"{}\",version=\"{}\",precision=\"{}\",provider=\"{}\",fallback=\"{}\",instances=\"{instances}\",refiner=\"{}\"",
             label_value(&model.name),
             label_value(&model.version),
             label_value(&model.precision),
             label_value(&execution.provider),
             execution.fallback.is_some(),
+            label_value(refiner.unwrap_or("none")),
         ));
     }
 
@@ -368,7 +379,13 @@ impl Metrics {
         self.inference_us.render(
             &mut out,
             "holoface_inference_seconds",
-            "Engine time per batch.",
+            "Engine time per batch (DAN and, when on, the refinement cascade).",
+            1e6,
+        );
+        self.refine_us.render(
+            &mut out,
+            "holoface_refine_seconds",
+            "Refinement-cascade time per refined crop (a batch's refinement time over its refined crops).",
             1e6,
         );
         out
@@ -404,12 +421,13 @@ mod tests {
             fallback: Some("no libcudart".into()),
             ..Execution::cpu()
         };
-        m.set_engine_info(&model, &execution, 2);
+        m.set_engine_info(&model, &execution, 2, Some("ert 0.1 (crc 0000abcd)"));
         let text = m.render();
         assert!(
             text.contains(
                 "holoface_engine_info{model=\"da\\\"n\",version=\"0\",precision=\"fp32\",\
-                 provider=\"CPUExecutionProvider\",fallback=\"true\",instances=\"2\"} 1\n"
+                 provider=\"CPUExecutionProvider\",fallback=\"true\",instances=\"2\",\
+                 refiner=\"ert 0.1 (crc 0000abcd)\"} 1\n"
             ),
             "{text}"
         );
@@ -431,6 +449,7 @@ mod tests {
             "holoface_connected_clients 0",
             "holoface_queue_wait_seconds_count 0",
             "holoface_inference_seconds_count 0",
+            "holoface_refine_seconds_count 0",
         ] {
             assert!(text.contains(needle), "missing {needle} in\n{text}");
         }

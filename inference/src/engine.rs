@@ -366,6 +366,14 @@ pub trait InferenceEngine: Send {
     fn max_batch(&self) -> usize;
     /// Runs `input` (`input.len()` crops) and fills `out[..input.len()]`.
     fn infer(&mut self, input: &BatchTensor, out: &mut [LandmarkOut]) -> Result<(), EngineError>;
+    /// The refinement cascade that follows the model, if any (its identity, for logs and metrics).
+    fn refiner(&self) -> Option<&str> {
+        None
+    }
+    /// What the refinement cascade did on the last batch (`None` without one).
+    fn last_refinement(&self) -> Option<crate::refine::Refinement> {
+        None
+    }
     /// What runs the model (the execution provider, and why it is not the requested one if it is not).
     fn execution(&self) -> Execution {
         Execution {

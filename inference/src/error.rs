@@ -84,6 +84,17 @@ pub enum EngineError {
     /// The model's outputs are missing or shaped against its declaration (landmark count, batch).
     #[error("model output contradicts its declaration: {0}")]
     BadOutput(String),
+    /// The refinement cascade's model file is missing, unreadable, damaged or does not fit the DAN model.
+    #[error("refiner model {path}: {detail} (set refine.model / --refine-model, or refine.enabled = false)")]
+    RefinerModel {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The refinement cascade refused an input.
+    #[error("refinement: {0}")]
+    Refine(String),
     /// ONNX Runtime reported an error.
     #[error("ONNX Runtime: {0}")]
     Ort(String),

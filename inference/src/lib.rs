@@ -2,6 +2,7 @@
 //!
 //! * [`engine`]: the [`InferenceEngine`] trait (the DAN model contract), [`OnnxEngine`] (ort,
 //!   `load-dynamic`), model-contract validation; `FakeEngine` under `cfg(test)` / the `test-util` feature.
+//! * [`refine`]: [`RefinedEngine`], DAN followed by the refinement cascade (the server's pipeline).
 //! * [`runtime`]: where the ONNX Runtime library is found ([`runtime::default_ort_dylib`]) and the one
 //!   process-wide ONNX Runtime environment ([`runtime::load_runtime`]) that every session in a process shares
 //!   (the server's engines, the client's face detector).
@@ -11,6 +12,7 @@
 
 pub mod engine;
 pub mod error;
+pub mod refine;
 pub mod runtime;
 
 pub use engine::{
@@ -18,4 +20,5 @@ pub use engine::{
     OnnxOptions, Provider,
 };
 pub use error::EngineError;
+pub use refine::{RefinedEngine, Refinement, RefinerModel};
 pub use runtime::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

@@ -43,6 +43,16 @@ struct Args {
     /// DAN model for `--spawn-server`.
     #[arg(long, env = "HOLOFACE_DAN_MODEL", default_value = "models/assets/dan.onnx")]
     dan_model: PathBuf,
+    /// Refinement-cascade model for `--spawn-server`.
+    #[arg(
+        long,
+        env = "HOLOFACE_REFINE_MODEL",
+        default_value = "models/assets/refiner.bin"
+    )]
+    refine_model: PathBuf,
+    /// `--spawn-server` without the refinement cascade (DAN alone).
+    #[arg(long)]
+    no_refine: bool,
     /// ONNX Runtime library for `--spawn-server`.
     #[arg(
         long,
@@ -352,6 +362,7 @@ fn run(args: Args) -> anyhow::Result<bool> {
         let mut s = alignment_server::config::Settings::for_loopback(
             &token,
             args.dan_model.clone(),
+            (!args.no_refine).then(|| args.refine_model.clone()),
             args.ort_dylib.clone(),
         )?;
         s.engine.intra_threads = args.server_threads;

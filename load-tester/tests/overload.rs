@@ -227,6 +227,7 @@ fn headsets_stop_sending_on_the_servers_goaway() {
     let mut s = alignment_server::config::Settings::for_loopback(
         "goaway-test",
         workspace().join("models/assets/dan.onnx"),
+        Some(workspace().join("models/assets/refiner.bin")),
         ort,
     )
     .unwrap();

@@ -19,6 +19,7 @@ pub mod krfws;
 pub mod math3;
 pub mod metrics;
 pub mod pose;
+pub mod refine;
 pub mod shape;
 
 pub use camera::Intrinsics;

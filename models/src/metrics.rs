@@ -33,6 +33,32 @@ pub fn nme49(pred: &[Point2], gt: &[Point2]) -> Option<f64> {
     nme_outer_corners(pred, gt, &PROTOCOL49)
 }
 
+/// How far a face is turned left or right, from its landmarks: `|l − r| / (l + r)` with `l` and `r` the
+/// distances from the nose tip (30) to the two ends of the jaw line (0 and 16). 0 for a frontal face,
+/// towards 1 as the head turns (the nearer jaw end moves behind the nose). A ranking key for "largest head
+/// yaw" (the hardest faces of a set), not an angle; `None` for a degenerate shape.
+pub fn yaw_proxy(shape: &[Point2]) -> Option<f64> {
+    let nose = *shape.get(30)?;
+    let l = f64::from(nose.dist(*shape.first()?));
+    let r = f64::from(nose.dist(*shape.get(16)?));
+    (l + r > 0.0).then(|| (l - r).abs() / (l + r))
+}
+
+/// The indices of the `fraction` of `shapes` with the largest [`yaw_proxy`] (at least one when any).
+pub fn largest_yaw(shapes: &[&[Point2]], fraction: f64) -> Vec<usize> {
+    let mut keyed: Vec<(usize, f64)> = shapes
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (i, yaw_proxy(s).unwrap_or(0.0)))
+        .collect();
+    keyed.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    let n = ((shapes.len() as f64 * fraction).round() as usize)
+        .clamp(usize::from(!shapes.is_empty()), shapes.len());
+    let mut out: Vec<usize> = keyed[..n].iter().map(|k| k.0).collect();
+    out.sort_unstable();
+    out
+}
+
 /// Summary of a set of per-sample errors. A sample without an answer (no detection, "no face") counts
 /// as an infinite error: a failure, and outside every CED bin.
 #[derive(Clone, Debug, PartialEq)]
@@ -87,6 +113,29 @@ pub fn summarise(errors: &[f64]) -> ErrorSummary {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn yaw_proxy_ranks_turned_faces_first() {
+        let frontal: Vec<Point2> = (0..68)
+            .map(|i| match i {
+                0 => Point2::new(0.0, 0.0),
+                16 => Point2::new(100.0, 0.0),
+                30 => Point2::new(50.0, 40.0),
+                _ => Point2::new(50.0, 50.0),
+            })
+            .collect();
+        let mut turned = frontal.clone();
+        turned[30] = Point2::new(80.0, 40.0);
+        let mut slightly = frontal.clone();
+        slightly[30] = Point2::new(60.0, 40.0);
+        assert!(yaw_proxy(&frontal).unwrap() < 1e-9);
+        assert!(yaw_proxy(&turned).unwrap() > yaw_proxy(&slightly).unwrap());
+        let set: Vec<&[Point2]> = vec![&frontal, &turned, &slightly, &frontal, &frontal];
+        assert_eq!(largest_yaw(&set, 0.2), vec![1]);
+        assert_eq!(largest_yaw(&set, 0.4), vec![1, 2]);
+        assert!(largest_yaw(&[], 0.2).is_empty());
+        assert_eq!(yaw_proxy(&frontal[..10]), None);
+    }
 
     #[test]
     fn nme_is_normalised_by_outer_corners() {

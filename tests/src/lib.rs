@@ -45,6 +45,25 @@ pub fn workspace_root() -> PathBuf {
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
+/// The shipped refinement cascade (`HOLOFACE_REFINE_MODEL` overrides).
+///
+/// # Panics
+/// If it is not there.
+pub fn refiner_path() -> PathBuf {
+    let path = std::env::var_os("HOLOFACE_REFINE_MODEL")
+        .filter(|v| !v.is_empty())
+        .map_or_else(
+            || workspace_root().join("models/assets/refiner.bin"),
+            PathBuf::from,
+        );
+    assert!(
+        path.is_file(),
+        "refiner model not found at {} (set HOLOFACE_REFINE_MODEL, or train one with `make train-refiner`)",
+        path.display()
+    );
+    path
+}
+
 /// The DAN model for tests: `$HOLOFACE_DAN_MODEL` or `models/assets/dan.onnx`.
 ///
 /// # Panics
@@ -106,7 +125,8 @@ pub fn ort_gpu_dylib_path() -> PathBuf {
 
 /// Loopback settings with the real model and runtime, 1 intra-op thread.
 pub fn loopback_settings() -> Settings {
-    let mut s = match Settings::for_loopback(TEST_TOKEN, model_path(), ort_dylib_path()) {
+    let mut s = match Settings::for_loopback(TEST_TOKEN, model_path(), Some(refiner_path()), ort_dylib_path())
+    {
         Ok(s) => s,
         Err(e) => panic!("loopback settings: {e}"),
     };

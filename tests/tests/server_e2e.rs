@@ -13,9 +13,11 @@ use alignment_server::config::Settings;
 use bytes::Bytes;
 use holoface_e2e::{
     RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
-    refused_with, send_frame_on, write_framed,
+    model_path, ort_dylib_path, refiner_path, refused_with, send_frame_on, write_framed,
 };
-use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine};
+use holoface_inference::{
+    BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, RefinedEngine, RefinerModel,
+};
 use holoface_protocol::{
     CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
 };
@@ -38,12 +40,14 @@ async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
     }
 }
 
-/// Landmarks the engine computes for the same crop, run directly.
+/// Landmarks the server's pipeline (DAN, then the refinement cascade) computes for the same crop, run
+/// directly.
 fn reference(seed: u8) -> LandmarkOut {
     let s = loopback_settings();
     let mut opts = s.engine.clone();
     opts.max_batch = 1;
-    let mut engine = OnnxEngine::load(&opts).unwrap();
+    let refiner = RefinerModel::load(&refiner_path()).unwrap();
+    let mut engine = RefinedEngine::new(OnnxEngine::load(&opts).unwrap(), refiner).unwrap();
     let mut batch = BatchTensor::new(1, 112 * 112);
     batch.push(&frame(0, seed, 0).crop.data).unwrap();
     let mut out = vec![LandmarkOut::default()];
@@ -104,6 +108,112 @@ async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
             .load(std::sync::atomic::Ordering::Relaxed),
         3
     );
+    server.shutdown().await.unwrap();
+}
+
+/// What a headset gets from the server is what `holoface eval --aligner remote` measures: a validation
+/// face's crop, JPEG q75 as the client sends it, answered by the server (DAN, then the refinement
+/// cascade) and by the eval's in-process remote aligner, gives the same landmarks; and the refinement
+/// did move them away from DAN's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_servers_answer_is_what_eval_remote_measures() {
+    use holoface_client::align::{Aligner, crop_from_image, landmarks_from_crop};
+    use holoface_client::link::CropCodec;
+    use holoface_models::crop::{Crop112, crop_bilinear};
+    use holoface_models::geometry::{Point2, Rect};
+    use holoface_models::shape::{dan_mean_shape, fit_to_box};
+    use holoface_tools::data::{Split, default_data_root, load_folder};
+
+    let faces = load_folder(
+        &default_data_root().join("faces68/train"),
+        Split::Validation,
+        true,
+    )
+    .unwrap();
+    let face = &faces[0];
+    let gt = face.landmarks.unwrap();
+    let mean = dan_mean_shape();
+    let mut init = [Point2::default(); 68];
+    fit_to_box(&mean, &Rect::bounding(&gt).unwrap(), &mut init);
+    let runtime = holoface_tools::args::RuntimeArgs {
+        ort_dylib: ort_dylib_path(),
+        dan_model: model_path(),
+        detector: "unused".into(),
+        refine_model: refiner_path(),
+        krfws_model: "unused".into(),
+        threads: 1,
+    };
+    let mut remote = runtime.remote_aligner().unwrap();
+    let eval = remote.align(&face.image.view(), &init).unwrap();
+    let mut dan_alone = runtime.dan_aligner().unwrap();
+    dan_alone.set_wire_codec(Some(CropCodec::default()));
+    let dan = dan_alone.align(&face.image.view(), &init).unwrap();
+    assert!(eval.accepted, "a validation face is accepted");
+
+    // The same crop, as the client builds and sends it.
+    let sim = crop_from_image(&init, &mean).unwrap();
+    let mut crop = Crop112::default();
+    crop_bilinear(&face.image.view(), &sim, &mut crop).unwrap();
+    let server = RunningServer::start(settings()).await.unwrap();
+    let mut h = hello(TEST_TOKEN);
+    h.encodings = vec![CropEncoding::Jpeg];
+    let mut client = within("connect", TestClient::connect(server.addr, server.fingerprint, h))
+        .await
+        .unwrap();
+    let mut req = frame(1, 0, DEADLINE_MS);
+    req.crop = CropCodec::default().encode(crop.as_slice(), 112, 112).unwrap();
+    let reply = within("reply", client.request(&req)).await.unwrap();
+    let ReplyOutcome::Landmarks {
+        landmarks, face_prob, ..
+    } = &reply.outcome
+    else {
+        panic!("not aligned: {:?}", reply.outcome)
+    };
+    let served = landmarks_from_crop(landmarks, *face_prob, &sim, 0.5).unwrap();
+    let mut moved = 0.0f32;
+    for ((s, e), d) in served.landmarks.iter().zip(&eval.landmarks).zip(&dan.landmarks) {
+        assert!(s.dist(*e) < 1e-3, "server {s:?} vs eval --aligner remote {e:?}");
+        moved = moved.max(s.dist(*d));
+    }
+    assert!(
+        moved > 0.1,
+        "refinement moved no landmark by more than {moved} px"
+    );
+    let text = server.metrics.render();
+    assert!(text.contains("refiner=\"holoface-ert "), "{text}");
+    assert!(text.contains("holoface_refine_seconds_count 1"), "{text}");
+    server.shutdown().await.unwrap();
+}
+
+/// A refiner model that is missing, damaged or not a refiner stops the start with an error naming the file
+/// and the setting; `refine.enabled = false` serves DAN alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_missing_or_corrupt_refiner_model_is_a_clear_start_up_error() {
+    let dir = std::env::temp_dir().join(format!("holoface-e2e-refiner-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut corrupt = std::fs::read(refiner_path()).unwrap();
+    corrupt.truncate(corrupt.len() / 2);
+    std::fs::write(dir.join("half.bin"), &corrupt).unwrap();
+    std::fs::write(dir.join("text.bin"), b"not a model").unwrap();
+    for (file, expect) in [
+        ("missing.bin", "No such file"),
+        ("half.bin", "checksum"),
+        ("text.bin", "bad magic"),
+    ] {
+        let mut s = settings();
+        s.refine_model = Some(dir.join(file));
+        let e = alignment_server::Server::bind(s).await.unwrap_err().to_string();
+        assert!(
+            e.contains(file) && e.contains(expect) && e.contains("refine.model"),
+            "{file}: {e}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+    let mut off = settings();
+    off.refine_model = None;
+    let server = RunningServer::start(off).await.unwrap();
+    let info = server.metrics.render();
+    assert!(info.contains("refiner=\"none\""), "{info}");
     server.shutdown().await.unwrap();
 }
 
@@ -543,7 +653,7 @@ async fn missing_model_is_a_clear_startup_error() {
     );
     let mut s = settings();
     s.engine.ort_dylib = "/nonexistent/libonnxruntime.so".into();
-    s.engine.model = holoface_e2e::model_path();
+    s.engine.model = model_path();
     let err = RunningServer::start(s).await.unwrap_err().to_string();
     assert!(
         err.contains("ONNX Runtime library not found at /nonexistent/libonnxruntime.so"),

@@ -25,6 +25,13 @@ pub struct RuntimeArgs {
     /// Face detector model (BlazeFace short range, ONNX).
     #[arg(long, env = DETECTOR_ENV, default_value = DEFAULT_DETECTOR)]
     pub detector: PathBuf,
+    /// The server's refinement cascade (run after DAN by the server and by `--aligner remote`).
+    #[arg(
+        long,
+        env = "HOLOFACE_REFINE_MODEL",
+        default_value = "models/assets/refiner.bin"
+    )]
+    pub refine_model: PathBuf,
     /// KRFWS model (the local aligner).
     #[arg(long, env = KRFWS_ENV, default_value = DEFAULT_KRFWS)]
     pub krfws_model: PathBuf,
@@ -42,18 +49,37 @@ impl RuntimeArgs {
     pub fn detector_model(&self) -> PathBuf {
         self.detector.clone()
     }
-    /// DAN through ONNX Runtime in this process.
-    pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
-        let engine = OnnxEngine::load(&OnnxOptions {
+    /// In-process DAN's engine options (CPU, batch 1).
+    fn dan_options(&self) -> OnnxOptions {
+        OnnxOptions {
             model: self.dan_model.clone(),
             ort_dylib: self.ort_dylib.clone(),
             intra_threads: self.threads,
             max_batch: 1,
             provider: holoface_inference::Provider::Cpu,
             spin: false,
-        })
-        .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
+        }
+    }
+
+    /// DAN through ONNX Runtime in this process.
+    pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
+        let engine = OnnxEngine::load(&self.dan_options())
+            .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
         Ok(DanAligner::new(engine)?)
+    }
+
+    /// The server's pipeline in this process: the crop through the wire's JPEG q75 round trip, DAN, then
+    /// the refinement cascade ([`holoface_inference::RefinedEngine`], the type the server's engine threads
+    /// run).
+    pub fn remote_aligner(
+        &self,
+    ) -> anyhow::Result<DanAligner<holoface_inference::RefinedEngine<OnnxEngine>>> {
+        let refiner = holoface_inference::RefinerModel::load(&self.refine_model)?;
+        let engine = OnnxEngine::load(&self.dan_options())
+            .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
+        let mut aligner = DanAligner::new(holoface_inference::RefinedEngine::new(engine, refiner)?)?;
+        aligner.set_wire_codec(Some(holoface_client::link::CropCodec::default()));
+        Ok(aligner)
     }
 
     /// BlazeFace through ONNX Runtime (1 thread).

@@ -38,6 +38,7 @@ impl LoopbackServer {
         let mut settings = alignment_server::config::Settings::for_loopback(
             &token,
             runtime.dan_model.clone(),
+            Some(runtime.refine_model.clone()),
             runtime.ort_dylib(),
         )?;
         settings.engine.intra_threads = threads;

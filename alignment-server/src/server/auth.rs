@@ -93,7 +93,7 @@ mod tests {
 
     #[test]
     fn version_is_checked_before_the_token() {
-        let settings = Settings::for_loopback("good", "m.onnx".into(), "l.so".into()).unwrap();
+        let settings = Settings::for_loopback("good", "m.onnx".into(), None, "l.so".into()).unwrap();
         let m = Metrics::new(8);
         let f = authorize(&hello(99, "bad"), &settings, &m).unwrap_err();
         assert_eq!(f.code, CloseCode::BadVersion);
@@ -106,7 +106,7 @@ mod tests {
 
     #[test]
     fn every_version_from_the_oldest_served_to_ours_is_served_and_no_other() {
-        let settings = Settings::for_loopback("good", "m.onnx".into(), "l.so".into()).unwrap();
+        let settings = Settings::for_loopback("good", "m.onnx".into(), None, "l.so".into()).unwrap();
         let m = Metrics::new(8);
         for v in MIN_PROTOCOL_VERSION..=PROTOCOL_VERSION {
             authorize(&hello(v, "good"), &settings, &m).unwrap();

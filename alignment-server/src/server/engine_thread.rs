@@ -80,6 +80,11 @@ pub(super) fn engine_loop(
         let infer = started.elapsed();
         metrics.batch_size.observe(items.len() as u64);
         metrics.inference_us.observe_duration(infer);
+        if let Some(r) = engine.last_refinement().filter(|r| r.crops > 0 && result.is_ok()) {
+            metrics
+                .refine_us
+                .observe_duration(r.elapsed / u32::try_from(r.crops).unwrap_or(u32::MAX));
+        }
         let infer_us = u32::try_from(infer.as_micros()).unwrap_or(u32::MAX);
         match result {
             Ok(()) => {

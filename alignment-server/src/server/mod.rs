@@ -66,7 +66,7 @@ use crate::config::{ServerConfig, Settings, TlsSource};
 use crate::metrics::Metrics;
 use crate::tls::{Fingerprint, ServerIdentity, TlsError};
 use crate::{config::ConfigError, metrics_http};
-use holoface_inference::{EngineError, InferenceEngine, ModelInfo, OnnxEngine};
+use holoface_inference::{EngineError, InferenceEngine, ModelInfo, OnnxEngine, RefinedEngine, RefinerModel};
 
 use admission::{Admission, Admit};
 use connection::connection;
@@ -139,10 +139,22 @@ impl Server {
     pub async fn bind(settings: Settings) -> Result<Self, ServerError> {
         let opts = settings.engine.clone();
         let instances = settings.engine_instances.max(1);
+        let refine_path = settings.refine_model.clone();
         let engines = tokio::task::spawn_blocking(move || {
+            // One refiner, shared by every instance; a missing or damaged file stops the start here.
+            let refiner = refine_path.as_deref().map(RefinerModel::load).transpose()?;
             (0..instances)
-                .map(|_| OnnxEngine::load(&opts).map(|e| Box::new(e) as Box<dyn InferenceEngine>))
-                .collect::<Result<Vec<_>, _>>()
+                .map(|_| {
+                    let dan = OnnxEngine::load(&opts)?;
+                    Ok(match &refiner {
+                        Some(r) => {
+                            Box::new(RefinedEngine::new(dan, r.clone())?.with_threads(opts.intra_threads))
+                                as Box<dyn InferenceEngine>
+                        }
+                        None => Box::new(dan) as Box<dyn InferenceEngine>,
+                    })
+                })
+                .collect::<Result<Vec<_>, EngineError>>()
         })
         .await
         .map_err(|e| ServerError::EngineThread(e.to_string()))??;
@@ -153,6 +165,8 @@ impl Server {
             name = %info.name,
             version = %info.version,
             precision = %info.precision,
+            refiner = engines[0].refiner().unwrap_or("off"),
+            refiner_model = %settings.refine_model.as_deref().map_or_else(|| "-".into(), |p| p.display().to_string()),
             untrained = info.untrained,
             provider = %execution.provider,
             device = ?execution.device,
@@ -217,7 +231,7 @@ impl Server {
             None => None,
         };
         let metrics = Arc::new(Metrics::new(settings.batch.max_batch));
-        metrics.set_engine_info(first.info(), &first.execution(), engines.len());
+        metrics.set_engine_info(first.info(), &first.execution(), engines.len(), first.refiner());
         Ok(Self {
             endpoint,
             fingerprint,

@@ -62,6 +62,13 @@ struct Cli {
     /// With `--batch-policy max-wait`: the wait, µs.
     #[arg(long, global = true, default_value_t = 2000)]
     max_wait_us: u64,
+    /// The server's refinement cascade after DAN (`--refine false`: DAN alone, the pipeline before issue 27).
+    #[arg(long, global = true, default_value_t = true, action = clap::ArgAction::Set)]
+    refine: bool,
+    /// Send crops of real faces (the validation faces of `$HOLOFACE_DATA`, placed on their ground-truth
+    /// boxes) instead of synthetic patterns, so that DAN accepts them and the refinement cascade runs.
+    #[arg(long, global = true)]
+    face_crops: bool,
     /// Append one JSON line per result here.
     #[arg(long, global = true, default_value = "target/bench/server.jsonl")]
     out: PathBuf,
@@ -249,6 +256,7 @@ impl ServerChild {
             })
             .args(["--metrics-listen", "127.0.0.1:0"])
             .args(["--batch-policy", &cli.batch_policy])
+            .args(["--refine", if cli.refine { "true" } else { "false" }])
             .args(extra)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());
@@ -316,19 +324,53 @@ async fn connect(server: &ServerChild, max_in_flight: u16) -> anyhow::Result<Tes
 
 /// Saturating client: keeps `in_flight` frames outstanding; counts aligned
 /// replies that arrive between `count_from` and `until`.
+/// Raw 112-px crops of the validation faces, each on its ground-truth box (`--face-crops`).
+fn face_crops() -> anyhow::Result<Vec<holoface_protocol::Crop>> {
+    use holoface_models::crop::{Crop112, crop_bilinear};
+    use holoface_models::geometry::{Point2, Rect, Similarity2};
+    use holoface_models::shape::{dan_mean_shape, fit_to_box};
+    use holoface_tools::data::{Split, default_data_root, load_folder};
+    let mean = dan_mean_shape();
+    let faces = load_folder(
+        &default_data_root().join("faces68/train"),
+        Split::Validation,
+        true,
+    )?;
+    faces
+        .iter()
+        .map(|f| {
+            let gt = f.landmarks.context("annotation missing")?;
+            let mut init = [Point2::default(); 68];
+            fit_to_box(
+                &mean,
+                &Rect::bounding(&gt).context("empty annotation")?,
+                &mut init,
+            );
+            let sim = Similarity2::fit(&init, &mean).context("degenerate annotation")?;
+            let mut crop = Crop112::default();
+            crop_bilinear(&f.image.view(), &sim, &mut crop)?;
+            Ok(holoface_protocol::Crop::raw(112, 112, crop.as_slice().to_vec()))
+        })
+        .collect()
+}
+
 async fn saturate(
     mut c: TestClient,
     in_flight: usize,
     count_from: Instant,
     until: Instant,
     aligned: Arc<AtomicU64>,
+    crops: Arc<Vec<holoface_protocol::Crop>>,
 ) -> anyhow::Result<()> {
     let mut next = 1_u64;
     let mut outstanding = 0;
     while Instant::now() < until {
         while outstanding < in_flight {
-            c.send_frame(&frame(next, u8::try_from(next % 200).unwrap_or(0), 0))
-                .await?;
+            let mut req = frame(next, u8::try_from(next % 200).unwrap_or(0), 0);
+            if !crops.is_empty() {
+                req.crop = crops[usize::try_from(next).unwrap_or(0) % crops.len()].clone();
+            }
+            c.send_frame(&req).await?;
             next += 1;
             outstanding += 1;
         }
@@ -350,6 +392,7 @@ async fn throughput(
     reply: Reply,
     in_flight: usize,
 ) -> anyhow::Result<()> {
+    let crops = Arc::new(if cli.face_crops { face_crops()? } else { Vec::new() });
     // Raw ORT before and after the server run (background load drifts).
     let first = raw_ort(cli, batch, seconds, 0.0)?;
     let (raw_before, raw_ms) = (first.img_s, first.mean_ms);
@@ -382,6 +425,7 @@ async fn throughput(
             start_at,
             until,
             Arc::clone(&measured),
+            Arc::clone(&crops),
         )));
     }
     tokio::time::sleep_until(tokio::time::Instant::from_std(start_at)).await;
@@ -410,6 +454,14 @@ async fn throughput(
         .await
         .unwrap_or(0.0);
     let engine_busy = (infer_after - infer_before) / seconds;
+    // Refinement time per refined crop over the whole run (the histogram's sum over its count).
+    let refine_us = match (
+        server.metric("holoface_refine_seconds_sum").await,
+        server.metric("holoface_refine_seconds_count").await,
+    ) {
+        (Ok(sum), Ok(n)) if n > 0.0 => Some(sum * 1e6 / n),
+        _ => None,
+    };
     let server_ms_per_batch = (infer_after - infer_before) * 1e3 / (after - before).max(1.0);
     server.stop();
     let raw_after = raw_ort(cli, batch, seconds, 0.0)?.img_s;
@@ -417,12 +469,13 @@ async fn throughput(
     record(
         cli,
         &serde_json::json!({
-            "bench": "throughput", "policy": policy_label(cli), "batch": batch, "threads": cli.threads, "spin": cli.spin, "clients": clients, "in_flight": in_flight,
+            "bench": "throughput", "refine": cli.refine, "face_crops": cli.face_crops, "policy": policy_label(cli), "batch": batch, "threads": cli.threads, "spin": cli.spin, "clients": clients, "in_flight": in_flight,
             "reply": reply.as_str(), "seconds": seconds,
             "raw_ort_img_s": raw, "raw_ort_before_img_s": raw_before, "raw_ort_after_img_s": raw_after,
             "raw_ort_ms_per_batch": raw_ms,
             "server_img_s": got, "ratio": got / raw, "server_mean_batch": mean_batch,
             "server_engine_busy_fraction": engine_busy, "server_ms_per_batch": server_ms_per_batch,
+            "server_refine_us_per_crop": refine_us,
         }),
     )
 }

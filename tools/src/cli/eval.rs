@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args as ClapArgs, ValueEnum};
 use holoface_models::geometry::{Point2, Rect};
-use holoface_models::metrics::{ErrorSummary, nme49, nme68, summarise};
+use holoface_models::metrics::{ErrorSummary, largest_yaw, nme49, nme68, summarise};
 use holoface_models::shape::{dan_mean_shape, fit_to_box};
 use serde::Serialize;
 
@@ -41,10 +41,24 @@ pub enum SplitArg {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum AlignerArg {
-    /// DAN through ONNX Runtime in-process.
+    /// DAN through ONNX Runtime in-process (DAN alone).
     Dan,
+    /// What a headset gets from the server, in-process: the crop through the wire's JPEG q75 round trip,
+    /// DAN, then the refinement cascade (the server's own engine type).
+    Remote,
     /// KRFWS (51 inner points; reported on the 49-point protocol only).
     Krfws,
+}
+
+impl AlignerArg {
+    /// The name in reports.
+    fn label(self) -> &'static str {
+        match self {
+            Self::Dan => "dan",
+            Self::Remote => "remote",
+            Self::Krfws => "krfws",
+        }
+    }
 }
 
 /// Arguments of `holoface eval`.
@@ -123,6 +137,8 @@ struct AlignerReport {
     ms_per_face: f64,
     /// The same numbers per subset (the name's first folder: `afw`, `helen`, `lfpw`), when there are several.
     subsets: BTreeMap<String, SubsetReport>,
+    /// The fifth of the faces turned furthest (yaw estimated from the ground-truth landmarks).
+    hardest_fifth: SubsetReport,
     /// The wire encoding DAN's crops went through, and the mean frame-request size it gave.
     crop_encoding: Option<String>,
     mean_request_bytes: Option<f64>,
@@ -166,6 +182,29 @@ fn by_subset(names: &[&str], e68: &[f64], e49: &[f64], has68: bool) -> BTreeMap<
         .collect()
 }
 
+/// The initial shape of an annotated face: with a detector, the mean shape placed on the detection that
+/// matches the annotation (`None` when none does); without, the mean shape fitted to the annotation's box.
+pub fn initial_shape(
+    detector: Option<&mut BlazeFace>,
+    image: &holoface_models::GrayView<'_>,
+    gt: &[Point2; 68],
+) -> anyhow::Result<Option<[Point2; 68]>> {
+    let mean = dan_mean_shape();
+    let gt_box = Rect::bounding(gt).context("empty annotation")?;
+    let mut out = [Point2::default(); 68];
+    let Some(det) = detector else {
+        fit_to_box(&mean, &gt_box, &mut out);
+        return Ok(Some(out));
+    };
+    let found = det.detect(image)?;
+    // The detection that matches the annotated face (the images may hold others).
+    Ok(found
+        .iter()
+        .filter(|d| d.bbox.iou(&gt_box) > 0.2)
+        .max_by(|a, b| a.bbox.iou(&gt_box).total_cmp(&b.bbox.iou(&gt_box)))
+        .and_then(|d| shape_from_detection(&mean, d, &mut out).then_some(out)))
+}
+
 /// Runs `holoface eval`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let data = args
@@ -178,7 +217,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let samples = load_folder(&data, split, true)?;
     tracing::info!(count = samples.len(), folder = %data.display(), "evaluating");
-    let mean = dan_mean_shape();
 
     // Initial shapes, shared by all aligners.
     let mut inits: Vec<Option<[Point2; 68]>> = Vec::with_capacity(samples.len());
@@ -192,41 +230,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     for s in &samples {
         let gt = s.landmarks.context("annotation missing")?;
-        let gt_box = Rect::bounding(&gt).context("empty annotation")?;
-        let init = match detector.as_mut() {
-            Some(det) => {
-                let found = det
-                    .detect(&s.image.view())
-                    .with_context(|| format!("detecting faces in {}", s.name))?;
-                // The detection that matches the annotated face (the images may hold others).
-                found
-                    .iter()
-                    .filter(|d| d.bbox.iou(&gt_box) > 0.2)
-                    .max_by(|a, b| a.bbox.iou(&gt_box).total_cmp(&b.bbox.iou(&gt_box)))
-                    .and_then(|d| {
-                        let mut out = [Point2::default(); 68];
-                        shape_from_detection(&mean, d, &mut out).then_some(out)
-                    })
-            }
-            None => {
-                let mut out = [Point2::default(); 68];
-                fit_to_box(&mean, &gt_box, &mut out);
-                Some(out)
-            }
-        };
+        let init = initial_shape(detector.as_mut(), &s.image.view(), &gt)
+            .with_context(|| format!("detecting faces in {}", s.name))?;
         inits.push(init);
     }
 
+    // The hardest fifth: the faces turned furthest (yaw estimated from the ground truth).
+    let gts: Vec<[Point2; 68]> = samples
+        .iter()
+        .map(|s| s.landmarks.context("annotation missing"))
+        .collect::<anyhow::Result<_>>()?;
+    let gt_refs: Vec<&[Point2]> = gts.iter().map(|g| &g[..]).collect();
+    let hardest = largest_yaw(&gt_refs, 0.2);
     let mut reports = Vec::new();
     let mut curves = Vec::new();
     for which in &args.aligner {
         let mut dan = None;
+        let mut remote = None;
         let mut krfws = None;
         let aligner: &mut dyn Aligner = match which {
             AlignerArg::Dan => {
                 let d = dan.insert(args.runtime.dan_aligner()?);
                 d.set_wire_codec(args.crop_encoding);
                 d
+            }
+            AlignerArg::Remote => {
+                let r = remote.insert(args.runtime.remote_aligner()?);
+                if args.crop_encoding.is_some() {
+                    r.set_wire_codec(args.crop_encoding);
+                }
+                r
             }
             AlignerArg::Krfws => {
                 let k = krfws.insert(args.runtime.krfws_aligner()?);
@@ -286,7 +319,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let s49 = summarise(&e49);
         println!(
             "{:<6} init={:?} images={} detected={} NME49={:.2}% AUC49={:.2} fail49={:.2}%{}",
-            aligner.name(),
+            which.label(),
             args.init,
             samples.len(),
             aligned,
@@ -310,7 +343,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for (sub, r) in &subsets {
             println!(
                 "{:<6}   {sub:<6} images={} NME49={:.2}%{}",
-                aligner.name(),
+                which.label(),
                 r.images,
                 100.0 * r.nme49.mean,
                 r.nme68
@@ -318,12 +351,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     .map_or_else(String::new, |s| format!(" NME68={:.2}%", 100.0 * s.mean))
             );
         }
+        let pick = |e: &[f64]| hardest.iter().map(|&i| e[i]).collect::<Vec<_>>();
+        let hard = SubsetReport {
+            images: hardest.len(),
+            nme68: has68.then(|| summarise(&pick(&e68)).into()),
+            nme49: summarise(&pick(&e49)).into(),
+        };
+        println!(
+            "{:<6}   hardest fifth (largest yaw) images={} NME49={:.2}% fail49={:.2}%{}",
+            which.label(),
+            hard.images,
+            100.0 * hard.nme49.mean,
+            100.0 * hard.nme49.failure_rate,
+            hard.nme68.as_ref().map_or_else(String::new, |s| format!(
+                " NME68={:.2}% fail68={:.2}%",
+                100.0 * s.mean,
+                100.0 * s.failure_rate
+            ))
+        );
         curves.push(Curve {
-            label: aligner.name().to_owned(),
+            label: which.label().to_owned(),
             errors: e49.clone(),
         });
         reports.push(AlignerReport {
-            aligner: aligner.name(),
+            aligner: which.label(),
             init: args.init,
             images: samples.len(),
             detected: inits.iter().filter(|i| i.is_some()).count(),
@@ -331,8 +382,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             nme49: s49.into(),
             ms_per_face: ms,
             subsets,
-            crop_encoding: dan.as_ref().and(args.crop_encoding).map(|c| c.to_string()),
-            mean_request_bytes: dan.as_ref().and_then(|d| d.mean_request_bytes()),
+            hardest_fifth: hard,
+            crop_encoding: match (&dan, &remote) {
+                (Some(_), _) => args.crop_encoding.map(|c| c.to_string()),
+                (_, Some(_)) => Some(args.crop_encoding.unwrap_or_default().to_string()),
+                _ => None,
+            },
+            mean_request_bytes: dan
+                .as_ref()
+                .and_then(|d| d.mean_request_bytes())
+                .or_else(|| remote.as_ref().and_then(|r| r.mean_request_bytes())),
             per_image,
         });
     }

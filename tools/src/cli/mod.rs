@@ -10,6 +10,7 @@ pub mod simulate;
 pub mod track;
 pub mod tracking_losses;
 pub mod train_krfws;
+pub mod train_refiner;
 
 /// HoloFace: find, track and understand faces for AR headsets.
 #[derive(Debug, Parser)]
@@ -44,6 +45,8 @@ pub enum Command {
     TrackingLosses(tracking_losses::Args),
     /// Train the KRFWS local aligner and evaluate it on the validation split.
     TrainKrfws(train_krfws::Args),
+    /// Train the server's refinement cascade on DAN's answers to augmented training crops.
+    TrainRefiner(train_refiner::Args),
 }
 
 /// Runs the parsed command line.
@@ -57,6 +60,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(args) => simulate::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
+        Command::TrainRefiner(args) => train_refiner::run(args),
     }
 }
 

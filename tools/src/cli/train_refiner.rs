@@ -1,0 +1,784 @@
+//! `holoface train-refiner`: trains the server's refinement cascade (`holoface_models::refine`) on DAN's
+//! real answers.
+//!
+//! For every training face (never the validation split) and its mirror image it builds several crops the
+//! way a headset does (the similarity that maps an initial shape onto the mean shape, bilinear, 112 px),
+//! from the starts a headset has: the detector's placement, the tracker's previous landmarks (the truth
+//! with alignment noise and a small motion), and larger misplacements; some crops are blurred, some
+//! partly occluded, some change brightness and contrast. Each crop then takes the server's path: JPEG q75
+//! encode and decode, DAN through ONNX Runtime. DAN's landmarks on the decoded crop are where the cascade
+//! starts, the annotation mapped into the crop is where it must go. Crops DAN rejects (face probability
+//! below the model's threshold) are left out, as the server does not refine them.
+//!
+//! DAN's answers are cached (`--cache`, keyed by the DAN model's checksum and the sampling settings), so
+//! the cascade can be retrained without running DAN again. The trained model is checked on the validation
+//! split with the detector's start (`holoface eval`'s protocol) and a JSON report goes beside it.
+
+use std::io::{BufReader, BufWriter, Read, Write as _};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use holoface_client::align::crop_from_image;
+use holoface_client::link::CropCodec;
+use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
+use holoface_models::crop::warp_bilinear;
+use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
+use holoface_models::krfws::train::Rng;
+use holoface_models::metrics::{nme49, nme68, summarise};
+use holoface_models::refine::train::{RefineConfig, RefineSample, train};
+use holoface_models::refine::{RefineScratch, Refiner};
+use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
+use holoface_models::{GrayImage, GrayView};
+use serde::Serialize;
+
+use crate::args::RuntimeArgs;
+use crate::cli::eval::initial_shape;
+use crate::data::{Sample, Split, default_data_root, load_folder};
+
+/// Arguments of `holoface train-refiner`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Annotated face folder; default `$HOLOFACE_DATA/faces68/train`.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Model output; the JSON report goes beside it (`.json`).
+    #[arg(long, default_value = "models/assets/refiner.bin")]
+    pub out: PathBuf,
+    /// DAN's answers on the training crops (reused when the DAN model and the sampling settings match).
+    #[arg(long, default_value = "runs/refiner/dan-answers.bin")]
+    pub cache: PathBuf,
+    /// Crops per face and per mirror image.
+    #[arg(long, default_value_t = 6)]
+    pub crops: usize,
+    /// Side of the refiner's crop as a multiple of the 112-px crop DAN sees (1 or 2): with 2 the refiner
+    /// works on a 224-px crop built with the same similarity scaled by 2.
+    #[arg(long, default_value_t = 1)]
+    pub crop_scale: usize,
+    /// Cascade stages.
+    #[arg(long, default_value_t = 10)]
+    pub stages: usize,
+    /// Trees per stage.
+    #[arg(long, default_value_t = 500)]
+    pub trees: usize,
+    /// Tree depth.
+    #[arg(long, default_value_t = 4)]
+    pub depth: usize,
+    /// Feature points per stage.
+    #[arg(long, default_value_t = 400)]
+    pub features: usize,
+    /// Random tests per node.
+    #[arg(long, default_value_t = 20)]
+    pub split_tests: usize,
+    /// Learning rate (shrinkage of every leaf).
+    #[arg(long, default_value_t = 0.1)]
+    pub learning_rate: f32,
+    /// Draw each stage's feature points around the landmarks, in a disc whose radius (crop pixels of the
+    /// mean shape) shrinks from the first value to the second over the stages (`--local-radius 8,2`);
+    /// default: dlib's pool over the whole face box.
+    #[arg(long, value_delimiter = ',')]
+    pub local_radius: Option<Vec<f32>>,
+    /// The model also refines the mirror image and answers the mean of the two (validation is reported
+    /// without and with it).
+    #[arg(long)]
+    pub mirror: bool,
+    /// Locality prior of the node tests' point pairs (fraction of the mean shape's extent).
+    #[arg(long, default_value_t = 0.1)]
+    pub lambda: f32,
+    /// Starts per crop the model asks for (1..=9; the per-coordinate median of their answers). The
+    /// validation is reported for 1 and for this many.
+    #[arg(long, default_value_t = 1)]
+    pub starts: usize,
+    /// Seed of every random choice.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Worker threads for training (the result does not depend on it); `--threads` sets ONNX Runtime's.
+    #[arg(long, default_value_t = 2)]
+    pub train_threads: usize,
+    /// Train on the first N training faces only (smoke runs).
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Skip training: validate the model already at `--out` with 1 and with `--starts` starts.
+    #[arg(long)]
+    pub evaluate: bool,
+    /// Version written into the model's name.
+    #[arg(long, default_value = "0.1.0")]
+    pub version: String,
+    #[command(flatten)]
+    /// Runtime assets (DAN, detector, ONNX Runtime).
+    pub runtime: RuntimeArgs,
+}
+
+/// The wire encoding every crop goes through (the client's default).
+const WIRE: CropCodec = CropCodec::Jpeg { quality: 75 };
+const CACHE_MAGIC: &[u8; 8] = b"HFRDATA2";
+const BATCH: usize = 16;
+
+/// One crop with DAN's answer on it.
+struct Answered {
+    /// The refiner's crop after the JPEG round trip (`(112·scale)²` bytes).
+    crop: Vec<u8>,
+    /// DAN's landmarks, in the refiner's crop pixels.
+    start: [Point2; 68],
+    /// Ground truth in the refiner's crop pixels.
+    target: [Point2; 68],
+}
+
+/// Perturbs `shape` by a random similarity about its centroid: translation σ `t` of its extent,
+/// rotation σ `r_deg`, scale σ `s`.
+fn perturb(shape: &[Point2; 68], rng: &mut Rng, t: f64, r_deg: f64, s: f64) -> [Point2; 68] {
+    let c = centroid(shape);
+    let b = Rect::bounding(shape).unwrap_or_default();
+    let angle = (rng.normal() * r_deg).to_radians();
+    let scale = (1.0 + rng.normal() * s).clamp(0.5, 1.6);
+    let (dx, dy) = (
+        rng.normal() * t * f64::from(b.width()),
+        rng.normal() * t * f64::from(b.height()),
+    );
+    let (cx, cy) = (f64::from(c.x), f64::from(c.y));
+    let rot = Similarity2::from_parts(scale, angle, 0.0, 0.0);
+    let m = Similarity2 {
+        tx: cx + dx - (rot.a * cx - rot.b * cy),
+        ty: cy + dy - (rot.b * cx + rot.a * cy),
+        ..rot
+    };
+    std::array::from_fn(|i| m.apply(shape[i]))
+}
+
+/// A tracker's start: the truth with per-point alignment noise (σ 2.5 % of the eye-corner distance,
+/// about a good tracker's error), then moved by a small similarity (the headset and head motion that
+/// motion compensation leaves).
+fn tracker_start(gt: &[Point2; 68], rng: &mut Rng) -> [Point2; 68] {
+    let iod = f64::from(gt[36].dist(gt[45])).max(1.0);
+    let noisy: [Point2; 68] = std::array::from_fn(|i| {
+        Point2::new(
+            gt[i].x + (rng.normal() * 0.025 * iod) as f32,
+            gt[i].y + (rng.normal() * 0.025 * iod) as f32,
+        )
+    });
+    perturb(&noisy, rng, 0.03, 3.0, 0.03)
+}
+
+/// In-place box blur of a square crop (radius 1 or 2), `passes` times.
+fn blur(px: &mut [u8], size: usize, radius: usize, passes: usize) {
+    let mut tmp = vec![0u8; px.len()];
+    for _ in 0..passes {
+        for horizontal in [true, false] {
+            for y in 0..size {
+                for x in 0..size {
+                    let (mut sum, mut n) = (0u32, 0u32);
+                    for k in x.saturating_sub(radius)..=(x + radius).min(size - 1) {
+                        let (xx, yy) = if horizontal { (k, y) } else { (y, k) };
+                        sum += u32::from(px[yy * size + xx]);
+                        n += 1;
+                    }
+                    let (ox, oy) = if horizontal { (x, y) } else { (y, x) };
+                    tmp[oy * size + ox] = ((sum + n / 2) / n) as u8;
+                }
+            }
+            px.copy_from_slice(&tmp);
+        }
+    }
+}
+
+/// The appearance changes a crop may get: blur, an occluding block, brightness/contrast.
+fn augment(px: &mut [u8], size: usize, rng: &mut Rng) {
+    if rng.uniform() < 0.3 {
+        let gain = 0.7 + 0.6 * rng.uniform();
+        let bias = (rng.uniform() - 0.5) * 50.0;
+        for p in px.iter_mut() {
+            *p = (f64::from(*p) * gain + bias).clamp(0.0, 255.0) as u8;
+        }
+    }
+    if rng.uniform() < 0.25 {
+        blur(px, size, 1 + rng.below(2), 1 + rng.below(2));
+    }
+    if rng.uniform() < 0.2 {
+        let w = size * (15 + rng.below(25)) / 100;
+        let h = size * (15 + rng.below(25)) / 100;
+        let x0 = rng.below(size - w);
+        let y0 = rng.below(size - h);
+        let level = rng.below(256) as u8;
+        let noisy = rng.uniform() < 0.5;
+        for y in y0..y0 + h {
+            for x in x0..x0 + w {
+                px[y * size + x] = if noisy { rng.below(256) as u8 } else { level };
+            }
+        }
+    }
+}
+
+/// The JPEG q75 round trip of the wire.
+fn wire_round_trip(px: &[u8], size: usize) -> anyhow::Result<Vec<u8>> {
+    let side = u16::try_from(size).context("crop too large")?;
+    let crop = WIRE.encode(px, side, side)?;
+    Ok(CropCodec::decode(&crop)?)
+}
+
+/// Builds a start's crops: DAN's 112-px crop and the refiner's (the same similarity scaled), both after
+/// the wire round trip, with the same appearance change applied to both.
+struct CropJob {
+    dan_crop: Vec<u8>,
+    refiner_crop: Vec<u8>,
+    target: [Point2; 68],
+}
+
+fn make_crops(
+    image: &GrayView<'_>,
+    init: &[Point2; 68],
+    gt: &[Point2; 68],
+    scale: usize,
+    rng: Option<&mut Rng>,
+) -> anyhow::Result<CropJob> {
+    let sim = crop_from_image(init, &dan_mean_shape())?;
+    let big = Similarity2 {
+        a: sim.a * scale as f64,
+        b: sim.b * scale as f64,
+        tx: sim.tx * scale as f64,
+        ty: sim.ty * scale as f64,
+    };
+    let size = 112 * scale;
+    let mut px = vec![0u8; size * size];
+    warp_bilinear(image, &big, size, size, &mut px)?;
+    let mut dan = if scale == 1 {
+        Vec::new()
+    } else {
+        let mut d = vec![0u8; 112 * 112];
+        warp_bilinear(image, &sim, 112, 112, &mut d)?;
+        d
+    };
+    if let Some(rng) = rng {
+        // The same change on both crops: one seed, replayed.
+        let seed = rng.next_u64();
+        augment(&mut px, size, &mut Rng::new(seed));
+        if scale != 1 {
+            augment(&mut dan, 112, &mut Rng::new(seed));
+        }
+    }
+    let refiner_crop = wire_round_trip(&px, size)?;
+    let dan_crop = if scale == 1 {
+        refiner_crop.clone()
+    } else {
+        wire_round_trip(&dan, 112)?
+    };
+    Ok(CropJob {
+        dan_crop,
+        refiner_crop,
+        target: std::array::from_fn(|i| big.apply(gt[i])),
+    })
+}
+
+/// Runs DAN on queued crops in batches; keeps the accepted answers.
+struct DanRunner {
+    engine: OnnxEngine,
+    batch: BatchTensor,
+    outs: Vec<LandmarkOut>,
+    queued: Vec<CropJob>,
+    scale: f32,
+    threshold: f32,
+    answered: Vec<Answered>,
+    rejected: usize,
+}
+
+impl DanRunner {
+    fn push(&mut self, job: CropJob) -> anyhow::Result<()> {
+        self.queued.push(job);
+        if self.queued.len() == BATCH {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> anyhow::Result<()> {
+        self.batch.clear();
+        for j in &self.queued {
+            self.batch.push(&j.dan_crop)?;
+        }
+        self.engine.infer(&self.batch, &mut self.outs)?;
+        for (j, o) in self.queued.drain(..).zip(&self.outs) {
+            if o.problem(68).is_some() || o.face_prob < self.threshold {
+                self.rejected += 1;
+                continue;
+            }
+            let s = self.scale;
+            self.answered.push(Answered {
+                crop: j.refiner_crop,
+                start: std::array::from_fn(|i| Point2::new(o.landmarks[i][0] * s, o.landmarks[i][1] * s)),
+                target: j.target,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The key the cache is valid for.
+fn cache_key(dan_model: &Path, args: &Args, faces: usize) -> anyhow::Result<Vec<u8>> {
+    let model = std::fs::read(dan_model).with_context(|| format!("reading {}", dan_model.display()))?;
+    let mut key = Vec::new();
+    key.extend_from_slice(&crc32fast::hash(&model).to_le_bytes());
+    for v in [args.crops, args.crop_scale, faces, args.seed as usize] {
+        key.extend_from_slice(&(v as u64).to_le_bytes());
+    }
+    Ok(key)
+}
+
+fn write_cache(path: &Path, key: &[u8], size: usize, data: &[Answered]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = path.with_extension("tmp");
+    let mut w = BufWriter::new(std::fs::File::create(&tmp)?);
+    w.write_all(CACHE_MAGIC)?;
+    w.write_all(key)?;
+    w.write_all(&(data.len() as u64).to_le_bytes())?;
+    for a in data {
+        debug_assert_eq!(a.crop.len(), size * size);
+        w.write_all(&a.crop)?;
+        for p in a.start.iter().chain(&a.target) {
+            w.write_all(&p.x.to_le_bytes())?;
+            w.write_all(&p.y.to_le_bytes())?;
+        }
+    }
+    w.flush()?;
+    drop(w);
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
+fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec<Answered>>> {
+    let Ok(f) = std::fs::File::open(path) else {
+        return Ok(None);
+    };
+    let len = f.metadata()?.len();
+    let mut r = BufReader::new(f);
+    let mut head = vec![0u8; CACHE_MAGIC.len() + key.len() + 8];
+    if r.read_exact(&mut head).is_err() || &head[..8] != CACHE_MAGIC || &head[8..8 + key.len()] != key {
+        return Ok(None);
+    }
+    let n = u64::from_le_bytes(head[head.len() - 8..].try_into()?) as usize;
+    let rec = size * size + 2 * 68 * 8;
+    if (len as usize).saturating_sub(head.len()) != n * rec {
+        bail!("{} is truncated; delete it to regenerate", path.display());
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut pts = vec![0u8; 2 * 68 * 8];
+    for _ in 0..n {
+        let mut crop = vec![0u8; size * size];
+        r.read_exact(&mut crop)?;
+        r.read_exact(&mut pts)?;
+        let f = |i: usize| f32::from_le_bytes([pts[4 * i], pts[4 * i + 1], pts[4 * i + 2], pts[4 * i + 3]]);
+        out.push(Answered {
+            crop,
+            start: std::array::from_fn(|i| Point2::new(f(2 * i), f(2 * i + 1))),
+            target: std::array::from_fn(|i| Point2::new(f(136 + 2 * i), f(136 + 2 * i + 1))),
+        });
+    }
+    Ok(Some(out))
+}
+
+fn mirror_image(img: &GrayImage) -> anyhow::Result<GrayImage> {
+    let (w, h) = (img.width(), img.height());
+    let mut data = Vec::with_capacity(w * h);
+    for row in img.as_bytes().chunks_exact(w) {
+        data.extend(row.iter().rev());
+    }
+    Ok(GrayImage::from_vec(data, w, h)?)
+}
+
+/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each).
+fn answer_training_crops(
+    faces: &[Sample],
+    args: &Args,
+    runner: &mut DanRunner,
+    detector: &mut holoface_client::detect::BlazeFace,
+) -> anyhow::Result<()> {
+    let mean = dan_mean_shape();
+    for (fi, face) in faces.iter().enumerate() {
+        let gt0 = face.landmarks.context("annotation missing")?;
+        let mirrored = mirror_image(&face.image)?;
+        for (side, (img, gt)) in [
+            (&face.image, gt0),
+            (&mirrored, mirror68(&gt0, face.image.width())),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let view = img.view();
+            let detected = initial_shape(Some(detector), &view, &gt)?;
+            let boxed = {
+                let mut out = [Point2::default(); 68];
+                fit_to_box(&mean, &Rect::bounding(&gt).context("empty annotation")?, &mut out);
+                out
+            };
+            let placed = detected.unwrap_or(boxed);
+            for k in 0..args.crops {
+                let mut rng = Rng::stream(args.seed, &[fi as u64, side as u64, k as u64]);
+                // Starts cycle through what a headset sends: the detector's placement, a tracker's
+                // previous landmarks (twice as often: most frames are tracked), a moved detection, a
+                // badly placed box.
+                let init = match k % 5 {
+                    0 => placed,
+                    1 | 3 => tracker_start(&gt, &mut rng),
+                    2 => perturb(&placed, &mut rng, 0.05, 5.0, 0.05),
+                    _ => perturb(&boxed, &mut rng, 0.1, 10.0, 0.1),
+                };
+                let augmented = k > 0;
+                let job = make_crops(&view, &init, &gt, args.crop_scale, augmented.then_some(&mut rng))
+                    .with_context(|| format!("cropping {}", face.name))?;
+                runner.push(job)?;
+            }
+        }
+        if (fi + 1) % 200 == 0 {
+            tracing::info!(
+                faces = fi + 1,
+                of = faces.len(),
+                crops = runner.answered.len(),
+                "DAN answered"
+            );
+        }
+    }
+    runner.flush()
+}
+
+#[derive(Debug, Serialize)]
+struct ValReport {
+    faces: usize,
+    detected: usize,
+    dan_nme68: f64,
+    refined_nme68: f64,
+    dan_nme49: f64,
+    refined_nme49: f64,
+    dan_failure68: f64,
+    refined_failure68: f64,
+    refine_us_per_crop: f64,
+    starts: usize,
+    mirror: bool,
+}
+
+/// Mean NME68 before and after one stage, on the training samples and on the validation faces.
+#[derive(Debug, Serialize)]
+struct StageNme {
+    train_before: f64,
+    train_after: f64,
+    validation_before: f64,
+    validation_after: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct Report {
+    model: String,
+    dan_model: String,
+    data: String,
+    training_faces: usize,
+    training_crops: usize,
+    rejected_crops: usize,
+    crop_size: usize,
+    crops_per_face: usize,
+    stages: usize,
+    trees: usize,
+    depth: usize,
+    features: usize,
+    split_tests: usize,
+    learning_rate: f32,
+    lambda: f32,
+    local_radius: Option<Vec<f32>>,
+    seed: u64,
+    dan_seconds: f64,
+    train_seconds: f64,
+    stage_nme68: Vec<StageNme>,
+    validation_detector_init: ValReport,
+    file_bytes: usize,
+}
+
+/// The refiner on the validation faces, detector start, the server's path (crop, JPEG, DAN, refine).
+/// DAN's answers on the validation faces, detector start (`holoface eval`'s protocol), and how many the
+/// detector found.
+struct ValAnswers {
+    faces: usize,
+    detected: usize,
+    answered: Vec<Answered>,
+}
+
+fn val_answers(
+    faces: &[Sample],
+    args: &Args,
+    runner: &mut DanRunner,
+    detector: &mut holoface_client::detect::BlazeFace,
+) -> anyhow::Result<ValAnswers> {
+    runner.answered.clear();
+    let mut detected = 0;
+    for face in faces {
+        let gt = face.landmarks.context("annotation missing")?;
+        let Some(init) = initial_shape(Some(detector), &face.image.view(), &gt)? else {
+            continue;
+        };
+        detected += 1;
+        runner.push(make_crops(&face.image.view(), &init, &gt, args.crop_scale, None)?)?;
+    }
+    runner.flush()?;
+    Ok(ValAnswers {
+        faces: faces.len(),
+        detected,
+        answered: std::mem::take(&mut runner.answered),
+    })
+}
+
+/// Mean NME68 over the validation faces of `shapes` (faces without an answer count as failures in
+/// [`validate`]; this running figure is over the answered ones).
+fn mean_nme68(val: &ValAnswers, shapes: &[[Point2; 68]]) -> f64 {
+    let sum: f64 = val
+        .answered
+        .iter()
+        .zip(shapes)
+        .filter_map(|(a, s)| nme68(s, &a.target))
+        .sum();
+    sum / val.answered.len().max(1) as f64
+}
+
+fn validate(refiner: &Refiner, val: &ValAnswers) -> anyhow::Result<ValReport> {
+    let runner = val;
+    let (faces, detected) = (val.faces, val.detected);
+    // The figures below are over every validation face: missing answers are failures.
+    let mut scratch = RefineScratch::default();
+    let (mut d68, mut r68, mut d49, mut r49) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let t0 = Instant::now();
+    let mut refined = Vec::with_capacity(runner.answered.len());
+    for a in &runner.answered {
+        let mut shape = a.start;
+        refiner.refine(&a.crop, &mut shape, &mut scratch)?;
+        refined.push(shape);
+    }
+    let us = t0.elapsed().as_secs_f64() * 1e6 / runner.answered.len().max(1) as f64;
+    for (a, r) in runner.answered.iter().zip(&refined) {
+        d68.push(nme68(&a.start, &a.target).unwrap_or(f64::INFINITY));
+        r68.push(nme68(r, &a.target).unwrap_or(f64::INFINITY));
+        d49.push(nme49(&a.start, &a.target).unwrap_or(f64::INFINITY));
+        r49.push(nme49(r, &a.target).unwrap_or(f64::INFINITY));
+    }
+    // Faces the detector missed or DAN rejected count as failures, as in `holoface eval`.
+    let missing = faces - runner.answered.len();
+    for v in [&mut d68, &mut r68, &mut d49, &mut r49] {
+        v.extend(std::iter::repeat_n(f64::INFINITY, missing));
+    }
+    let (sd68, sr68) = (summarise(&d68), summarise(&r68));
+    Ok(ValReport {
+        faces,
+        detected,
+        dan_nme68: sd68.mean,
+        refined_nme68: sr68.mean,
+        dan_nme49: summarise(&d49).mean,
+        refined_nme49: summarise(&r49).mean,
+        dan_failure68: sd68.failure_rate,
+        refined_failure68: sr68.failure_rate,
+        refine_us_per_crop: us,
+        starts: refiner.starts,
+        mirror: refiner.mirror,
+    })
+}
+
+/// Runs `holoface train-refiner`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if !(1..=holoface_models::refine::START_OFFSETS.len()).contains(&args.starts) {
+        bail!(
+            "--starts must be within 1..={}",
+            holoface_models::refine::START_OFFSETS.len()
+        );
+    }
+    if !(1..=2).contains(&args.crop_scale) {
+        bail!("--crop-scale must be 1 or 2");
+    }
+    let data = args
+        .data
+        .clone()
+        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let mut train_faces = load_folder(&data, Split::Train, true)?;
+    if let Some(n) = args.limit {
+        train_faces.truncate(n);
+    }
+    let val_faces = load_folder(&data, Split::Validation, true)?;
+    let engine = OnnxEngine::load(&OnnxOptions {
+        model: args.runtime.dan_model.clone(),
+        ort_dylib: args.runtime.ort_dylib(),
+        intra_threads: args.runtime.threads,
+        max_batch: BATCH,
+        provider: holoface_inference::Provider::Cpu,
+        spin: false,
+    })
+    .with_context(|| format!("loading DAN model {}", args.runtime.dan_model.display()))?;
+    let threshold = engine.info().face_threshold;
+    let dan_name = format!("{} {}", engine.info().name, engine.info().version);
+    let mut runner = DanRunner {
+        engine,
+        batch: BatchTensor::new(BATCH, 112 * 112),
+        outs: vec![LandmarkOut::default(); BATCH],
+        queued: Vec::new(),
+        scale: args.crop_scale as f32,
+        threshold,
+        answered: Vec::new(),
+        rejected: 0,
+    };
+    let mut detector = args.runtime.detector()?;
+    if args.evaluate {
+        let val = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
+        let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
+        let mut refiner = Refiner::from_bytes(&bytes)?;
+        for (starts, mirror) in [(1, false), (args.starts, false), (1, true), (args.starts, true)] {
+            refiner.starts = starts;
+            refiner.mirror = mirror;
+            let v = validate(&refiner, &val)?;
+            println!("{}", serde_json::to_string(&v)?);
+        }
+        return Ok(());
+    }
+    if args
+        .local_radius
+        .as_ref()
+        .is_some_and(|v| v.len() != 2 || v.iter().any(|r| !r.is_finite() || *r <= 0.0))
+    {
+        bail!("--local-radius takes two positive radii: FIRST,LAST");
+    }
+    let size = 112 * args.crop_scale;
+    let key = cache_key(&args.runtime.dan_model, &args, train_faces.len())?;
+    let t0 = Instant::now();
+    let answered = match read_cache(&args.cache, &key, size)? {
+        Some(a) => {
+            tracing::info!(crops = a.len(), cache = %args.cache.display(), "DAN's answers from the cache");
+            a
+        }
+        None => {
+            tracing::info!(
+                faces = train_faces.len(),
+                crops = args.crops,
+                "running DAN on the training crops"
+            );
+            answer_training_crops(&train_faces, &args, &mut runner, &mut detector)?;
+            let a = std::mem::take(&mut runner.answered);
+            write_cache(&args.cache, &key, size, &a)?;
+            a
+        }
+    };
+    let dan_seconds = t0.elapsed().as_secs_f64();
+    let samples: Vec<RefineSample<'_>> = answered
+        .iter()
+        .map(|a| RefineSample {
+            crop: &a.crop,
+            start: a.start,
+            target: a.target,
+        })
+        .collect();
+    let mean: [Point2; 68] = {
+        let m = dan_mean_shape();
+        std::array::from_fn(|i| Point2::new(m[i].x * size as f32 / 112.0, m[i].y * size as f32 / 112.0))
+    };
+    let cfg = RefineConfig {
+        stages: args.stages,
+        trees: args.trees,
+        depth: args.depth,
+        features: args.features,
+        split_tests: args.split_tests,
+        learning_rate: args.learning_rate,
+        seed: args.seed,
+        threads: args.train_threads,
+        lambda: args.lambda,
+        local_radius: args
+            .local_radius
+            .as_ref()
+            .and_then(|v| Some((*v.first()?, *v.get(1)?))),
+        name: format!("holoface-ert {}", args.version),
+        ..RefineConfig::default()
+    };
+    let val_set = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
+    // The validation shapes follow the cascade stage by stage (held-out error per stage).
+    let mut val_shapes: Vec<[Point2; 68]> = val_set.answered.iter().map(|a| a.start).collect();
+    let mut scratch = RefineScratch::default();
+    let mut stage_nme = Vec::new();
+    let t1 = Instant::now();
+    let refiner = train(&samples, &mean, size, &cfg, &mut |r, stage| {
+        let before = mean_nme68(&val_set, &val_shapes);
+        for (shape, a) in val_shapes.iter_mut().zip(&val_set.answered) {
+            stage.apply(&mean, cfg.depth, size, &a.crop, shape, &mut scratch);
+        }
+        let after = mean_nme68(&val_set, &val_shapes);
+        eprintln!(
+            "stage {:>2}: training NME68 {:.3} % -> {:.3} %, validation {:.3} % -> {:.3} % ({:.0} s)",
+            r.stage,
+            100.0 * r.nme_before,
+            100.0 * r.nme_after,
+            100.0 * before,
+            100.0 * after,
+            t1.elapsed().as_secs_f64()
+        );
+        stage_nme.push(StageNme {
+            train_before: r.nme_before,
+            train_after: r.nme_after,
+            validation_before: before,
+            validation_after: after,
+        });
+    })?;
+    let train_seconds = t1.elapsed().as_secs_f64();
+    let mut refiner = refiner;
+    let mut val = validate(&refiner, &val_set)?;
+    if args.starts > 1 || args.mirror {
+        println!(
+            "validation, 1 start, no mirror: NME68 {:.2} % NME49 {:.2} % ({:.0} us per crop)",
+            100.0 * val.refined_nme68,
+            100.0 * val.refined_nme49,
+            val.refine_us_per_crop
+        );
+        refiner.starts = args.starts;
+        refiner.mirror = args.mirror;
+        val = validate(&refiner, &val_set)?;
+    }
+    println!(
+        "validation (detector init, {} faces, {} detected): NME68 DAN {:.2} % -> refined {:.2} %; NME49 {:.2} % -> {:.2} %; failures68 {:.2} % -> {:.2} %; {:.0} us per crop",
+        val.faces,
+        val.detected,
+        100.0 * val.dan_nme68,
+        100.0 * val.refined_nme68,
+        100.0 * val.dan_nme49,
+        100.0 * val.refined_nme49,
+        100.0 * val.dan_failure68,
+        100.0 * val.refined_failure68,
+        val.refine_us_per_crop
+    );
+    let bytes = refiner.to_bytes();
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let report = Report {
+        model: refiner.name.clone(),
+        dan_model: dan_name,
+        data: data.display().to_string(),
+        training_faces: train_faces.len(),
+        training_crops: samples.len(),
+        rejected_crops: runner.rejected,
+        crop_size: size,
+        crops_per_face: 2 * args.crops,
+        stages: args.stages,
+        trees: args.trees,
+        depth: args.depth,
+        features: args.features,
+        split_tests: args.split_tests,
+        learning_rate: args.learning_rate,
+        lambda: args.lambda,
+        local_radius: args.local_radius.clone(),
+        seed: args.seed,
+        dan_seconds,
+        train_seconds,
+        stage_nme68: stage_nme,
+        validation_detector_init: val,
+        file_bytes: bytes.len(),
+    };
+    let tmp = args.out.with_extension("bin.tmp");
+    std::fs::write(&tmp, &bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, &args.out)?;
+    let json = args.out.with_extension("json");
+    std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")?;
+    println!(
+        "wrote {} ({} bytes) and {}",
+        args.out.display(),
+        bytes.len(),
+        json.display()
+    );
+    Ok(())
+}
