@@ -19,7 +19,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws export-dan clean-venv
+.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -150,7 +150,7 @@ golden: venv
 check:
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --locked --workspace --all-targets -- -D warnings
-	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps -q
+	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps --lib --bins --examples -q
 
 # The protocol crate must not depend on an async runtime or a QUIC stack; the headset runtime (and the C
 # ABI a headset app links) must not compile the alignment server, its certificate generator, its config
@@ -163,37 +163,45 @@ deps-check:
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
+	tools/feature-parity.sh
 
-unit: setup golden ort-gpu dan-fp16 group-photo
-	$(CARGO) nextest run --locked --workspace --profile ci
-	$(CARGO) test --locked --workspace --doc -q
+# One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the
+# `holoface` binary, the examples), with the same package selection and features as the test run, so that
+# nothing is compiled twice with different features (BENCHMARKS.md, "Build time").
+TEST_SEL := --workspace --features holoface-python/extension-module
+test-build:
+	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
+
+unit: setup golden ort-gpu dan-fp16 group-photo test-build
+	$(CARGO) nextest run --locked $(TEST_SEL) --profile ci
+	$(CARGO) test --locked $(TEST_SEL) --doc -q
 
 # Deployment files (deploy/): schemas, cross-file consistency, lint; offline with pinned validators.
 .PHONY: deploy-check
 deploy-check: $(VENV)/.deploy-installed
 	PY=$(PY) bash deploy/validate.sh
 
+# Type-checks every fuzz target against the current decoders (and the fuzz lockfile); without libFuzzer's C++
+# (`cargo fuzz run` links it through the crate's default feature).
 fuzz-build:
-	cd fuzz && RUSTC_BOOTSTRAP=1 $(CARGO) check --locked -q --bins
+	cd fuzz && RUSTC_BOOTSTRAP=1 $(CARGO) check --locked -q --bins --no-default-features
 
-# The C API: build the cdylib (test profile: reuses the test build), compile the C example against the
-# generated header with warnings as errors, and track the bundled sample with it.
+# The C API: the cdylib from the test build, the C example compiled against the generated header with warnings
+# as errors, tracking the bundled sample; then the Rust embedding example, also from the test build.
 SAMPLE_PGM := .cache/samples/astronaut.pgm
 $(SAMPLE_PGM): $(SAMPLE)
 	$(PY) -c 'import sys; from PIL import Image; Image.open(sys.argv[1]).convert("L").save(sys.argv[2])' $< $@
 
-c-example: setup $(SAMPLE_PGM)
-	$(CARGO) build --locked --profile test -p holoface-ffi
+c-example: setup $(SAMPLE_PGM) test-build
 	mkdir -p target/c-example
 	$${CC:-cc} -std=c11 -O2 -Wall -Wextra -Werror -I ffi/include ffi/examples/track.c \
 	  -L target/debug -lholoface -Wl,-rpath,$(abspath target/debug) -o target/c-example/track
 	target/c-example/track $(SAMPLE_PGM)
-	$(CARGO) run --locked --profile test -q -p holoface-client --example embed -- $(SAMPLE)
+	target/debug/examples/embed $(SAMPLE)
 
 # The C# binding Unity uses (ffi/unity/HoloFace.cs), compiled unchanged with Mono's mcs next to a console check
 # (ffi/dotnet/TrackSample.cs) and run with mono against the same library.
-csharp-example: setup mono $(SAMPLE_PGM)
-	$(CARGO) build --locked --profile test -p holoface-ffi
+csharp-example: setup mono $(SAMPLE_PGM) test-build
 	mkdir -p target/dotnet
 	mcs -warnaserror -out:target/dotnet/track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs
 	LD_LIBRARY_PATH=$(abspath target/debug) mono target/dotnet/track.exe $(SAMPLE_PGM)
@@ -210,20 +218,23 @@ mono:
 	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $$pkgs >/dev/null; }; fi
 
 # The Python package (python/): build the abi3 wheel with maturin, install it into the venv, run pytest (which
-# compares it with the Rust CLI on the bundled sample). The dev profile reuses the test build's dependencies;
-# users build with `maturin build --release`.
+# compares it with the Rust CLI on the bundled sample). The dev profile, with the ci-unify feature, reuses the
+# test build's dependencies (tools/feature-parity.sh keeps it so); users build with `maturin build --release`.
 $(VENV)/.python-dev-installed: python/requirements-dev.txt $(VENV)/.eval-installed
 	$(PY) -m pip install --disable-pip-version-check -q -r python/requirements-dev.txt
 	touch $@
 
-python-test: setup $(VENV)/.python-dev-installed
-	$(CARGO) build --locked --profile test -q -p holoface-tools --bin holoface
+python-test: setup $(VENV)/.python-dev-installed test-build
 	rm -rf target/wheels
-	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels
+	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels -F ci-unify
 	$(PY) -m pip install --disable-pip-version-check -q --force-reinstall --no-deps target/wheels/holoface-*.whl
 	HOLOFACE_CLI=$(abspath target/debug/holoface) $(PY) -m pytest -q -p no:cacheprovider python/tests
 
 test: deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
+
+# The same checks phase by phase, with each phase's wall time (tools/test-timings.sh; BENCHMARKS.md, "Build time").
+test-timings:
+	tools/test-timings.sh
 
 ## ---- fuzzing, benchmarks, training --------------------------------------------------------------
 FUZZ_SECONDS ?= 60
