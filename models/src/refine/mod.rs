@@ -16,7 +16,7 @@
 //!
 //! Training ([`train`]) is gradient boosting of those trees on the residuals `ground truth − current`
 //! (in the mean-shape frame), stage after stage, from DAN's real outputs on augmented training crops.
-//! The file format is in [`format`].
+//! The file format is in [`mod@format`].
 
 pub mod format;
 pub mod train;
