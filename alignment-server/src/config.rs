@@ -234,10 +234,16 @@ pub struct EngineConfig {
 pub struct RefineConfig {
     /// Refine DAN's landmarks with the cascade (more precise answers; every client version benefits)
     /// [default: true].
-    #[arg(long = "refine", num_args = 0..=1, default_missing_value = "true", env = "HOLOFACE_REFINE")]
+    #[arg(
+        id = "refine",
+        long = "refine",
+        num_args = 0..=1,
+        default_missing_value = "true",
+        env = "HOLOFACE_REFINE"
+    )]
     pub enabled: Option<bool>,
     /// The refinement cascade's model file [default: models/assets/refiner.bin].
-    #[arg(long = "refine-model", env = "HOLOFACE_REFINE_MODEL")]
+    #[arg(id = "refine_model", long = "refine-model", env = "HOLOFACE_REFINE_MODEL")]
     pub model: Option<PathBuf>,
 }
 
