@@ -139,8 +139,11 @@ setup: venv ort detector sample
 
 ## ---- main job -----------------------------------------------------------------------------------
 # Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
-demo: setup
-	$(CARGO) build --release -p holoface-tools
+# The set-up (downloads) runs while the release binary compiles; the demo starts when both are done.
+demo:
+	$(MAKE) --no-print-directory setup & setup=$$!; \
+	  $(CARGO) build --locked --release -p holoface-tools; \
+	  wait $$setup
 	./target/release/holoface demo
 
 ## ---- tests --------------------------------------------------------------------------------------
