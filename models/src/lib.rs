@@ -1,4 +1,5 @@
-//! Pure algorithms of HoloFace: crop geometry, landmark metrics, HOG, the KRFWS aligner, DAN pre- and
+//! Pure algorithms of HoloFace: crop geometry, landmark metrics, HOG, the KRFWS aligner, the server's
+//! refinement cascade (`refine`), DAN pre- and
 //! post-processing, the CANDIDE-3 fit and the Kalman predictor.
 //!
 //! **Architecture invariant:** this crate never touches the filesystem, the network or a clock. Models
