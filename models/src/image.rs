@@ -167,6 +167,14 @@ impl GrayImage {
     pub fn into_vec(self) -> Vec<u8> {
         self.data
     }
+    /// The image flipped left to right.
+    pub fn mirrored(&self) -> Self {
+        let mut data = Vec::with_capacity(self.data.len());
+        for row in self.data.chunks_exact(self.width.max(1)) {
+            data.extend(row.iter().rev());
+        }
+        Self { data, ..*self }
+    }
 }
 
 #[cfg(test)]
@@ -192,5 +200,13 @@ mod tests {
         let v = GrayView::new(&buf, 3, 3, 3).unwrap();
         assert_eq!(v.get(3, 0), None);
         assert_eq!(v.row(3), None);
+    }
+
+    #[test]
+    fn mirrored_flips_each_row() {
+        let img = GrayImage::from_vec(vec![1, 2, 3, 4, 5, 6], 3, 2).unwrap();
+        let m = img.mirrored();
+        assert_eq!((m.width(), m.height()), (3, 2));
+        assert_eq!(m.as_bytes(), &[3, 2, 1, 6, 5, 4]);
     }
 }

@@ -234,17 +234,9 @@ impl Rng {
 
 /// Horizontally mirrored copy of a face.
 pub fn mirror_face(face: &TrainFace) -> TrainFace {
-    let (w, h) = (face.image.width(), face.image.height());
-    let src = face.image.as_bytes();
-    let mut data = vec![0u8; w * h];
-    for (dst, row) in data.chunks_exact_mut(w).zip(src.chunks_exact(w)) {
-        for (d, s) in dst.iter_mut().zip(row.iter().rev()) {
-            *d = *s;
-        }
-    }
     TrainFace {
-        image: GrayImage::from_vec(data, w, h).unwrap_or_else(|_| face.image.clone()),
-        landmarks: mirror68(&face.landmarks, w),
+        image: face.image.mirrored(),
+        landmarks: mirror68(&face.landmarks, face.image.width()),
     }
 }
 

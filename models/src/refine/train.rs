@@ -18,7 +18,7 @@
 use super::{
     REFINE_LANDMARKS, RefineStage, Refiner, RegressionTree, SHAPE_DIM, SplitTest, frame_of, read_features,
 };
-use crate::geometry::Point2;
+use crate::geometry::{Point2, Rect};
 use crate::krfws::train::Rng;
 use crate::metrics::nme68;
 use thiserror::Error;
@@ -187,15 +187,9 @@ fn feature_pool(
         }
         return out;
     }
-    let (mut x0, mut y0, mut x1, mut y1) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
-    for p in mean {
-        x0 = x0.min(p.x);
-        y0 = y0.min(p.y);
-        x1 = x1.max(p.x);
-        y1 = y1.max(p.y);
-    }
-    let pad = cfg.padding * (x1 - x0).max(y1 - y0);
-    let (x0, y0, x1, y1) = (x0 - pad, y0 - pad, x1 + pad, y1 + pad);
+    let b = Rect::bounding(mean).unwrap_or_default();
+    let pad = cfg.padding * b.width().max(b.height());
+    let (x0, y0, x1, y1) = (b.x0 - pad, b.y0 - pad, b.x1 + pad, b.y1 + pad);
     let mut anchors = Vec::with_capacity(cfg.features);
     let mut offsets = Vec::with_capacity(cfg.features);
     let mut pos = Vec::with_capacity(cfg.features);
@@ -398,16 +392,7 @@ pub fn train(
         });
     }
     let n = samples.len();
-    let extent = {
-        let (mut x0, mut y0, mut x1, mut y1) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
-        for p in mean {
-            x0 = x0.min(p.x);
-            y0 = y0.min(p.y);
-            x1 = x1.max(p.x);
-            y1 = y1.max(p.y);
-        }
-        (x1 - x0).max(y1 - y0)
-    };
+    let extent = Rect::bounding(mean).map_or(1.0, |b| b.width().max(b.height()));
     let scale = cfg.lambda * extent;
     let mut cur: Vec<[Point2; REFINE_LANDMARKS]> = samples.iter().map(|s| s.start).collect();
     let mut stages = Vec::with_capacity(cfg.stages);

@@ -186,14 +186,14 @@ fn by_subset(names: &[&str], e68: &[f64], e49: &[f64], has68: bool) -> BTreeMap<
 /// matches the annotation (`None` when none does); without, the mean shape fitted to the annotation's box.
 pub fn initial_shape(
     detector: Option<&mut BlazeFace>,
+    mean: &[Point2; 68],
     image: &holoface_models::GrayView<'_>,
     gt: &[Point2; 68],
 ) -> anyhow::Result<Option<[Point2; 68]>> {
-    let mean = dan_mean_shape();
     let gt_box = Rect::bounding(gt).context("empty annotation")?;
     let mut out = [Point2::default(); 68];
     let Some(det) = detector else {
-        fit_to_box(&mean, &gt_box, &mut out);
+        fit_to_box(mean, &gt_box, &mut out);
         return Ok(Some(out));
     };
     let found = det.detect(image)?;
@@ -202,7 +202,7 @@ pub fn initial_shape(
         .iter()
         .filter(|d| d.bbox.iou(&gt_box) > 0.2)
         .max_by(|a, b| a.bbox.iou(&gt_box).total_cmp(&b.bbox.iou(&gt_box)))
-        .and_then(|d| shape_from_detection(&mean, d, &mut out).then_some(out)))
+        .and_then(|d| shape_from_detection(mean, d, &mut out).then_some(out)))
 }
 
 /// Runs `holoface eval`.
@@ -228,9 +228,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )?),
         Init::GtBox => None,
     };
+    let mean = dan_mean_shape();
     for s in &samples {
         let gt = s.landmarks.context("annotation missing")?;
-        let init = initial_shape(detector.as_mut(), &s.image.view(), &gt)
+        let init = initial_shape(detector.as_mut(), &mean, &s.image.view(), &gt)
             .with_context(|| format!("detecting faces in {}", s.name))?;
         inits.push(init);
     }

@@ -22,6 +22,7 @@ use anyhow::{Context, bail};
 use holoface_client::align::crop_from_image;
 use holoface_client::link::CropCodec;
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
+use holoface_models::GrayView;
 use holoface_models::crop::warp_bilinear;
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
 use holoface_models::krfws::train::Rng;
@@ -29,7 +30,6 @@ use holoface_models::metrics::{nme49, nme68, summarise};
 use holoface_models::refine::train::{RefineConfig, RefineSample, train};
 use holoface_models::refine::{RefineScratch, Refiner};
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
-use holoface_models::{GrayImage, GrayView};
 use serde::Serialize;
 
 use crate::args::RuntimeArgs;
@@ -225,12 +225,13 @@ struct CropJob {
 
 fn make_crops(
     image: &GrayView<'_>,
+    mean: &[Point2; 68],
     init: &[Point2; 68],
     gt: &[Point2; 68],
     scale: usize,
     rng: Option<&mut Rng>,
 ) -> anyhow::Result<CropJob> {
-    let sim = crop_from_image(init, &dan_mean_shape())?;
+    let sim = crop_from_image(init, mean)?;
     let big = Similarity2 {
         a: sim.a * scale as f64,
         b: sim.b * scale as f64,
@@ -376,15 +377,6 @@ fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec
     Ok(Some(out))
 }
 
-fn mirror_image(img: &GrayImage) -> anyhow::Result<GrayImage> {
-    let (w, h) = (img.width(), img.height());
-    let mut data = Vec::with_capacity(w * h);
-    for row in img.as_bytes().chunks_exact(w) {
-        data.extend(row.iter().rev());
-    }
-    Ok(GrayImage::from_vec(data, w, h)?)
-}
-
 /// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each).
 fn answer_training_crops(
     faces: &[Sample],
@@ -395,7 +387,7 @@ fn answer_training_crops(
     let mean = dan_mean_shape();
     for (fi, face) in faces.iter().enumerate() {
         let gt0 = face.landmarks.context("annotation missing")?;
-        let mirrored = mirror_image(&face.image)?;
+        let mirrored = face.image.mirrored();
         for (side, (img, gt)) in [
             (&face.image, gt0),
             (&mirrored, mirror68(&gt0, face.image.width())),
@@ -404,7 +396,7 @@ fn answer_training_crops(
         .enumerate()
         {
             let view = img.view();
-            let detected = initial_shape(Some(detector), &view, &gt)?;
+            let detected = initial_shape(Some(detector), &mean, &view, &gt)?;
             let boxed = {
                 let mut out = [Point2::default(); 68];
                 fit_to_box(&mean, &Rect::bounding(&gt).context("empty annotation")?, &mut out);
@@ -423,8 +415,15 @@ fn answer_training_crops(
                     _ => perturb(&boxed, &mut rng, 0.1, 10.0, 0.1),
                 };
                 let augmented = k > 0;
-                let job = make_crops(&view, &init, &gt, args.crop_scale, augmented.then_some(&mut rng))
-                    .with_context(|| format!("cropping {}", face.name))?;
+                let job = make_crops(
+                    &view,
+                    &mean,
+                    &init,
+                    &gt,
+                    args.crop_scale,
+                    augmented.then_some(&mut rng),
+                )
+                .with_context(|| format!("cropping {}", face.name))?;
                 runner.push(job)?;
             }
         }
@@ -506,14 +505,22 @@ fn val_answers(
     detector: &mut holoface_client::detect::BlazeFace,
 ) -> anyhow::Result<ValAnswers> {
     runner.answered.clear();
+    let mean = dan_mean_shape();
     let mut detected = 0;
     for face in faces {
         let gt = face.landmarks.context("annotation missing")?;
-        let Some(init) = initial_shape(Some(detector), &face.image.view(), &gt)? else {
+        let Some(init) = initial_shape(Some(detector), &mean, &face.image.view(), &gt)? else {
             continue;
         };
         detected += 1;
-        runner.push(make_crops(&face.image.view(), &init, &gt, args.crop_scale, None)?)?;
+        runner.push(make_crops(
+            &face.image.view(),
+            &mean,
+            &init,
+            &gt,
+            args.crop_scale,
+            None,
+        )?)?;
     }
     runner.flush()?;
     Ok(ValAnswers {
