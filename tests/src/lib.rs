@@ -45,23 +45,33 @@ pub fn workspace_root() -> PathBuf {
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
-/// The shipped refinement cascade (`HOLOFACE_REFINE_MODEL` overrides).
+/// `$env` when set and not empty, else `default` under the workspace root; it must be a file.
+///
+/// # Panics
+/// If it is not (the e2e tests must fail, not skip, without their assets); `hint` says how to get it.
+fn required_asset(env: &str, default: &str, what: &str, hint: &str) -> PathBuf {
+    let path = std::env::var_os(env)
+        .filter(|v| !v.is_empty())
+        .map_or_else(|| workspace_root().join(default), PathBuf::from);
+    assert!(
+        path.is_file(),
+        "{what} not found at {} (set {env}, or {hint})",
+        path.display()
+    );
+    path
+}
+
+/// The shipped refinement cascade: `$HOLOFACE_REFINE_MODEL` or `models/assets/refiner.bin`.
 ///
 /// # Panics
 /// If it is not there.
 pub fn refiner_path() -> PathBuf {
-    let path = std::env::var_os("HOLOFACE_REFINE_MODEL")
-        .filter(|v| !v.is_empty())
-        .map_or_else(
-            || workspace_root().join("models/assets/refiner.bin"),
-            PathBuf::from,
-        );
-    assert!(
-        path.is_file(),
-        "refiner model not found at {} (set HOLOFACE_REFINE_MODEL, or train one with `make train-refiner`)",
-        path.display()
-    );
-    path
+    required_asset(
+        "HOLOFACE_REFINE_MODEL",
+        "models/assets/refiner.bin",
+        "refiner model",
+        "train one with `make train-refiner`",
+    )
 }
 
 /// The DAN model for tests: `$HOLOFACE_DAN_MODEL` or `models/assets/dan.onnx`.
@@ -69,16 +79,12 @@ pub fn refiner_path() -> PathBuf {
 /// # Panics
 /// If the file does not exist (the e2e tests must fail, not skip, without it).
 pub fn model_path() -> PathBuf {
-    let path = std::env::var_os("HOLOFACE_DAN_MODEL")
-        .filter(|v| !v.is_empty())
-        .map_or_else(|| workspace_root().join("models/assets/dan.onnx"), PathBuf::from);
-    assert!(
-        path.is_file(),
-        "DAN model not found at {} (set HOLOFACE_DAN_MODEL, or export one with \
-         `.venv/bin/python models/dan/export_onnx.py --random --out <path>`)",
-        path.display()
-    );
-    path
+    required_asset(
+        "HOLOFACE_DAN_MODEL",
+        "models/assets/dan.onnx",
+        "DAN model",
+        "export one with `.venv/bin/python models/dan/export_onnx.py --random --out <path>`",
+    )
 }
 
 /// The ONNX Runtime library for tests.
