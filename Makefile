@@ -139,10 +139,12 @@ setup: venv ort detector sample
 
 ## ---- main job -----------------------------------------------------------------------------------
 # Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
-# The set-up (downloads) runs while the release binary compiles; the demo starts when both are done.
+# The set-up (downloads) runs while the release binary compiles; the demo starts when both are done. The demo
+# reads and writes no video, so its binary is built without MP4/H.264 (OpenH264's C build is a fifth of the
+# build); the other targets build `holoface` with its default features.
 demo:
 	$(MAKE) --no-print-directory setup & setup=$$!; \
-	  $(CARGO) build --locked --release -p holoface-tools; \
+	  $(CARGO) build --locked --release -p holoface-tools --no-default-features; \
 	  wait $$setup
 	./target/release/holoface demo
 
@@ -157,7 +159,8 @@ check:
 
 # The protocol crate must not depend on an async runtime or a QUIC stack; the headset runtime (and the C
 # ABI a headset app links) must not compile the alignment server, its certificate generator, its config
-# parser or its metrics.
+# parser or its metrics, nor a video decoder (holoface-sources), nor anyhow (its errors are typed), nor the
+# models' trainers (holoface-models' `train` feature, which only the tools enable).
 deps-check:
 	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
 	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
@@ -166,6 +169,14 @@ deps-check:
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
+	@for c in holoface-client holoface-ffi; do \
+	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
+	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
+	  echo "$$c: no holoface-sources, openh264, mp4 or anyhow"; done
+	@for c in holoface-client holoface-ffi holoface-python holoface-server; do \
+	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-models feature "train"'; then \
+	    echo "$$c compiles the models' trainers (holoface-models/train)" >&2; exit 1; fi; done
+	@echo "holoface-client, holoface-ffi, holoface-python, holoface-server: no trainers"
 	tools/feature-parity.sh
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the

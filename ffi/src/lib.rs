@@ -15,11 +15,10 @@ use std::ffi::{CStr, CString, c_char};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
-use std::time::Duration;
 
 use holoface_client::align::AnsweredBy;
 use holoface_client::frame::Frame;
-use holoface_client::link::{FailureKind, LinkState, LinkStatus};
+use holoface_client::link::{FailureKind, LinkState, LinkStatus, RemoteOptions, RemoteOptionsError};
 use holoface_client::session::{FaceUpdate, FrameResult, NoFaceReason};
 use holoface_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
 use holoface_models::camera::Intrinsics;
@@ -399,37 +398,29 @@ fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
     t.session.motion_compensation = o.motion_compensation != 0;
     // SAFETY: as above.
     if let Some(server) = unsafe { opt_str(o.server, "server") }? {
-        let server = server.parse().map_err(|e| {
-            fail(
-                HfStatus::InvalidArgument,
-                format!("server {server:?}: {e} (use ip:port)"),
-            )
-        })?;
         // SAFETY: as above.
-        let fp = unsafe { opt_str(o.server_fingerprint, "server_fingerprint") }?
-            .ok_or_else(|| {
-                fail(
-                    HfStatus::InvalidArgument,
-                    "server_fingerprint is required with server",
-                )
-            })?
-            .parse()
-            .map_err(|e| fail(HfStatus::InvalidArgument, format!("server_fingerprint: {e}")))?;
+        let fingerprint = unsafe { opt_str(o.server_fingerprint, "server_fingerprint") }?;
         // SAFETY: as above.
         let token = unsafe { opt_str(o.token, "token") }?.unwrap_or_default();
-        if o.deadline_ms == 0 || o.deadline_ms > 10_000 {
-            return Err(fail(
-                HfStatus::InvalidArgument,
-                "deadline_ms must be within 1..=10000",
-            ));
-        }
-        t.aligner = AlignerChoice::Remote {
-            server,
-            fingerprint: fp,
-            token,
-            deadline: Duration::from_millis(u64::from(o.deadline_ms)),
-            codec: holoface_client::link::CropCodec::default(),
-        };
+        let remote = RemoteOptions::parse(
+            &server,
+            fingerprint.as_deref(),
+            &token,
+            u64::from(o.deadline_ms),
+            None,
+        )
+        .map_err(|e| {
+            // The same checks as every front end, named as this ABI's fields are.
+            let msg = match e {
+                RemoteOptionsError::MissingFingerprint => {
+                    "server_fingerprint is required with server".to_owned()
+                }
+                RemoteOptionsError::Fingerprint(why) => format!("server_fingerprint: {why}"),
+                other => other.to_string(),
+            };
+            fail(HfStatus::InvalidArgument, msg)
+        })?;
+        t.aligner = AlignerChoice::Remote(remote);
     }
     Ok(t)
 }

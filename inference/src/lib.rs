@@ -1,5 +1,6 @@
 //! HoloFace inference: what the alignment server and the headset client share to run ONNX models.
 //!
+//! * [`crop`]: the one decoder of a crop's PNG/JPEG payload ([`decode_crop`]), hardened for network bytes.
 //! * [`engine`]: the [`InferenceEngine`] trait (the DAN model contract), [`OnnxEngine`] (ort,
 //!   `load-dynamic`), model-contract validation; `FakeEngine` under `cfg(test)` / the `test-util` feature.
 //! * [`refine`]: [`RefinedEngine`], DAN followed by the refinement cascade (the server's pipeline).
@@ -10,11 +11,13 @@
 //! No IO besides loading the library and the model files; no async runtime, no network.
 #![deny(missing_docs)]
 
+pub mod crop;
 pub mod engine;
 pub mod error;
 pub mod refine;
 pub mod runtime;
 
+pub use crop::{CropDecodeError, decode_crop};
 pub use engine::{
     BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, Execution, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine,
     OnnxOptions, Provider,

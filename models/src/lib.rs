@@ -21,6 +21,7 @@ pub mod math3;
 pub mod metrics;
 pub mod pose;
 pub mod refine;
+pub mod rng;
 pub mod shape;
 
 pub use camera::Intrinsics;

@@ -7,8 +7,10 @@ use std::sync::OnceLock;
 use holoface_models::geometry::{Point2, Similarity2};
 use holoface_models::image::GrayImage;
 use holoface_models::krfws::format::{FORMAT_VERSION, MAGIC};
-use holoface_models::krfws::train::{self, NoProgress, Rng, TrainConfig, TrainFace, gt_box, nme49_inner};
+use holoface_models::krfws::nme49_inner;
+use holoface_models::krfws::train::{self, NoProgress, TrainConfig, TrainFace, gt_box};
 use holoface_models::krfws::{Krfws, KrfwsScratch, ModelError, N_POINTS};
+use holoface_models::rng::Rng;
 use holoface_models::shape::dan_mean_shape;
 use proptest::prelude::*;
 

@@ -11,7 +11,7 @@ use holoface_models::geometry::{Point2, Rect};
 use holoface_models::hog::PATCH_PIXELS;
 use holoface_models::image::GrayImage;
 use holoface_models::isa::{self, Isa};
-use holoface_models::krfws::train::nme49_inner;
+use holoface_models::krfws::nme49_inner;
 use holoface_models::krfws::{FAILURE_DIM, Krfws, KrfwsScratch, N_POINTS, Portable, Stage, stage_features};
 use holoface_models::shape::parse_pts68;
 

@@ -10,11 +10,10 @@
 
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
-use std::time::Duration;
 
 use holoface_client::align::AnsweredBy;
 use holoface_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
-use holoface_client::link::{CropCodec, LinkState};
+use holoface_client::link::{LinkState, RemoteOptions};
 use holoface_client::session::{FaceUpdate, FrameResult};
 use holoface_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
 use holoface_models::camera::Intrinsics;
@@ -208,38 +207,16 @@ impl PyTrackerOptions {
                 slot.clone_from(p);
             }
         }
-        match (&self.server, &self.fingerprint) {
-            (None, _) => {}
-            (Some(_), None) => {
-                return Err(PyValueError::new_err(
-                    "fingerprint is required with server (holoface-server prints it at start)",
-                ));
-            }
-            (Some(server), Some(fp)) => {
-                let server = server
-                    .parse()
-                    .map_err(|e| PyValueError::new_err(format!("server {server:?}: {e} (use ip:port)")))?;
-                let fingerprint = fp
-                    .parse()
-                    .map_err(|e| PyValueError::new_err(format!("fingerprint: {e}")))?;
-                if self.deadline_ms == 0 || self.deadline_ms > 10_000 {
-                    return Err(PyValueError::new_err(format!(
-                        "deadline_ms {} must be within 1..=10000",
-                        self.deadline_ms
-                    )));
-                }
-                let codec: CropCodec = self
-                    .crop_encoding
-                    .parse()
-                    .map_err(|e| PyValueError::new_err(format!("crop_encoding: {e}")))?;
-                o.aligner = AlignerChoice::Remote {
-                    server,
-                    fingerprint,
-                    token: self.token.clone(),
-                    deadline: Duration::from_millis(self.deadline_ms),
-                    codec,
-                };
-            }
+        if let Some(server) = &self.server {
+            let remote = RemoteOptions::parse(
+                server,
+                self.fingerprint.as_deref(),
+                &self.token,
+                self.deadline_ms,
+                Some(&self.crop_encoding),
+            )
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            o.aligner = AlignerChoice::Remote(remote);
         }
         Ok(o)
     }
@@ -522,7 +499,7 @@ fn gray_array<'a, 'py>(image: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, 
 
 fn tracker_error(e: TrackerError) -> PyErr {
     match e {
-        TrackerError::Assets(_) => AssetError::new_err(e.to_string()),
+        TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
         TrackerError::Timestamp { .. } => PyValueError::new_err(e.to_string()),
         _ => ProcessingError::new_err(e.to_string()),
     }
@@ -551,7 +528,7 @@ impl PyFaceTracker {
         let inner = py
             .detach(|| tracker::FaceTracker::new(opts))
             .map_err(|e| match e {
-                TrackerError::Detect(_) | TrackerError::Assets(_) => AssetError::new_err(e.to_string()),
+                TrackerError::Detect(_) | TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
                 other => tracker_error(other),
             })?;
         Ok(Self {
@@ -682,7 +659,7 @@ impl PyFrameSource {
     #[new]
     #[pyo3(signature = (path, fps = 30.0, poses = None))]
     fn new(path: PathBuf, fps: f64, poses: Option<PathBuf>) -> PyResult<Self> {
-        let inner = holoface_client::source::open_source(&path, fps, poses.as_deref())
+        let inner = holoface_sources::source::open_source(&path, fps, poses.as_deref())
             .map_err(|e| SourceError::new_err(format!("{e:#}")))?;
         Ok(Self { inner })
     }
@@ -705,7 +682,7 @@ impl PyFrameSource {
 #[pyfunction]
 fn read_gray(py: Python<'_>, path: PathBuf) -> PyResult<Py<PyArray2<u8>>> {
     let img = py
-        .detach(|| holoface_client::images::read_gray(&path))
+        .detach(|| holoface_sources::images::read_gray(&path))
         .map_err(|e| SourceError::new_err(format!("{e:#}")))?;
     let a = Array2::from_shape_vec((img.height(), img.width()), img.view().data().to_vec())
         .map_err(|e| SourceError::new_err(format!("{}: {e}", path.display())))?;

@@ -21,7 +21,6 @@ use holoface_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, cro
 use holoface_client::assets::load_face_model;
 use holoface_client::detect::BlazeFace;
 use holoface_client::frame::Frame;
-use holoface_client::images::read_gray;
 use holoface_client::link::CropCodec;
 use holoface_client::session::{FrameResult, Prepared, SessionOptions, TrackerSession};
 use holoface_models::crop::{Crop112, crop_bilinear};
@@ -29,6 +28,7 @@ use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::shape::dan_mean_shape;
+use holoface_sources::images::read_gray;
 use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_tools::render::PlanarScene;
 use holoface_tools::render::SCENE_CAMERA;

@@ -107,6 +107,6 @@ pub struct CandideArg {
 impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
-        holoface_client::assets::load_face_model(&self.candide)
+        Ok(holoface_client::assets::load_face_model(&self.candide)?)
     }
 }

@@ -7,10 +7,10 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use holoface_client::images::{list_images, read_gray};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::shape::parse_pts68;
+use holoface_sources::images::{list_images, read_gray};
 
 /// The committed validation split (names `<subset>/<stem>` relative to `faces68/train`).
 pub const VALIDATION_SPLIT: &str = include_str!("../../models/splits/val.txt");

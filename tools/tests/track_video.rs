@@ -7,8 +7,8 @@ mod common;
 
 use common::{holoface, json_lines as lines, tmp};
 
-use holoface_client::video::Mp4Writer;
 use holoface_models::image::GrayImage;
+use holoface_sources::video::Mp4Writer;
 
 /// `holoface ARGS --log warn`.
 fn run(args: &[&str]) -> (bool, String) {
@@ -158,7 +158,7 @@ fn sample_clip(frames: usize) -> Vec<GrayImage> {
         || common::workspace().join(".cache/samples/astronaut.png"),
         Into::into,
     );
-    let gray = holoface_client::images::read_gray(&sample).unwrap();
+    let gray = holoface_sources::images::read_gray(&sample).unwrap();
     let (w, h) = (gray.width() - 1, gray.height() - 1);
     (0..frames)
         .map(|k| {
@@ -176,7 +176,7 @@ fn sample_clip(frames: usize) -> Vec<GrayImage> {
 fn write_y4m(path: &std::path::Path, frames: &[GrayImage]) {
     let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
     let mut w =
-        holoface_client::y4m::Y4mWriter::new(f, frames[0].width(), frames[0].height(), 30, 1).unwrap();
+        holoface_sources::y4m::Y4mWriter::new(f, frames[0].width(), frames[0].height(), 30, 1).unwrap();
     for f in frames {
         w.push(f).unwrap();
     }
@@ -251,7 +251,7 @@ fn a_y4m_stream_on_stdin_is_tracked_and_annotated_as_mp4() {
     }
 
     // The annotated video decodes to 8 frames of the clip's size rounded down to even.
-    let mut src = holoface_client::video::Mp4Source::open(&video, None).unwrap();
+    let mut src = holoface_sources::video::Mp4Source::open(&video, None).unwrap();
     assert_eq!(src.frame_count(), 8);
     use holoface_client::frame::FrameSource;
     let first = src.next_frame().unwrap().unwrap();

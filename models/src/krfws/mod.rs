@@ -24,6 +24,7 @@
 #[cfg(target_arch = "x86_64")]
 mod avx2;
 pub mod format;
+#[cfg(feature = "train")]
 pub mod train;
 
 #[cfg(target_arch = "x86_64")]
@@ -1285,6 +1286,13 @@ impl Krfws {
         }
         Some(result)
     }
+}
+
+/// NME49 of 51 predicted inner points against 68 ground-truth points.
+pub fn nme49_inner(pred: &[Point2; N_POINTS], gt: &[Point2; 68]) -> f64 {
+    let mut full = *gt;
+    full[INNER51].copy_from_slice(pred);
+    crate::metrics::nme49(&full, gt).unwrap_or(f64::INFINITY)
 }
 
 #[cfg(test)]

@@ -50,12 +50,12 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use super::{
     DELTA_DIM, FAILURE_DIM, FailureModel, Krfws, KrfwsScratch, N_POINTS, Node, Stage, Tree, dot144,
-    stage_features,
+    nme49_inner, stage_features,
 };
 use crate::geometry::{Point2, Rect, Similarity2, centroid};
 use crate::hog::{HOG_DIM, PATCH_PIXELS};
 use crate::image::GrayImage;
-use crate::metrics::nme49;
+use crate::rng::Rng;
 use crate::shape::{INNER51, mirror68};
 
 /// Failure-detector targets are NME49 clipped at this value (gross failures and non-faces).
@@ -178,60 +178,6 @@ pub enum TrainError {
     Config(&'static str),
 }
 
-/// A small deterministic PRNG (xoshiro256** seeded through SplitMix64).
-#[derive(Clone, Debug)]
-pub struct Rng([u64; 4]);
-
-impl Rng {
-    /// Seeds from a 64-bit value.
-    pub fn new(seed: u64) -> Self {
-        let mut z = seed;
-        let mut next = || {
-            z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut x = z;
-            x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            x ^ (x >> 31)
-        };
-        Self([next(), next(), next(), next()])
-    }
-    /// Seeds from a base seed and a list of stream identifiers.
-    pub fn stream(seed: u64, ids: &[u64]) -> Self {
-        let mut s = seed ^ 0x5851_F42D_4C95_7F2D;
-        for &i in ids {
-            s = Self::new(s ^ i.wrapping_mul(0x2545_F491_4F6C_DD1D)).next_u64();
-        }
-        Self::new(s)
-    }
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        let s = &mut self.0;
-        let r = s[1].wrapping_mul(5).rotate_left(7).wrapping_mul(9);
-        let t = s[1] << 17;
-        s[2] ^= s[0];
-        s[3] ^= s[1];
-        s[1] ^= s[2];
-        s[0] ^= s[3];
-        s[2] ^= t;
-        s[3] = s[3].rotate_left(45);
-        r
-    }
-    /// Uniform in `[0, 1)`.
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-    /// Uniform integer in `0..n` (`n > 0`).
-    pub fn below(&mut self, n: usize) -> usize {
-        (((self.next_u64() >> 32) * n as u64) >> 32) as usize
-    }
-    /// Standard normal (Box–Muller).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
-
 /// Horizontally mirrored copy of a face.
 pub fn mirror_face(face: &TrainFace) -> TrainFace {
     TrainFace {
@@ -286,13 +232,6 @@ pub fn perturb(shape: &[Point2; N_POINTS], p: Perturbation, rng: &mut Rng) -> [P
         let q = sim.apply(Point2::new(shape[i].x - c.x, shape[i].y - c.y));
         Point2::new(q.x + c.x + tx as f32, q.y + c.y + ty as f32)
     })
-}
-
-/// NME49 of 51 predicted inner points against 68 ground-truth points.
-pub fn nme49_inner(pred: &[Point2; N_POINTS], gt: &[Point2; 68]) -> f64 {
-    let mut full = *gt;
-    full[INNER51].copy_from_slice(pred);
-    nme49(&full, gt).unwrap_or(f64::INFINITY)
 }
 
 /// The ground-truth box: the extent of the 68 points.

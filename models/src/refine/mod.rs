@@ -19,6 +19,7 @@
 //! The file format is in [`mod@format`].
 
 pub mod format;
+#[cfg(feature = "train")]
 pub mod train;
 
 use crate::geometry::{Point2, Similarity2};
@@ -591,7 +592,7 @@ mod tests {
     /// Whichever instruction set runs the stage, the answer is bit-identical to the portable code's.
     #[test]
     fn the_vector_paths_agree_bit_for_bit_with_the_portable_one() {
-        let mut rng = crate::krfws::train::Rng::new(7);
+        let mut rng = crate::rng::Rng::new(7);
         let mean = dan_mean_shape();
         let trees = (0..60)
             .map(|_| {

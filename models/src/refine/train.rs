@@ -19,8 +19,8 @@ use super::{
     REFINE_LANDMARKS, RefineStage, Refiner, RegressionTree, SHAPE_DIM, SplitTest, frame_of, read_features,
 };
 use crate::geometry::{Point2, Rect};
-use crate::krfws::train::Rng;
 use crate::metrics::nme68;
+use crate::rng::Rng;
 use thiserror::Error;
 
 /// One training sample: a crop as the server receives it, DAN's answer on it and the ground truth, both

@@ -29,7 +29,7 @@ use crate::render::PlanarScene;
 use holoface_client::align::{Aligner, AnsweredBy};
 use holoface_client::detect::{FaceDetector, shape_from_detection};
 use holoface_client::frame::Frame;
-use holoface_client::link::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, RemoteLink};
+use holoface_client::link::{CropCodec, RemoteOptions};
 use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface demo`.
@@ -169,16 +169,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         relay.addr()
     );
 
-    let mut cfg = ConnectConfig::new(relay.addr(), fingerprint, token);
-    cfg.client_name = "holoface-demo".into();
-    cfg.encodings = vec![args.crop_encoding.encoding()];
-    let link = RemoteLink::start(cfg, Backoff::default())?;
-    let opts = LinkOptions {
-        deadline: Duration::from_millis(args.deadline_ms),
-        codec: args.crop_encoding,
-        ..LinkOptions::default()
-    };
-    let mut aligner = LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts);
+    let mut remote = RemoteOptions::new(relay.addr(), fingerprint, token);
+    remote.client_name = "holoface-demo".into();
+    remote.deadline = Duration::from_millis(args.deadline_ms);
+    remote.codec = args.crop_encoding;
+    let mut aligner = remote.start(args.runtime.krfws_aligner()?, 1)?;
     let mut session = TrackerSession::new(
         Box::new(args.runtime.detector()?),
         args.candide.load()?,
@@ -231,7 +226,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             world_from_camera: pose,
         };
         let t0 = Instant::now();
-        let step = holoface_client::frame_loop::step(&mut session, &mut aligner, &frame)?;
+        let step = holoface_client::frame_step::step(&mut session, &mut aligner, &frame)?;
         let (result, alignment) = (step.result, step.alignment);
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = aligner.last_report();

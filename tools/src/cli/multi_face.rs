@@ -374,7 +374,7 @@ fn track(
                 &json!({"frame": i, "faces_landmarks_px": faces}),
             )?;
         }
-        let step = holoface_client::frame_loop::step_faces(&mut session, aligner, &frame)?;
+        let step = holoface_client::frame_step::step_faces(&mut session, aligner, &frame)?;
         let timings = &step.timings;
         run.frame_ms
             .push((timings.prepare + timings.align + timings.complete).as_secs_f64() * 1e3);
@@ -582,23 +582,14 @@ fn remote_aligner(
     crate::loopback::LoopbackServer,
     holoface_client::link::LinkedAligner<holoface_client::align::KrfwsAligner>,
 )> {
-    use holoface_client::link::{
-        Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, Mode, RemoteLink,
-    };
+    use holoface_client::link::{Mode, RemoteOptions};
     let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
-    let mut cfg = ConnectConfig::new(server.addr, server.fingerprint, server.token.clone());
-    cfg.client_name = "holoface-multi-face".into();
-    let codec = CropCodec::default();
-    cfg.encodings = vec![codec.encoding()];
+    let mut remote = RemoteOptions::new(server.addr, server.fingerprint, server.token.clone());
+    remote.client_name = "holoface-multi-face".into();
+    remote.deadline = std::time::Duration::from_millis(args.deadline_ms);
     // One crop per face per frame in flight.
-    cfg.max_in_flight = u16::try_from(args.counts.iter().copied().max().unwrap_or(1)).unwrap_or(u16::MAX);
-    let link = RemoteLink::start(cfg, Backoff::default())?;
-    let opts = LinkOptions {
-        deadline: std::time::Duration::from_millis(args.deadline_ms),
-        codec,
-        ..LinkOptions::default()
-    };
-    let mut aligner = LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts);
+    let max_faces = args.counts.iter().copied().max().unwrap_or(1);
+    let mut aligner = remote.start(args.runtime.krfws_aligner()?, max_faces)?;
     let blank = GrayImage::zeros(FRAME_W, FRAME_H);
     let init = dan_mean_shape().map(|p| Point2::new(p.x + 260.0, p.y + 180.0));
     let give_up = std::time::Instant::now() + std::time::Duration::from_secs(10);

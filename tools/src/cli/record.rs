@@ -9,7 +9,7 @@ use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
 
-use holoface_client::source::open_source;
+use holoface_sources::source::open_source;
 
 /// How full frames are stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -82,7 +82,7 @@ impl CropCutter {
     fn cut(&mut self, f: &holoface_client::frame::OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
         use holoface_client::session::Prepared;
         let frame = f.view();
-        let step = holoface_client::frame_loop::step(&mut self.session, &mut self.local, &frame)?;
+        let step = holoface_client::frame_step::step(&mut self.session, &mut self.local, &frame)?;
         let Prepared::Align { init, .. } = step.prepared else {
             return Ok(None);
         };

@@ -10,8 +10,9 @@ use serde_json::json;
 
 use crate::args::RuntimeArgs;
 use holoface_client::align::{Aligner, AnsweredBy};
+use holoface_client::link::RemoteOptions;
 use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
-use holoface_client::source::open_source;
+use holoface_sources::source::open_source;
 
 /// Local aligner for `track`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -91,7 +92,6 @@ pub struct Args {
 }
 
 fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_client::link::LinkWatch)> {
-    use holoface_client::link::{Backoff, ConnectConfig, LinkOptions, LinkedAligner, RemoteLink};
     let server = args.server.context("--aligner remote needs --server ADDR")?;
     let fingerprint = args
         .fingerprint
@@ -99,21 +99,12 @@ fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_cli
         .context("--aligner remote needs --fingerprint (the server prints it at start)")?
         .parse()
         .map_err(|e| anyhow::anyhow!("--fingerprint: {e}"))?;
-    let mut cfg = ConnectConfig::new(server, fingerprint, args.token.clone());
-    cfg.encodings = vec![args.crop_encoding.encoding()];
-    // One crop per tracked face per frame, all in flight together.
-    cfg.max_in_flight = args.max_faces.max(1);
-    let link = RemoteLink::start(cfg, Backoff::default())?;
-    let watch = link.watch();
-    let opts = LinkOptions {
-        deadline: std::time::Duration::from_millis(args.deadline_ms),
-        codec: args.crop_encoding,
-        ..LinkOptions::default()
-    };
-    Ok((
-        Box::new(LinkedAligner::new(link, args.runtime.krfws_aligner()?, opts)),
-        watch,
-    ))
+    let mut remote = RemoteOptions::new(server, fingerprint, args.token.clone());
+    remote.deadline = std::time::Duration::from_millis(args.deadline_ms);
+    remote.codec = args.crop_encoding;
+    let aligner = remote.start(args.runtime.krfws_aligner()?, usize::from(args.max_faces))?;
+    let watch = aligner.link().watch();
+    Ok((Box::new(aligner), watch))
 }
 
 /// One face of a `track` line.
@@ -187,7 +178,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
-        let step = holoface_client::frame_loop::step_faces(&mut session, &mut *aligner, &frame)?;
+        let step = holoface_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)?;
         let link_state = link.as_ref().map(|w| w.status().state());
         remote_frames += step
             .faces
@@ -258,7 +249,7 @@ enum Annotated {
     Video {
         path: PathBuf,
         fps: u32,
-        writer: Option<Box<holoface_client::video::Mp4Writer>>,
+        writer: Option<Box<holoface_sources::video::Mp4Writer>>,
     },
 }
 
@@ -300,7 +291,7 @@ impl Annotated {
                     None => {
                         // H.264 4:2:0 needs even sizes: an odd last row or column is left out.
                         let (vw, vh) = (canvas.width() & !1, canvas.height() & !1);
-                        writer.insert(Box::new(holoface_client::video::Mp4Writer::create(
+                        writer.insert(Box::new(holoface_sources::video::Mp4Writer::create(
                             path, vw, vh, *fps,
                         )?))
                     }

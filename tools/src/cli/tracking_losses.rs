@@ -230,7 +230,7 @@ struct Runner {
 
 impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
-        let step = holoface_client::frame_loop::step(&mut self.session, &mut *self.aligner, frame)?;
+        let step = holoface_client::frame_step::step(&mut self.session, &mut *self.aligner, frame)?;
         let init = match step.prepared {
             Prepared::Align { source, .. } => Some(source),
             Prepared::NoFace => None,
@@ -244,7 +244,7 @@ impl Runner {
 /// Writes a sequence's MP4 (`sequence.mp4`), pose sidecar (`poses.jsonl`) and truth file (`truth.jsonl`, one
 /// JSON line per frame); `multi-face --write-sequence` uses it too.
 pub(crate) struct SequenceExport {
-    video: holoface_client::video::Mp4Writer,
+    video: holoface_sources::video::Mp4Writer,
     poses: std::io::BufWriter<std::fs::File>,
     truth: std::io::BufWriter<std::fs::File>,
 }
@@ -259,7 +259,7 @@ impl SequenceExport {
             ))
         };
         Ok(Self {
-            video: holoface_client::video::Mp4Writer::create(
+            video: holoface_sources::video::Mp4Writer::create(
                 &dir.join("sequence.mp4"),
                 FRAME_W,
                 FRAME_H,
@@ -280,7 +280,7 @@ impl SequenceExport {
         truth: &serde_json::Value,
     ) -> anyhow::Result<()> {
         self.video.push(image)?;
-        holoface_client::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
+        holoface_sources::poses::write_line(&mut self.poses, i, cam, Some(&SCENE_CAMERA), Some(t_us))?;
         serde_json::to_writer(&mut self.truth, truth)?;
         self.truth.write_all(b"\n")?;
         Ok(())

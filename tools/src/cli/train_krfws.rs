@@ -10,10 +10,11 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::krfws::train::{
-    self, FitKind, Progress, Rng, TrainConfig, TrainFace, gt_box, nme49_inner, roc_auc, youden_threshold,
+    self, FitKind, Progress, TrainConfig, TrainFace, gt_box, roc_auc, youden_threshold,
 };
-use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS};
+use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS, nme49_inner};
 use holoface_models::metrics::{FAILURE_THRESHOLD, summarise};
+use holoface_models::rng::Rng;
 use serde::Serialize;
 
 use crate::data::{Split, default_data_root, load_folder};

@@ -25,10 +25,10 @@ use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, 
 use holoface_models::GrayView;
 use holoface_models::crop::warp_bilinear;
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
-use holoface_models::krfws::train::Rng;
 use holoface_models::metrics::{nme49, nme68, summarise};
 use holoface_models::refine::train::{RefineConfig, RefineSample, train};
 use holoface_models::refine::{RefineScratch, Refiner};
+use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
 use serde::Serialize;
 
@@ -212,7 +212,7 @@ fn augment(px: &mut [u8], size: usize, rng: &mut Rng) {
 fn wire_round_trip(px: &[u8], size: usize) -> anyhow::Result<Vec<u8>> {
     let side = u16::try_from(size).context("crop too large")?;
     let crop = WIRE.encode(px, side, side)?;
-    Ok(CropCodec::decode(&crop)?)
+    Ok(holoface_inference::decode_crop(&crop)?.to_vec())
 }
 
 /// Builds a start's crops: DAN's 112-px crop and the refiner's (the same similarity scaled), both after

@@ -1,0 +1,406 @@
+//! Interchangeable landmark aligners: the tracker, the evaluation tool and the demo all call [`Aligner`].
+//!
+//! * [`DanAligner`] runs the DAN model in-process through the alignment server's ONNX engine (used by
+//!   `holoface eval`; the remote path sends the same crop over QUIC instead).
+//! * The KRFWS aligner lives beside it once the model is trained (`krfws` module).
+
+use holoface_inference::{BatchTensor, EngineError, InferenceEngine, LandmarkOut};
+use holoface_models::crop::{Crop112, blank_outside, crop_bilinear};
+use holoface_models::geometry::{Point2, Rect, Similarity2};
+use holoface_models::image::GrayView;
+use serde::Serialize;
+use thiserror::Error;
+
+/// Which landmarks an alignment fills.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LandmarkSet {
+    /// All 68 iBUG points.
+    Ibug68,
+    /// The 51 inner points (iBUG 17..=67); the jaw slots hold the initial shape.
+    Inner51,
+}
+
+/// The aligner's own verdict on its result.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Confidence {
+    /// DAN's face/no-face head: probability that the crop holds an aligned face (higher is better).
+    FaceProbability(f32),
+    /// KRFWS failure detector: predicted landmark error (lower is better).
+    PredictedError(f32),
+}
+
+/// Which aligner produced an alignment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AnsweredBy {
+    /// DAN in this process (evaluation, `holoface track --aligner dan`).
+    LocalDan,
+    /// DAN on the alignment server, over QUIC.
+    RemoteDan,
+    /// KRFWS on the headset.
+    Krfws,
+}
+
+/// Result of one alignment, in image pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Alignment {
+    /// Landmarks in image pixels.
+    pub landmarks: [Point2; 68],
+    /// Which of them the aligner produced.
+    pub set: LandmarkSet,
+    /// The aligner's confidence signal.
+    pub confidence: Confidence,
+    /// Whether the confidence passes the aligner's threshold (a face is tracked).
+    pub accepted: bool,
+    /// Which aligner answered.
+    pub answered_by: AnsweredBy,
+}
+
+/// Errors of an aligner.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum AlignError {
+    /// The initial shape is degenerate (all points equal or not finite).
+    #[error("initial shape is degenerate")]
+    DegenerateInit,
+    /// The crop could not be cut.
+    #[error("crop: {0}")]
+    Crop(#[from] holoface_models::crop::CropError),
+    /// The inference engine failed.
+    #[error("inference: {0}")]
+    Engine(#[from] EngineError),
+    /// The model's output is unusable.
+    #[error("model output: {0}")]
+    BadOutput(String),
+}
+
+/// Aligns landmarks in a frame starting from an initial 68-point shape (image pixels).
+pub trait Aligner {
+    /// Short name for reports (`dan`, `krfws`).
+    fn name(&self) -> &'static str;
+    /// Aligns one face.
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError>;
+
+    /// Aligns a face whose initial shape was placed on a detector's box rather than carried over from
+    /// the previous frame. A coarser start: an aligner may spend more work here (KRFWS runs several
+    /// starts). Default: [`Aligner::align`].
+    fn align_detection(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> Result<Alignment, AlignError> {
+        self.align(image, init)
+    }
+
+    /// Aligns every face of one frame: one answer per candidate, in order. Default: one after another
+    /// ([`align_from`]); the remote aligner sends every face's crop at once and waits once.
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        faces
+            .iter()
+            .map(|c| align_from(self, image, &c.init, c.source))
+            .collect()
+    }
+}
+
+/// Where the initial shape of a frame came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InitSource {
+    /// A fresh detection.
+    Detection,
+    /// The previous frame's landmarks (motion-compensated when enabled).
+    Tracking,
+}
+
+/// One face to align in a frame: a tracked face (its id) or a new detection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Candidate {
+    /// The tracked face's id; `None` for a new detection (it gets an id when its alignment is accepted).
+    pub track: Option<u32>,
+    /// Initial 68-point shape (image pixels).
+    pub init: [Point2; 68],
+    /// Where it came from.
+    pub source: InitSource,
+}
+
+/// Aligns from a prepared initial shape: [`Aligner::align_detection`] after a detection,
+/// [`Aligner::align`] when tracking.
+pub fn align_from(
+    aligner: &mut (impl Aligner + ?Sized),
+    image: &GrayView<'_>,
+    init: &[Point2; 68],
+    source: InitSource,
+) -> Result<Alignment, AlignError> {
+    match source {
+        InitSource::Detection => aligner.align_detection(image, init),
+        InitSource::Tracking => aligner.align(image, init),
+    }
+}
+
+/// Each face's own region in a frame with several: its initial landmarks' box grown by this fraction on
+/// every side (the start may sit a little off the face).
+const OWN_MARGIN: f32 = 0.10;
+/// Each other face's region: its initial landmarks' box grown by this fraction on every side (cheeks and
+/// forehead beyond the landmarks; hair and ears farther out are left).
+const OTHER_MARGIN: f32 = 0.15;
+
+/// What to blank out of one face's DAN crop when the frame has several: the other faces' regions, minus
+/// the face's own ([`blank_outside`]). DAN, trained on one face per crop, otherwise drifts toward a
+/// neighbour inside its crop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Neighbours {
+    keep: Rect,
+    others: Vec<Rect>,
+}
+
+impl Neighbours {
+    /// For face `i` of `faces`; `None` when it is alone (or its start has no extent).
+    pub fn of(faces: &[Candidate], i: usize) -> Option<Self> {
+        let keep = Rect::bounding(&faces.get(i)?.init)?.grown(OWN_MARGIN);
+        let others: Vec<Rect> = faces
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i)
+            .filter_map(|(_, f)| Rect::bounding(&f.init).map(|r| r.grown(OTHER_MARGIN)))
+            .collect();
+        (!others.is_empty()).then_some(Self { keep, others })
+    }
+
+    /// Blanks the other faces out of `crop` (made through `crop_from_image`).
+    pub fn blank(&self, crop: &mut Crop112, crop_from_image: &Similarity2) {
+        blank_outside(crop, crop_from_image, &self.keep, &self.others);
+    }
+}
+
+/// The similarity that maps `init` onto the canonical crop shape.
+pub fn crop_from_image(init: &[Point2; 68], canonical: &[Point2; 68]) -> Result<Similarity2, AlignError> {
+    if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
+        return Err(AlignError::DegenerateInit);
+    }
+    Similarity2::fit(init, canonical).ok_or(AlignError::DegenerateInit)
+}
+
+/// DAN in-process: similarity crop onto the model's mean shape, one ONNX Runtime call, inverse map.
+#[derive(Debug)]
+pub struct DanAligner<E> {
+    engine: E,
+    canonical: [Point2; 68],
+    threshold: f32,
+    crop: Crop112,
+    batch: BatchTensor,
+    out: Vec<LandmarkOut>,
+    wire: Option<crate::crop_codec::CropCodec>,
+    wire_bytes: (u64, u64),
+}
+
+impl<E: InferenceEngine> DanAligner<E> {
+    /// Wraps an engine; the canonical shape and threshold come from the model's metadata.
+    pub fn new(engine: E) -> Result<Self, AlignError> {
+        let info = engine.info();
+        if info.landmark_count != 68 || info.crop_size != 112 || info.mean_shape.len() != 68 {
+            return Err(AlignError::BadOutput(format!(
+                "model has {} landmarks on a {} px crop; the client needs 68 on 112",
+                info.landmark_count, info.crop_size
+            )));
+        }
+        let canonical = std::array::from_fn(|i| Point2::new(info.mean_shape[i][0], info.mean_shape[i][1]));
+        let threshold = info.face_threshold;
+        Ok(Self {
+            engine,
+            canonical,
+            threshold,
+            crop: Crop112::default(),
+            batch: BatchTensor::new(1, 112 * 112),
+            out: vec![LandmarkOut::default()],
+            wire: None,
+            wire_bytes: (0, 0),
+        })
+    }
+
+    /// The face-probability threshold in use.
+    pub fn threshold(&self) -> f32 {
+        self.threshold
+    }
+
+    /// Overrides the face-probability threshold.
+    pub fn set_threshold(&mut self, t: f32) {
+        self.threshold = t;
+    }
+
+    /// Passes every crop through `codec` (encode, then decode as the server does) before inference, to
+    /// measure the accuracy cost of a wire encoding in-process; `None` (the default) feeds the crop as is.
+    pub fn set_wire_codec(&mut self, codec: Option<crate::crop_codec::CropCodec>) {
+        self.wire = codec;
+    }
+
+    /// Mean size of the frame requests the wire codec produced (bytes), if any crop went through it.
+    pub fn mean_request_bytes(&self) -> Option<f64> {
+        (self.wire_bytes.1 > 0).then(|| self.wire_bytes.0 as f64 / self.wire_bytes.1 as f64)
+    }
+}
+
+impl<E: InferenceEngine> Aligner for DanAligner<E> {
+    fn name(&self) -> &'static str {
+        "dan"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        self.align_among(image, init, None)
+    }
+
+    /// One face after another, each crop with the other faces blanked out ([`Neighbours`]).
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        (0..faces.len())
+            .map(|i| self.align_among(image, &faces[i].init, Neighbours::of(faces, i).as_ref()))
+            .collect()
+    }
+}
+
+impl<E: InferenceEngine> DanAligner<E> {
+    /// One face: its crop (the other faces blanked out of it when `neighbours` says where they are), one
+    /// inference, the landmarks mapped back.
+    fn align_among(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        neighbours: Option<&Neighbours>,
+    ) -> Result<Alignment, AlignError> {
+        let sim = crop_from_image(init, &self.canonical)?;
+        crop_bilinear(image, &sim, &mut self.crop)?;
+        if let Some(n) = neighbours {
+            n.blank(&mut self.crop, &sim);
+        }
+        self.batch.clear();
+        match self.wire {
+            None => self.batch.push(self.crop.as_slice())?,
+            Some(codec) => {
+                let bad = |e: image::ImageError| AlignError::BadOutput(format!("crop codec {codec}: {e}"));
+                let crop = codec.encode(self.crop.as_slice(), 112, 112).map_err(bad)?;
+                let req = holoface_protocol::FrameRequest {
+                    track_id: 0,
+                    frame_id: 0,
+                    captured_at_us: 0,
+                    deadline_ms: 0,
+                    crop,
+                };
+                let decoded = holoface_inference::decode_crop(&req.crop)
+                    .map_err(|e| AlignError::BadOutput(format!("crop codec {codec}: {e}")))?;
+                self.wire_bytes.0 += holoface_protocol::Message::FrameRequest(req).encoded_len() as u64;
+                self.wire_bytes.1 += 1;
+                self.batch.push(&decoded)?;
+            }
+        }
+        self.engine.infer(&self.batch, &mut self.out)?;
+        let out = self
+            .out
+            .first()
+            .ok_or_else(|| AlignError::BadOutput("no output".into()))?;
+        landmarks_from_crop(&out.landmarks, out.face_prob, &sim, self.threshold)
+    }
+}
+
+/// Maps DAN's crop-pixel landmarks back to the image and applies the face threshold.
+pub fn landmarks_from_crop(
+    crop_landmarks: &[[f32; 2]],
+    face_prob: f32,
+    crop_from_image: &Similarity2,
+    threshold: f32,
+) -> Result<Alignment, AlignError> {
+    if crop_landmarks.len() != 68 {
+        return Err(AlignError::BadOutput(format!(
+            "{} landmarks, expected 68",
+            crop_landmarks.len()
+        )));
+    }
+    let image_from_crop = crop_from_image.inverse().ok_or(AlignError::DegenerateInit)?;
+    let landmarks = std::array::from_fn(|i| {
+        image_from_crop.apply(Point2::new(crop_landmarks[i][0], crop_landmarks[i][1]))
+    });
+    Ok(Alignment {
+        landmarks,
+        set: LandmarkSet::Ibug68,
+        confidence: Confidence::FaceProbability(face_prob),
+        accepted: face_prob >= threshold,
+        answered_by: AnsweredBy::LocalDan,
+    })
+}
+
+/// KRFWS on the headset: 51 inner landmarks plus the failure detector's predicted error.
+#[derive(Debug)]
+pub struct KrfwsAligner {
+    model: holoface_models::krfws::Krfws,
+    scratch: holoface_models::krfws::KrfwsScratch,
+    restarts: usize,
+}
+
+/// Starts KRFWS runs on a detection frame (see [`holoface_models::krfws::Krfws::align_restarts`]).
+pub const KRFWS_DETECTION_STARTS: usize = 13;
+
+impl KrfwsAligner {
+    /// Wraps a loaded model.
+    pub fn new(model: holoface_models::krfws::Krfws) -> Self {
+        Self {
+            model,
+            scratch: holoface_models::krfws::KrfwsScratch::new(),
+            restarts: KRFWS_DETECTION_STARTS,
+        }
+    }
+
+    /// Sets the number of starts on detection frames (1 = a single alignment).
+    pub fn set_detection_starts(&mut self, starts: usize) {
+        self.restarts = starts.max(1);
+    }
+
+    fn run(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+        starts: usize,
+    ) -> Result<Alignment, AlignError> {
+        if init.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
+            return Err(AlignError::DegenerateInit);
+        }
+        let start: [Point2; 51] = std::array::from_fn(|i| init[17 + i]);
+        let mut out = start;
+        let score = self
+            .model
+            .align_restarts(image, &start, starts, &mut self.scratch, &mut out);
+        let mut landmarks = *init;
+        landmarks[17..].copy_from_slice(&out);
+        Ok(Alignment {
+            landmarks,
+            set: LandmarkSet::Inner51,
+            confidence: Confidence::PredictedError(score),
+            accepted: score < self.model.threshold(),
+            answered_by: AnsweredBy::Krfws,
+        })
+    }
+}
+
+impl Aligner for KrfwsAligner {
+    fn name(&self) -> &'static str {
+        "krfws"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        self.run(image, init, 1)
+    }
+
+    fn align_detection(
+        &mut self,
+        image: &GrayView<'_>,
+        init: &[Point2; 68],
+    ) -> Result<Alignment, AlignError> {
+        self.run(image, init, self.restarts)
+    }
+}

@@ -1,0 +1,118 @@
+//! The one frame type: [`Frame`] is a cheap view (borrowed pixels) that the tracker processes, and
+//! [`OwnedFrame`] owns its pixels, as frame sources and [`crate::tracker::LiveTracker`] hand them over;
+//! [`OwnedFrame::view`] turns one into the other without copying. [`FrameSource`] is what every source
+//! implements (an app's camera, or the readers of `holoface-sources`: image folders, recordings, MP4 files,
+//! pose sidecars), and [`SourceError`] is how it fails.
+
+use holoface_models::camera::Intrinsics;
+use holoface_models::geometry::Point2;
+use holoface_models::image::{GrayImage, GrayView};
+use holoface_models::math3::Pose;
+
+/// One camera frame as the tracker sees it: borrowed pixels, timestamp, camera.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame<'a> {
+    /// Capture time, microseconds on the frame source's clock.
+    pub timestamp_us: u64,
+    /// Grayscale pixels.
+    pub image: GrayView<'a>,
+    /// Camera intrinsics in pixels.
+    pub intrinsics: Intrinsics,
+    /// Camera-to-world transform at capture (identity when unknown).
+    pub world_from_camera: Pose,
+}
+
+/// A frame that owns its pixels.
+#[derive(Clone, Debug)]
+pub struct OwnedFrame {
+    /// Index in its source (0 for frames pushed by an app).
+    pub index: usize,
+    /// Capture time in microseconds.
+    pub timestamp_us: u64,
+    /// Grayscale pixels.
+    pub image: GrayImage,
+    /// Camera intrinsics.
+    pub intrinsics: Intrinsics,
+    /// Camera-to-world pose.
+    pub world_from_camera: Pose,
+    /// Ground-truth landmarks when the source has them.
+    pub ground_truth: Option<Vec<Point2>>,
+}
+
+impl OwnedFrame {
+    /// A frame from an app's camera: index 0, no ground truth.
+    pub fn new(timestamp_us: u64, image: GrayImage, intrinsics: Intrinsics, world_from_camera: Pose) -> Self {
+        Self {
+            index: 0,
+            timestamp_us,
+            image,
+            intrinsics,
+            world_from_camera,
+            ground_truth: None,
+        }
+    }
+
+    /// The borrowed view the tracker processes.
+    pub fn view(&self) -> Frame<'_> {
+        Frame {
+            timestamp_us: self.timestamp_us,
+            image: self.image.view(),
+            intrinsics: self.intrinsics,
+            world_from_camera: self.world_from_camera,
+        }
+    }
+}
+
+/// A sequence of frames. The readers of files, videos and streams live in `holoface-sources` (the tools'
+/// and the Python package's crate); an app implements this for its own camera.
+pub trait FrameSource {
+    /// The next frame, `Ok(None)` at the end.
+    fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError>;
+}
+
+impl FrameSource for Box<dyn FrameSource> {
+    fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
+        (**self).next_frame()
+    }
+}
+
+/// Why a [`FrameSource`] could not hand over its next frame.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SourceError {
+    /// Reading the source failed (a file, a pipe, a camera device).
+    #[error("reading {what}: {source}")]
+    Io {
+        /// What was being read (a path, `stdin`, a device name).
+        what: String,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The source's data is not a valid frame.
+    #[error("{what}, frame {frame}: {reason}")]
+    Invalid {
+        /// The source (a path, `stdin`, a device name).
+        what: String,
+        /// The frame's index in the source.
+        frame: usize,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A source's own error (the readers of `holoface-sources` report through this, with the file and the
+    /// frame in the message).
+    #[error(transparent)]
+    Other(Box<dyn std::error::Error + Send + Sync>),
+}
+
+/// Intrinsics for a camera with a 60° horizontal field of view and the principal point at the centre, used
+/// when a source does not state its own.
+pub fn default_intrinsics(width: usize, height: usize) -> Intrinsics {
+    let f = 0.5 * width as f64 / (30f64.to_radians()).tan();
+    Intrinsics {
+        fx: f,
+        fy: f,
+        cx: 0.5 * (width as f64 - 1.0),
+        cy: 0.5 * (height as f64 - 1.0),
+    }
+}

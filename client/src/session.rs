@@ -1,0 +1,831 @@
+//! The tracker session: an IO-free state machine that turns frames into per-frame face results.
+//!
+//! Call order per frame (the aligner runs in between, locally or over the network):
+//!
+//! 1. [`TrackerSession::prepare`] decides between detection and tracking and returns the initial shape:
+//!    the previous landmarks moved with the headset (motion compensation), or the mean shape placed on a
+//!    fresh detection; or "no face" when nothing is tracked and the detector finds nothing.
+//! 2. The caller aligns the frame from that shape with any [`crate::align::Aligner`] (KRFWS on the
+//!    headset, DAN over QUIC) or gives up (`None`, e.g. the link missed its deadline and no local aligner).
+//! 3. [`TrackerSession::complete`] verifies the alignment with the aligner's own signal, fits CANDIDE-3,
+//!    converts to a world pose, predicts it ahead with the Kalman filters, denoises, derives attributes,
+//!    and updates the tracking state. Every frame gets a [`FrameResult`]: a face or an explicit "no face".
+//!
+//! The session never reads a clock: time comes from the frames' timestamps. The three steps are driven in one
+//! place, [`crate::frame_step::step`]; call that rather than writing the sequence out again.
+
+use holoface_models::camera::Intrinsics;
+use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
+use holoface_models::geometry::{Point2, Rect};
+use holoface_models::kalman::{Denoiser, KalmanParams, PositionPredictor};
+use holoface_models::math3::{Pose, Quat, Vec3};
+use holoface_models::pose::{
+    AttributeThresholds, Attributes, WorldPose, compensate_headset_motion, world_pose,
+};
+use serde::Serialize;
+
+pub use crate::align::InitSource;
+use crate::align::{Alignment, Confidence, LandmarkSet};
+use crate::detect::{DetectError, FaceDetector, shape_from_detection};
+use crate::frame::Frame;
+
+/// Tracker settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SessionOptions {
+    /// CANDIDE fit settings for a warm-started frame.
+    pub fit: FitOptions,
+    /// Kalman filter parameters.
+    pub kalman: KalmanParams,
+    /// How far ahead the rendered position is predicted (seconds; HoloFace: 0.12).
+    pub lookahead_s: f64,
+    /// Attribute thresholds.
+    pub attributes: AttributeThresholds,
+    /// Apply headset-motion compensation to the tracking initialisation.
+    pub motion_compensation: bool,
+    /// Most faces tracked at once (at least 1). With 1 (the default) the tracker follows one face and
+    /// detects only while it has none, as before multi-face tracking.
+    pub max_faces: usize,
+    /// While at least one face but fewer than `max_faces` are tracked, the detector runs every this many
+    /// frames to find the others (at least 1); with no face tracked it runs on every frame.
+    pub detect_every: u32,
+}
+
+impl Default for SessionOptions {
+    fn default() -> Self {
+        Self {
+            fit: FitOptions {
+                max_iterations: 3,
+                ..FitOptions::default()
+            },
+            kalman: KalmanParams::default(),
+            lookahead_s: 0.12,
+            attributes: AttributeThresholds::default(),
+            motion_compensation: true,
+            max_faces: 1,
+            detect_every: 10,
+        }
+    }
+}
+
+/// A new detection overlapping a tracked face's box by more than this (intersection over union) is that
+/// face again, not a new one.
+pub const DETECTION_OVERLAP_IOU: f32 = 0.3;
+/// Two tracks whose landmark boxes overlap by more than this after alignment have converged on one face;
+/// the younger one is dropped.
+pub const DUPLICATE_TRACK_IOU: f32 = 0.5;
+
+pub use crate::align::Candidate;
+
+/// A face tracked in one frame, with its stable id.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrackedFace {
+    /// The track's id: the same for as long as the face is tracked, never reused within a session.
+    pub id: u32,
+    /// The face.
+    pub update: FaceUpdate,
+}
+
+/// What happened to one [`Candidate`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CandidateOutcome {
+    /// The face's id: the candidate's track, or the id a new detection was given; `None` for a new
+    /// detection that was not accepted.
+    pub id: Option<u32>,
+    /// The face, or why this candidate has none.
+    pub result: FrameResult,
+}
+
+/// Every face of one frame.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameFaces {
+    /// The faces tracked in this frame, oldest track first.
+    pub faces: Vec<TrackedFace>,
+    /// Per candidate, in the order [`TrackerSession::prepare_faces`] returned them.
+    pub outcomes: Vec<CandidateOutcome>,
+}
+
+impl FrameFaces {
+    /// Why the frame has no face: `None` when it has one; else the first candidate's reason, or
+    /// [`NoFaceReason::NotDetected`] when there was no candidate.
+    pub fn no_face_reason(&self) -> Option<NoFaceReason> {
+        if !self.faces.is_empty() {
+            return None;
+        }
+        Some(
+            self.outcomes
+                .iter()
+                .find_map(|o| match o.result {
+                    FrameResult::NoFace(r) => Some(r),
+                    FrameResult::Face(_) => None,
+                })
+                .unwrap_or(NoFaceReason::NotDetected),
+        )
+    }
+
+    /// The first face's answer in the single-face form.
+    pub fn first(&self) -> FrameResult {
+        self.faces.first().map_or_else(
+            || FrameResult::NoFace(self.no_face_reason().unwrap_or(NoFaceReason::NotDetected)),
+            |f| FrameResult::Face(f.update),
+        )
+    }
+}
+
+/// What `prepare` decided.
+// One value per frame, moved once: boxing the large variant would only add an allocation per frame.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Prepared {
+    /// Align from this shape (image pixels).
+    Align {
+        /// Initial 68-point shape.
+        init: [Point2; 68],
+        /// Where it came from.
+        source: InitSource,
+    },
+    /// Nothing tracked and nothing detected: the frame's answer is "no face".
+    NoFace,
+}
+
+/// A tracked face in one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceUpdate {
+    /// Landmarks in image pixels.
+    pub landmarks: [Point2; 68],
+    /// Which landmarks the aligner produced.
+    pub landmark_set: LandmarkSet,
+    /// The aligner's confidence.
+    pub confidence: Confidence,
+    /// CANDIDE-3 fit in the camera frame (head → camera).
+    pub fit: FitResult,
+    /// Head pose in the world.
+    pub world: WorldPose,
+    /// World position predicted `lookahead_s` ahead (Kalman), metres.
+    pub predicted_position: Vec3,
+    /// Position and rotation to display (prediction after two-frame denoising).
+    pub display: (Vec3, Quat),
+    /// Attributes from the expression weights.
+    pub attributes: Attributes,
+    /// Where the frame's initial shape came from.
+    pub init: InitSource,
+    /// Which aligner answered this frame.
+    pub answered_by: crate::align::AnsweredBy,
+}
+
+/// The answer for one frame: a face, or an explicit absence with the reason.
+// One value per frame, moved once: boxing the large variant would only add an allocation per frame.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FrameResult {
+    /// A face was tracked.
+    Face(FaceUpdate),
+    /// No face in this frame.
+    NoFace(NoFaceReason),
+}
+
+/// Why a frame has no face.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NoFaceReason {
+    /// The detector found nothing.
+    NotDetected,
+    /// The aligner's own signal rejected the result (tracking lost; detection runs on the next frame).
+    Rejected,
+    /// No aligner answered in time.
+    NoAnswer,
+    /// The 3-D fit failed.
+    FitFailed,
+}
+
+struct Track {
+    id: u32,
+    landmarks: [Point2; 68],
+    fit: FitResult,
+    intrinsics: Intrinsics,
+    world_from_camera: Pose,
+    timestamp_us: u64,
+    predictor: PositionPredictor,
+    attributes: Attributes,
+    denoiser: Denoiser,
+}
+
+/// The tracker state machine. See the module documentation for the call order.
+pub struct TrackerSession {
+    detector: Box<dyn FaceDetector>,
+    model: FaceModel,
+    mean: [Point2; 68],
+    opts: SessionOptions,
+    /// Tracked faces, oldest first.
+    tracks: Vec<Track>,
+    next_id: u32,
+    frames_since_detection: u32,
+    detector_runs: u64,
+    pending: Vec<Candidate>,
+}
+
+impl std::fmt::Debug for TrackerSession {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TrackerSession")
+            .field("tracks", &self.tracks.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl TrackerSession {
+    /// A session with a detector, a CANDIDE model and the canonical mean shape used to place detections.
+    pub fn new(
+        detector: Box<dyn FaceDetector>,
+        model: FaceModel,
+        mean: [Point2; 68],
+        opts: SessionOptions,
+    ) -> Self {
+        let opts = SessionOptions {
+            max_faces: opts.max_faces.max(1),
+            detect_every: opts.detect_every.max(1),
+            ..opts
+        };
+        Self {
+            detector,
+            model,
+            mean,
+            opts,
+            tracks: Vec::new(),
+            next_id: 0,
+            frames_since_detection: 0,
+            detector_runs: 0,
+            pending: Vec::new(),
+        }
+    }
+
+    /// The CANDIDE-3 model the session fits.
+    pub fn face_model(&self) -> &FaceModel {
+        &self.model
+    }
+
+    /// Whether a face is currently tracked.
+    pub fn is_tracking(&self) -> bool {
+        !self.tracks.is_empty()
+    }
+
+    /// The ids of the faces tracked now, oldest first.
+    pub fn track_ids(&self) -> Vec<u32> {
+        self.tracks.iter().map(|t| t.id).collect()
+    }
+
+    /// How often the detector has run in this session.
+    pub fn detector_runs(&self) -> u64 {
+        self.detector_runs
+    }
+
+    /// Forgets every tracked face (the next frame runs detection). Ids are not reused afterwards.
+    pub fn reset(&mut self) {
+        self.tracks.clear();
+        self.pending.clear();
+    }
+
+    /// Step 1, one face: the initial shape for `frame`, from tracking or detection. With
+    /// `max_faces > 1` use [`Self::prepare_faces`]; this returns its first candidate only.
+    pub fn prepare(&mut self, frame: &Frame<'_>) -> Result<Prepared, DetectError> {
+        Ok(self
+            .prepare_faces(frame)?
+            .first()
+            .map_or(Prepared::NoFace, |c| Prepared::Align {
+                init: c.init,
+                source: c.source,
+            }))
+    }
+
+    /// Step 3, one face: completes the first candidate of [`Self::prepare`] (`None`: no aligner answered).
+    pub fn complete(&mut self, frame: &Frame<'_>, alignment: Option<Alignment>) -> FrameResult {
+        let mut alignments = vec![None; self.pending.len()];
+        if let Some(first) = alignments.first_mut() {
+            *first = alignment;
+        }
+        self.complete_faces(frame, &alignments).first()
+    }
+
+    /// Step 1: one [`Candidate`] per tracked face (its previous landmarks moved with the headset) and, when
+    /// fewer than `max_faces` are tracked and the detection cadence says so, one per new detection that
+    /// does not overlap a tracked face. Empty means "no face" (nothing tracked, nothing detected).
+    pub fn prepare_faces(&mut self, frame: &Frame<'_>) -> Result<Vec<Candidate>, DetectError> {
+        let mut candidates: Vec<Candidate> = self
+            .tracks
+            .iter()
+            .map(|t| {
+                let mut init = t.landmarks;
+                if self.opts.motion_compensation {
+                    compensate_headset_motion(
+                        &t.landmarks,
+                        &t.intrinsics,
+                        &t.world_from_camera,
+                        &frame.intrinsics,
+                        &frame.world_from_camera,
+                        t.fit.translation.norm(),
+                        &mut init,
+                    );
+                }
+                Candidate {
+                    track: Some(t.id),
+                    init,
+                    source: InitSource::Tracking,
+                }
+            })
+            .collect();
+        self.pending.clear();
+        let room = self.opts.max_faces.saturating_sub(self.tracks.len());
+        let due = self.tracks.is_empty() || self.frames_since_detection + 1 >= self.opts.detect_every;
+        if room > 0 && due {
+            self.frames_since_detection = 0;
+            self.detector_runs += 1;
+            let dets = self.detector.detect(&frame.image)?;
+            let mut added = 0;
+            for d in &dets {
+                if added == room {
+                    break;
+                }
+                let mut init = [Point2::default(); 68];
+                if !shape_from_detection(&self.mean, d, &mut init) {
+                    continue;
+                }
+                let Some(bbox) = Rect::bounding(&init) else {
+                    continue;
+                };
+                let overlaps = candidates
+                    .iter()
+                    .filter_map(|c| Rect::bounding(&c.init))
+                    .any(|b| b.iou(&bbox) > DETECTION_OVERLAP_IOU);
+                if !overlaps {
+                    candidates.push(Candidate {
+                        track: None,
+                        init,
+                        source: InitSource::Detection,
+                    });
+                    added += 1;
+                }
+            }
+        } else {
+            self.frames_since_detection = self.frames_since_detection.saturating_add(1);
+        }
+        self.pending.clone_from(&candidates);
+        Ok(candidates)
+    }
+
+    /// Step 3: per candidate of the last [`Self::prepare_faces`] (in its order; `None`: no aligner
+    /// answered that one), verify, fit, pose, predict, filter; a new detection whose alignment is accepted
+    /// becomes a track with a new id. Tracks that converge on one face are merged (the older one stays).
+    pub fn complete_faces(&mut self, frame: &Frame<'_>, alignments: &[Option<Alignment>]) -> FrameFaces {
+        let pending = std::mem::take(&mut self.pending);
+        let mut outcomes = Vec::with_capacity(pending.len());
+        for (i, c) in pending.iter().enumerate() {
+            let alignment = alignments.get(i).copied().flatten();
+            outcomes.push(self.complete_one(frame, c, alignment));
+        }
+        self.merge_duplicates(&mut outcomes);
+        let mut faces: Vec<TrackedFace> = outcomes
+            .iter()
+            .filter_map(|o| match (o.id, o.result) {
+                (Some(id), FrameResult::Face(update)) => Some(TrackedFace { id, update }),
+                _ => None,
+            })
+            .collect();
+        faces.sort_by_key(|f| f.id);
+        FrameFaces { faces, outcomes }
+    }
+
+    fn complete_one(
+        &mut self,
+        frame: &Frame<'_>,
+        c: &Candidate,
+        alignment: Option<Alignment>,
+    ) -> CandidateOutcome {
+        let index = c.track.and_then(|id| self.tracks.iter().position(|t| t.id == id));
+        let no_face = |id, reason| CandidateOutcome {
+            id,
+            result: FrameResult::NoFace(reason),
+        };
+        let Some(a) = alignment else {
+            // Keep the track: a late answer is not evidence that the face is gone.
+            return no_face(c.track, NoFaceReason::NoAnswer);
+        };
+        if !a.accepted {
+            if let Some(i) = index {
+                self.tracks.remove(i);
+            }
+            return no_face(c.track, NoFaceReason::Rejected);
+        }
+        let warm = index.map(|i| self.tracks[i].fit);
+        let opts = if warm.is_some() {
+            self.opts.fit
+        } else {
+            FitOptions {
+                max_iterations: 10,
+                ..self.opts.fit
+            }
+        };
+        let Ok(fitted) = fit(&self.model, &frame.intrinsics, &a.landmarks, warm.as_ref(), &opts) else {
+            if let Some(i) = index {
+                self.tracks.remove(i);
+            }
+            return no_face(c.track, NoFaceReason::FitFailed);
+        };
+        let world = world_pose(&fitted, &frame.world_from_camera);
+        let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
+            Some(mut t) => {
+                let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;
+                t.predictor.step(dt, world.position);
+                (t.id, t.predictor, t.attributes, t.denoiser)
+            }
+            None => {
+                let id = self.next_id;
+                self.next_id = self.next_id.wrapping_add(1);
+                (
+                    id,
+                    PositionPredictor::new(world.position, self.opts.kalman),
+                    Attributes::default(),
+                    Denoiser::default(),
+                )
+            }
+        };
+        let predicted_position = predictor.predict(self.opts.lookahead_s);
+        let display = denoiser.apply(predicted_position, world.rotation);
+        let attributes = self.opts.attributes.update(&fitted.weights, prev_attr);
+        let track = Track {
+            id,
+            landmarks: a.landmarks,
+            fit: fitted,
+            intrinsics: frame.intrinsics,
+            world_from_camera: frame.world_from_camera,
+            timestamp_us: frame.timestamp_us,
+            predictor,
+            attributes,
+            denoiser,
+        };
+        // Oldest first: a track keeps its place, a new one goes after every older one.
+        let at = self.tracks.partition_point(|t| t.id < id);
+        self.tracks.insert(at, track);
+        CandidateOutcome {
+            id: Some(id),
+            result: FrameResult::Face(FaceUpdate {
+                landmarks: a.landmarks,
+                landmark_set: a.set,
+                confidence: a.confidence,
+                fit: fitted,
+                world,
+                predicted_position,
+                display,
+                attributes,
+                init: c.source,
+                answered_by: a.answered_by,
+            }),
+        }
+    }
+
+    /// Drops the younger of two tracks whose landmark boxes overlap by more than [`DUPLICATE_TRACK_IOU`]
+    /// (faces crossing can pull two tracks onto one face); its outcome becomes "rejected".
+    fn merge_duplicates(&mut self, outcomes: &mut [CandidateOutcome]) {
+        let mut i = 0;
+        while i < self.tracks.len() {
+            let Some(a) = Rect::bounding(&self.tracks[i].landmarks) else {
+                i += 1;
+                continue;
+            };
+            let dup = (i + 1..self.tracks.len()).find(|&j| {
+                Rect::bounding(&self.tracks[j].landmarks).is_some_and(|b| a.iou(&b) > DUPLICATE_TRACK_IOU)
+            });
+            match dup {
+                Some(j) => {
+                    let gone = self.tracks.remove(j).id;
+                    for o in outcomes.iter_mut().filter(|o| o.id == Some(gone)) {
+                        o.result = FrameResult::NoFace(NoFaceReason::Rejected);
+                    }
+                }
+                None => i += 1,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use holoface_models::image::GrayView;
+
+    use super::*;
+    use crate::detect::Detection;
+    use holoface_models::candide::{Wfm, project_landmarks};
+    use holoface_models::geometry::Rect;
+
+    const K: Intrinsics = Intrinsics::new(500.0, 500.0, 160.0, 120.0);
+
+    fn model() -> FaceModel {
+        let base = std::env::var_os("HOLOFACE_DATA").map_or_else(
+            || std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
+            std::path::PathBuf::from,
+        );
+        let text =
+            String::from_utf8_lossy(&std::fs::read(base.join("candide3/candide3.wfm")).unwrap()).into_owned();
+        FaceModel::from_wfm(&Wfm::parse(&text).unwrap()).unwrap()
+    }
+
+    /// Detector fake: reports a face at the truth's keypoints while `present`.
+    struct FakeDetector {
+        present: bool,
+        keypoints: [Point2; 6],
+    }
+    impl FaceDetector for FakeDetector {
+        fn detect(&mut self, _: &GrayView<'_>) -> Result<Vec<Detection>, DetectError> {
+            Ok(if self.present {
+                vec![Detection {
+                    bbox: Rect::default(),
+                    score: 0.9,
+                    keypoints: self.keypoints,
+                }]
+            } else {
+                vec![]
+            })
+        }
+    }
+
+    fn truth_landmarks(m: &FaceModel, z: f64) -> [Point2; 68] {
+        let gt = FitResult {
+            rotation: Quat::IDENTITY,
+            translation: Vec3::new(0.0, 0.0, z),
+            weights: holoface_models::expression::ExpressionWeights::NEUTRAL,
+            rmse_px: 0.0,
+            iterations: 0,
+            converged: true,
+        };
+        let mut lm = [Point2::new(160.0, 120.0); 68];
+        assert!(project_landmarks(m, &K, &gt, &mut lm));
+        lm
+    }
+
+    #[test]
+    fn detect_then_track_then_lose() {
+        let m = model();
+        let lm = truth_landmarks(&m, 0.6);
+        let avg = |r: std::ops::Range<usize>| {
+            let n = r.len() as f32;
+            let (x, y) = lm[r].iter().fold((0.0, 0.0), |(x, y), p| (x + p.x, y + p.y));
+            Point2::new(x / n, y / n)
+        };
+        let kp = [
+            avg(36..42),
+            avg(42..48),
+            lm[30],
+            Point2::new(0.5 * (lm[62].x + lm[66].x), lm[62].y),
+            lm[0],
+            lm[16],
+        ];
+        let det = FakeDetector {
+            present: true,
+            keypoints: kp,
+        };
+        let mean = holoface_models::shape::dan_mean_shape();
+        let mut s = TrackerSession::new(Box::new(det), m, mean, SessionOptions::default());
+        let pixels = vec![0u8; 320 * 240];
+        let frame = |t: u64| Frame {
+            timestamp_us: t,
+            image: GrayView::new(&pixels, 320, 240, 320).unwrap(),
+            intrinsics: K,
+            world_from_camera: Pose::IDENTITY,
+        };
+        let answer = |accepted: bool| Alignment {
+            landmarks: lm,
+            set: LandmarkSet::Ibug68,
+            confidence: Confidence::FaceProbability(if accepted { 0.9 } else { 0.01 }),
+            accepted,
+            answered_by: crate::align::AnsweredBy::RemoteDan,
+        };
+        // Frame 1: detection.
+        let f1 = frame(0);
+        assert!(matches!(
+            s.prepare(&f1).unwrap(),
+            Prepared::Align {
+                source: InitSource::Detection,
+                ..
+            }
+        ));
+        let FrameResult::Face(u) = s.complete(&f1, Some(answer(true))) else {
+            panic!("expected a face")
+        };
+        assert!(
+            (u.fit.translation.z - 0.6).abs() < 0.02,
+            "{:?}",
+            u.fit.translation
+        );
+        // Frame 2: tracking from the previous landmarks, no detector call.
+        let f2 = frame(33_000);
+        match s.prepare(&f2).unwrap() {
+            Prepared::Align {
+                init,
+                source: InitSource::Tracking,
+            } => assert!(init[30].dist(lm[30]) < 1e-3),
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            s.complete(&f2, Some(answer(true))),
+            FrameResult::Face(_)
+        ));
+        // Frame 3: no answer in time keeps the track; frame 4: rejection loses it.
+        let f3 = frame(66_000);
+        s.prepare(&f3).unwrap();
+        assert_eq!(s.complete(&f3, None), FrameResult::NoFace(NoFaceReason::NoAnswer));
+        assert!(s.is_tracking());
+        s.prepare(&f3).unwrap();
+        assert_eq!(
+            s.complete(&f3, Some(answer(false))),
+            FrameResult::NoFace(NoFaceReason::Rejected)
+        );
+        assert!(!s.is_tracking());
+    }
+
+    /// Detector fake for several faces: one detection per entry of `faces` (keypoints), counting calls.
+    struct Crowd {
+        faces: std::sync::Arc<std::sync::Mutex<Vec<[Point2; 6]>>>,
+        calls: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+    }
+    impl FaceDetector for Crowd {
+        fn detect(&mut self, _: &GrayView<'_>) -> Result<Vec<Detection>, DetectError> {
+            self.calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let faces = self.faces.lock().unwrap().clone();
+            Ok(faces
+                .into_iter()
+                .map(|keypoints| Detection {
+                    bbox: Rect::default(),
+                    score: 0.9,
+                    keypoints,
+                })
+                .collect())
+        }
+    }
+
+    fn keypoints_of(lm: &[Point2; 68]) -> [Point2; 6] {
+        let avg = |r: std::ops::Range<usize>| {
+            let n = r.len() as f32;
+            let (x, y) = lm[r].iter().fold((0.0, 0.0), |(x, y), p| (x + p.x, y + p.y));
+            Point2::new(x / n, y / n)
+        };
+        [
+            avg(36..42),
+            avg(42..48),
+            lm[30],
+            Point2::new(0.5 * (lm[62].x + lm[66].x), lm[62].y),
+            lm[0],
+            lm[16],
+        ]
+    }
+
+    fn shifted(lm: &[Point2; 68], dx: f32) -> [Point2; 68] {
+        lm.map(|p| Point2::new(p.x + dx, p.y))
+    }
+
+    /// The truth face nearest to `init` (the aligner fake: it snaps onto the face it starts on).
+    fn snap(truths: &[[Point2; 68]], init: &[Point2; 68], accepted: bool) -> Alignment {
+        let c = holoface_models::geometry::centroid(init);
+        let lm = *truths
+            .iter()
+            .min_by(|a, b| {
+                let da = holoface_models::geometry::centroid(&a[..]).dist(c);
+                let db = holoface_models::geometry::centroid(&b[..]).dist(c);
+                da.total_cmp(&db)
+            })
+            .unwrap();
+        Alignment {
+            landmarks: lm,
+            set: LandmarkSet::Ibug68,
+            confidence: Confidence::FaceProbability(0.9),
+            accepted,
+            answered_by: crate::align::AnsweredBy::Krfws,
+        }
+    }
+
+    #[test]
+    fn several_faces_keep_their_ids_and_detection_follows_the_cadence() {
+        let m = model();
+        let base = truth_landmarks(&m, 1.2);
+        // Three faces side by side (a 320-px frame; the faces are about 60 px wide at 1.2 m).
+        let truths = [shifted(&base, -100.0), base, shifted(&base, 100.0)];
+        let faces = std::sync::Arc::new(std::sync::Mutex::new(vec![
+            keypoints_of(&truths[0]),
+            keypoints_of(&truths[1]),
+        ]));
+        let calls = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let det = Crowd {
+            faces: faces.clone(),
+            calls: calls.clone(),
+        };
+        let opts = SessionOptions {
+            max_faces: 3,
+            detect_every: 5,
+            ..SessionOptions::default()
+        };
+        let mut s = TrackerSession::new(Box::new(det), m, holoface_models::shape::dan_mean_shape(), opts);
+        let pixels = vec![0u8; 320 * 240];
+        let frame = |i: u64| Frame {
+            timestamp_us: i * 33_000,
+            image: GrayView::new(&pixels, 320, 240, 320).unwrap(),
+            intrinsics: K,
+            world_from_camera: Pose::IDENTITY,
+        };
+        let run = |s: &mut TrackerSession, i: u64, reject: Option<u32>| {
+            let f = frame(i);
+            let cands = s.prepare_faces(&f).unwrap();
+            let answers: Vec<_> = cands
+                .iter()
+                .map(|c| Some(snap(&truths, &c.init, c.track != reject || reject.is_none())))
+                .collect();
+            (cands, s.complete_faces(&f, &answers))
+        };
+        let ids = |r: &FrameFaces| r.faces.iter().map(|f| f.id).collect::<Vec<_>>();
+
+        // Frame 0: two detections become tracks 0 and 1.
+        let (c, r) = run(&mut s, 0, None);
+        assert_eq!(
+            c.iter().map(|c| c.source).collect::<Vec<_>>(),
+            [InitSource::Detection; 2]
+        );
+        assert_eq!(ids(&r), [0, 1]);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::Relaxed), 1);
+        // A third person steps in; the detector only looks again on frame 5 (every 5th frame while fewer
+        // than 3 are tracked), and never re-adds the two tracked faces.
+        faces.lock().unwrap().push(keypoints_of(&truths[2]));
+        for i in 1..5 {
+            let (c, r) = run(&mut s, i, None);
+            assert!(
+                c.iter().all(|c| c.source == InitSource::Tracking),
+                "frame {i}: {c:?}"
+            );
+            assert_eq!(ids(&r), [0, 1], "frame {i}");
+        }
+        assert_eq!(calls.load(std::sync::atomic::Ordering::Relaxed), 1);
+        let (c, r) = run(&mut s, 5, None);
+        assert_eq!(c.len(), 3, "two tracked + one new: {c:?}");
+        assert_eq!(ids(&r), [0, 1, 2]);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::Relaxed), 2);
+        // Full: the detector no longer runs.
+        for i in 6..20 {
+            let (_, r) = run(&mut s, i, None);
+            assert_eq!(ids(&r), [0, 1, 2]);
+        }
+        assert_eq!(calls.load(std::sync::atomic::Ordering::Relaxed), 2);
+        // Face 1's alignment is rejected: only that track is lost, the others keep their ids and filters.
+        let (_, r) = run(&mut s, 20, Some(1));
+        assert_eq!(ids(&r), [0, 2]);
+        let lost = r.outcomes.iter().find(|o| o.id == Some(1)).unwrap();
+        assert_eq!(lost.result, FrameResult::NoFace(NoFaceReason::Rejected));
+        // Found again at the next detection: a new id, never a reused one.
+        let mut found = None;
+        for i in 21..30 {
+            let (_, r) = run(&mut s, i, None);
+            if r.faces.len() == 3 {
+                found = Some(ids(&r));
+                break;
+            }
+        }
+        assert_eq!(found, Some(vec![0, 2, 3]));
+        assert_eq!(s.track_ids(), [0, 2, 3]);
+    }
+
+    #[test]
+    fn tracks_that_converge_on_one_face_are_merged_into_the_older() {
+        let m = model();
+        let base = truth_landmarks(&m, 1.2);
+        let truths = [shifted(&base, -60.0), shifted(&base, 60.0)];
+        let faces = std::sync::Arc::new(std::sync::Mutex::new(vec![
+            keypoints_of(&truths[0]),
+            keypoints_of(&truths[1]),
+        ]));
+        let det = Crowd {
+            faces,
+            calls: std::sync::Arc::default(),
+        };
+        let opts = SessionOptions {
+            max_faces: 2,
+            ..SessionOptions::default()
+        };
+        let mut s = TrackerSession::new(Box::new(det), m, holoface_models::shape::dan_mean_shape(), opts);
+        let pixels = vec![0u8; 320 * 240];
+        let f = Frame {
+            timestamp_us: 0,
+            image: GrayView::new(&pixels, 320, 240, 320).unwrap(),
+            intrinsics: K,
+            world_from_camera: Pose::IDENTITY,
+        };
+        let c = s.prepare_faces(&f).unwrap();
+        let answers: Vec<_> = c.iter().map(|c| Some(snap(&truths, &c.init, true))).collect();
+        assert_eq!(s.complete_faces(&f, &answers).faces.len(), 2);
+        // Both aligners snap onto the left face (as when two people cross): one track remains, the older.
+        let f2 = Frame {
+            timestamp_us: 33_000,
+            ..f
+        };
+        let c = s.prepare_faces(&f2).unwrap();
+        let answers: Vec<_> = c.iter().map(|_| Some(snap(&truths[..1], &base, true))).collect();
+        let r = s.complete_faces(&f2, &answers);
+        assert_eq!(r.faces.iter().map(|f| f.id).collect::<Vec<_>>(), [0]);
+        assert_eq!(
+            r.outcomes.iter().find(|o| o.id == Some(1)).map(|o| o.result),
+            Some(FrameResult::NoFace(NoFaceReason::Rejected))
+        );
+    }
+}

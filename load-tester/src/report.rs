@@ -1,0 +1,284 @@
+//! What the run measured: per-interval rows while it runs (throughput, latency percentiles, drops, deadline
+//! misses, the server's resident memory), then the totals over the measured window, the SLO verdict, the
+//! JSON results and the latency plot.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use hdrhistogram::Histogram;
+use holoface_tools::plot::{Series, series_plot_png};
+use serde_json::json;
+
+use crate::Args;
+
+/// Frames counted over a window (one report interval) or the whole measured run.
+#[derive(Default)]
+pub(crate) struct Counts {
+    /// Frames sent.
+    pub(crate) sent: u64,
+    /// Frames answered with landmarks.
+    pub(crate) answered: u64,
+    /// Answers later than the deadline.
+    pub(crate) misses: u64,
+    /// Frames the server dropped, by reason.
+    pub(crate) dropped: HashMap<&'static str, u64>,
+}
+
+/// What every headset records into, and the report reads out.
+pub(crate) struct Stats {
+    /// Latencies of the current interval, µs.
+    pub(crate) interval: Histogram<u64>,
+    /// Latencies after the warm-up, µs.
+    pub(crate) total: Histogram<u64>,
+    /// Counts of the current interval.
+    pub(crate) window: Counts,
+    /// Counts after the warm-up.
+    pub(crate) totals: Counts,
+    /// Whether the warm-up is over.
+    pub(crate) measuring: bool,
+    /// Headsets that stopped sending because the server said Goaway.
+    pub(crate) goaways: u64,
+}
+
+impl Stats {
+    pub(crate) fn new() -> anyhow::Result<Self> {
+        Ok(Self {
+            interval: Histogram::new_with_bounds(1, 60_000_000, 3)?,
+            total: Histogram::new_with_bounds(1, 60_000_000, 3)?,
+            window: Counts::default(),
+            totals: Counts::default(),
+            measuring: false,
+            goaways: 0,
+        })
+    }
+
+    /// Applies `f` to the interval's counts and, once measuring, to the totals.
+    pub(crate) fn each(&mut self, f: impl Fn(&mut Counts)) {
+        f(&mut self.window);
+        if self.measuring {
+            f(&mut self.totals);
+        }
+    }
+}
+
+/// Resident memory of process `pid` (this one when `None`), KiB.
+fn rss_kib(pid: Option<u32>) -> Option<u64> {
+    let path = pid.map_or_else(|| "/proc/self/status".to_owned(), |p| format!("/proc/{p}/status"));
+    let text = std::fs::read_to_string(path).ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmRSS:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// The measurement window and what was sampled over it.
+pub(crate) struct Measured {
+    /// One row per report interval.
+    timeline: Vec<serde_json::Value>,
+    /// Resident memory at the end of the warm-up and at the last interval, KiB.
+    rss: (Option<u64>, Option<u64>),
+    /// Length of the measured window (shorter when every headset left on the server's Goaway).
+    duration: Duration,
+}
+
+/// The run's clock: headsets start at `t0`, measuring starts after `warmup` and stops at `end`.
+#[derive(Clone, Copy)]
+pub(crate) struct Window {
+    pub(crate) t0: Instant,
+    pub(crate) warmup: Duration,
+    pub(crate) duration: Duration,
+    pub(crate) end: Instant,
+}
+
+/// Prints one row per `interval_s` until the window ends (or every headset has left on a Goaway), sampling
+/// the resident memory of `rss_pid` (`Some(u32::MAX)`: none; `None`: this process).
+pub(crate) fn monitor(
+    stats: &Mutex<Stats>,
+    window: &Window,
+    interval_s: f64,
+    rss_pid: Option<u32>,
+    tasks: &[tokio::task::JoinHandle<anyhow::Result<()>>],
+) -> Measured {
+    let Window {
+        t0,
+        warmup,
+        mut duration,
+        end,
+    } = *window;
+    let rss = move || {
+        if rss_pid == Some(u32::MAX) {
+            None
+        } else {
+            rss_kib(rss_pid)
+        }
+    };
+    println!(
+        "{:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>7} {:>9}",
+        "t s", "sent/s", "ok/s", "p50 ms", "p99 ms", "p999 ms", "drops", "misses", "rss MiB"
+    );
+    let mut timeline = Vec::new();
+    let (mut rss_start, mut rss_end) = (None, None);
+    let interval = Duration::from_secs_f64(interval_s);
+    let mut next = t0 + interval;
+    let warm_at = t0 + warmup;
+    let mut warmed = false;
+    while next <= end + interval / 2 {
+        // The totals cover exactly [t0 + warm-up, end), whatever the report interval.
+        if !warmed && warm_at < next {
+            std::thread::sleep(warm_at.saturating_duration_since(Instant::now()));
+            stats.lock().unwrap_or_else(PoisonError::into_inner).measuring = true;
+            rss_start = rss();
+            warmed = true;
+        }
+        std::thread::sleep(next.saturating_duration_since(Instant::now()));
+        let now_rss = rss();
+        rss_end = now_rss;
+        let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
+        let secs = interval.as_secs_f64();
+        let ms = |q: f64, h: &Histogram<u64>| h.value_at_quantile(q) as f64 / 1e3;
+        let drops: u64 = s.window.dropped.values().sum();
+        let row = json!({
+            "t_s": next.duration_since(t0).as_secs_f64(),
+            "sent_per_s": s.window.sent as f64 / secs, "answered_per_s": s.window.answered as f64 / secs,
+            "p50_ms": ms(0.5, &s.interval), "p99_ms": ms(0.99, &s.interval), "p999_ms": ms(0.999, &s.interval),
+            "drops": drops, "misses": s.window.misses, "rss_kib": now_rss,
+        });
+        println!(
+            "{:>7.1} {:>8.1} {:>8.1} {:>8.2} {:>8.2} {:>8.2} {:>7} {:>7} {:>9}",
+            next.duration_since(t0).as_secs_f64(),
+            s.window.sent as f64 / secs,
+            s.window.answered as f64 / secs,
+            ms(0.5, &s.interval),
+            ms(0.99, &s.interval),
+            ms(0.999, &s.interval),
+            drops,
+            s.window.misses,
+            now_rss.map_or("-".to_owned(), |k| format!("{:.1}", k as f64 / 1024.0)),
+        );
+        timeline.push(row);
+        s.interval.reset();
+        s.window = Counts::default();
+        let all_left = s.goaways > 0 && tasks.iter().all(tokio::task::JoinHandle::is_finished);
+        drop(s);
+        next += interval;
+        if all_left {
+            // Every headset left on the server's Goaway: the run is over early.
+            duration = Instant::now().saturating_duration_since(warm_at).min(duration);
+            break;
+        }
+    }
+    Measured {
+        timeline,
+        rss: (rss_start, rss_end),
+        duration,
+    }
+}
+
+/// Totals over the measured window, the SLO verdict (`Ok(false)`: broken), the JSON results and the plot.
+pub(crate) fn finish(
+    args: &Args,
+    stats: &Arc<Mutex<Stats>>,
+    measured: Measured,
+    server: SocketAddr,
+    stagger: Duration,
+) -> anyhow::Result<bool> {
+    let Measured {
+        timeline,
+        rss: (rss_start, rss_end),
+        duration,
+    } = measured;
+    let s = stats.lock().unwrap_or_else(PoisonError::into_inner);
+    let secs = duration.as_secs_f64();
+    let dropped: u64 = s.totals.dropped.values().sum();
+    let lost = s.totals.sent.saturating_sub(s.totals.answered + dropped);
+    let p = |q: f64| s.total.value_at_quantile(q) as f64 / 1e3;
+    let throughput = s.totals.answered as f64 / secs;
+    let drop_rate = (dropped + lost) as f64 / s.totals.sent.max(1) as f64;
+    let growth = match (rss_start, rss_end) {
+        (Some(a), Some(b)) if a > 0 => Some(100.0 * (b as f64 - a as f64) / a as f64),
+        _ => None,
+    };
+    let mut broken = Vec::new();
+    if let Some(m) = args.max_p99_ms.filter(|&m| p(0.99) > m) {
+        broken.push(format!("p99 {:.2} ms > {m} ms", p(0.99)));
+    }
+    if let Some(m) = args.max_drop_rate.filter(|&m| drop_rate > m) {
+        broken.push(format!("drop rate {drop_rate:.4} > {m}"));
+    }
+    if let Some(m) = args.min_throughput.filter(|&m| throughput < m) {
+        broken.push(format!("throughput {throughput:.1}/s < {m}/s"));
+    }
+    if let Some(m) = args.max_rss_growth_pct {
+        match growth {
+            Some(g) if g > m => broken.push(format!("RSS grew {g:.2} % > {m} %")),
+            None => broken.push("RSS growth SLO set but RSS could not be sampled".to_owned()),
+            _ => {}
+        }
+    }
+    let report = json!({
+        "config": {
+            "clients": args.clients, "fps": args.fps, "duration_s": args.duration_s, "warmup_s": args.warmup_s,
+            "deadline_ms": args.deadline_ms, "stagger_ms": stagger.as_secs_f64() * 1e3,
+            "recordings": args.recordings, "server": server.to_string(), "spawned_server": args.spawn_server,
+        },
+        "totals": {
+            "sent": s.totals.sent, "answered": s.totals.answered, "dropped": s.totals.dropped,
+            "unanswered": lost, "deadline_misses": s.totals.misses, "throughput_per_s": throughput,
+            "drop_rate": drop_rate, "headsets_told_goaway": s.goaways,
+            "latency_ms": {"p50": p(0.5), "p99": p(0.99), "p999": p(0.999), "max": s.total.max() as f64 / 1e3,
+                           "mean": s.total.mean() / 1e3},
+        },
+        "rss_kib": {"start": rss_start, "end": rss_end, "growth_pct": growth},
+        "timeline": timeline,
+        "slo": {"broken": broken},
+    });
+    println!(
+        "total: {} sent, {} answered ({throughput:.1}/s), {dropped} dropped, {lost} unanswered, {} deadline misses; \
+         latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",
+        s.totals.sent,
+        s.totals.answered,
+        s.totals.misses,
+        p(0.5),
+        p(0.99),
+        p(0.999),
+        growth.map_or("n/a".to_owned(), |g| format!("{g:.2} %"))
+    );
+    for path in [&args.out, &args.plot] {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
+    std::fs::write(&args.out, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let series = |key: &str, label: &str| Series {
+        label: label.to_owned(),
+        points: report["timeline"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|r| Some((r["t_s"].as_f64()?, r[key].as_f64()?)))
+            .collect(),
+    };
+    let png = series_plot_png(
+        &[
+            series("p50_ms", "p50"),
+            series("p99_ms", "p99"),
+            series("p999_ms", "p999"),
+        ],
+        "time s",
+        "latency ms",
+    );
+    std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
+    println!("wrote {} and {}", args.out.display(), args.plot.display());
+    if s.goaways > 0 {
+        println!(
+            "{} of {} headsets stopped early on the server's Goaway",
+            s.goaways, args.clients
+        );
+    }
+    for b in &broken {
+        eprintln!("SLO broken: {b}");
+    }
+    Ok(broken.is_empty())
+}

@@ -1,0 +1,1042 @@
+//! Server configuration: one clap + serde struct, a TOML file the CLI cannot
+//! silently clobber, and the resolved [`Settings`] the server runs with.
+//!
+//! Precedence, highest first: command-line flag, `HOLOFACE_*` environment
+//! variable, TOML file (`--config`), built-in default. Every field the TOML
+//! can set is an `Option`, so a flag that was not given is `None` and cannot
+//! overwrite the file ([`ServerConfig::merge`]); the `cli_does_not_clobber_toml_*`
+//! tests guard this. The ONNX Runtime path additionally falls back to the
+//! conventional `ORT_DYLIB_PATH` variable, below the TOML file.
+//!
+//! [`ServerConfig::parse_and_merge`] is pure (it is handed the file reader);
+//! [`ServerConfig::load`] is the binary's entry point.
+
+use std::ffi::OsString;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use clap::{Args, Parser, ValueEnum};
+use holoface_protocol::ReplyChannel;
+use serde::{Deserialize, Serialize};
+
+use crate::batcher::{BatchPolicy, BatcherConfig};
+use crate::metrics_http::is_internal_addr;
+use holoface_inference::{OnnxOptions, Provider};
+
+/// Default QUIC listen address.
+pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
+/// Default model path (relative to the working directory).
+pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
+
+/// Default refinement-cascade model path (relative to the working directory).
+pub const DEFAULT_REFINE_MODEL: &str = "models/assets/refiner.bin";
+
+/// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).
+pub const MIN_IDLE_TIMEOUT_MS: u64 = 100;
+
+/// Configuration errors.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// Command-line parsing failed (or `--help` / `--version` was asked for).
+    #[error(transparent)]
+    Cli(#[from] clap::Error),
+    /// The config file could not be read.
+    #[error("reading config file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The access-tokens file could not be read.
+    #[error("reading tokens file {path}: {source}")]
+    TokensFile {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The config file is not valid TOML for this schema.
+    #[error("parsing config file {path}: {source}")]
+    Toml {
+        /// The file.
+        path: PathBuf,
+        /// The parse error.
+        source: Box<toml::de::Error>,
+    },
+    /// A value is out of range or inconsistent.
+    #[error("invalid configuration: {0}")]
+    Invalid(String),
+}
+
+/// How replies travel back (the TOML/CLI spelling of [`ReplyChannel`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ReplyMode {
+    /// One QUIC datagram per reply (default; see BENCHMARKS.md).
+    Datagram,
+    /// Framed replies on one server-to-client unidirectional stream.
+    Stream,
+}
+
+impl From<ReplyMode> for ReplyChannel {
+    fn from(m: ReplyMode) -> Self {
+        match m {
+            ReplyMode::Datagram => Self::Datagram,
+            ReplyMode::Stream => Self::Stream,
+        }
+    }
+}
+
+/// When a partial batch goes to an idle engine (the TOML/CLI spelling of [`BatchPolicy`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BatchPolicyName {
+    /// At once: no batching delay for an idle engine; batches fill while it is busy (default).
+    WorkConserving,
+    /// After the oldest frame has waited `max_wait_us` (throughput over latency).
+    MaxWait,
+}
+
+/// `[quic]`: endpoint, TLS and handshake.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct QuicConfig {
+    /// UDP address to listen on [default: 0.0.0.0:4433].
+    #[arg(long, env = "HOLOFACE_LISTEN")]
+    pub listen: Option<SocketAddr>,
+    /// PEM certificate chain; without it a self-signed certificate is generated.
+    #[arg(long, env = "HOLOFACE_CERT")]
+    pub cert: Option<PathBuf>,
+    /// PEM private key for `cert`.
+    #[arg(long, env = "HOLOFACE_KEY")]
+    pub key: Option<PathBuf>,
+    /// Subject names of the self-signed certificate [default: localhost].
+    #[arg(long = "self-signed-name", value_delimiter = ',')]
+    pub self_signed_names: Option<Vec<String>>,
+    /// Also write the certificate's SHA-256 fingerprint to this file.
+    #[arg(long, env = "HOLOFACE_FINGERPRINT_FILE")]
+    pub fingerprint_file: Option<PathBuf>,
+    /// Close connections idle this long, ms [default: 10000; at least 100].
+    #[arg(long)]
+    pub idle_timeout_ms: Option<u64>,
+    /// A client must send its ClientHello within this, ms [default: 5000; at least 1].
+    #[arg(long)]
+    pub hello_timeout_ms: Option<u64>,
+    /// Reply transport offered to clients [default: datagram].
+    #[arg(long, value_enum)]
+    pub reply_channel: Option<ReplyMode>,
+}
+
+/// `[auth]`: access tokens.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthConfig {
+    /// Accepted tokens (comma-separated on the command line).
+    #[arg(
+        long = "token",
+        env = "HOLOFACE_TOKENS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub tokens: Option<Vec<String>>,
+    /// File with one accepted token per line (added to `tokens`).
+    #[arg(long)]
+    pub tokens_file: Option<PathBuf>,
+    /// Accept clients without a valid token (development only) [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub allow_anonymous: Option<bool>,
+}
+
+/// `[limits]`: what one client, and all of them, may use.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LimitsConfig {
+    /// Concurrent authenticated clients; more are closed with Overloaded [default: 64].
+    #[arg(long, env = "HOLOFACE_MAX_CLIENTS")]
+    pub max_clients: Option<usize>,
+    /// Connections without an authenticated hello yet; at the limit the oldest is evicted, from half of it
+    /// unvalidated peers get a QUIC Retry [default: max(max_clients, 16)].
+    #[arg(long)]
+    pub max_pending: Option<usize>,
+    /// Crops one client may have in flight (open frame streams; a headset sends one per tracked face per
+    /// frame) [default: 8].
+    #[arg(long)]
+    pub max_in_flight: Option<u16>,
+    /// Frames older than this (or their own deadline) are dropped, ms [default: 100; at least 1].
+    #[arg(long)]
+    pub max_frame_age_ms: Option<u32>,
+    /// Bound on graceful shutdown, ms [default: 5000].
+    #[arg(long)]
+    pub shutdown_timeout_ms: Option<u64>,
+    /// Crops (frame streams) per second one client may send, 1 s burst; a frame with three faces counts
+    /// three. Above it the client is closed with Overloaded; 0 = unlimited [default: 240].
+    #[arg(long)]
+    pub max_frame_rate: Option<u32>,
+}
+
+/// `[batch]`: the dynamic batcher.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BatchConfig {
+    /// Largest inference batch [default: 8].
+    #[arg(long, env = "HOLOFACE_MAX_BATCH")]
+    pub max_batch: Option<usize>,
+    /// When a partial batch goes to an idle engine [default: work-conserving].
+    #[arg(long = "batch-policy", value_enum)]
+    pub policy: Option<BatchPolicyName>,
+    /// With `policy = "max-wait"`: longest wait for a fuller batch, µs [default: 2000].
+    #[arg(long)]
+    pub max_wait_us: Option<u64>,
+    /// Queued frames kept per client; newer ones supersede older [default: 1].
+    #[arg(long)]
+    pub per_client_queue: Option<usize>,
+}
+
+/// `[engine]`: ONNX Runtime.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EngineConfig {
+    /// The DAN ONNX model [default: models/assets/dan.onnx].
+    #[arg(long, env = "HOLOFACE_MODEL")]
+    pub model: Option<PathBuf>,
+    /// libonnxruntime.so [default: $ORT_DYLIB_PATH, else .cache/onnxruntime/libonnxruntime.so.1.31.1].
+    #[arg(long)]
+    pub ort_dylib: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads [default: available cores].
+    #[arg(long, env = "HOLOFACE_INTRA_THREADS")]
+    pub intra_threads: Option<usize>,
+    /// Run the model on ONNX Runtime's CUDA execution provider; needs `ort_dylib` to be the onnxruntime-gpu
+    /// build (`make ort-gpu`), CUDA 13, cuDNN 9 and a GPU. Without them the CPU runs it and the log and
+    /// `holoface_engine_info` say why [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub cuda: Option<bool>,
+    /// The CUDA device ordinal [default: 0].
+    #[arg(long)]
+    pub cuda_device: Option<i32>,
+    /// With `cuda`: refuse to start instead of falling back to the CPU [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub cuda_required: Option<bool>,
+    /// Let ONNX Runtime's intra-op threads spin between ops [default: false].
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub spin: Option<bool>,
+    /// Engine instances (ONNX Runtime sessions, each on its own thread with `intra_threads` threads) fed
+    /// by the one batcher; a batch goes to whichever is idle [default: 1].
+    #[arg(long = "engine-instances", env = "HOLOFACE_ENGINE_INSTANCES")]
+    pub instances: Option<usize>,
+}
+
+/// `[refine]`: the refinement cascade after DAN.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RefineConfig {
+    /// Refine DAN's landmarks with the cascade (more precise answers; every client version benefits)
+    /// [default: true].
+    #[arg(
+        id = "refine",
+        long = "refine",
+        num_args = 0..=1,
+        default_missing_value = "true",
+        env = "HOLOFACE_REFINE"
+    )]
+    pub enabled: Option<bool>,
+    /// The refinement cascade's model file [default: models/assets/refiner.bin].
+    #[arg(id = "refine_model", long = "refine-model", env = "HOLOFACE_REFINE_MODEL")]
+    pub model: Option<PathBuf>,
+}
+
+/// `[internal]`: the metrics/health listener.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InternalConfig {
+    /// Serve /metrics and /health here (loopback or private address only) [default: off].
+    #[arg(long, env = "HOLOFACE_METRICS_LISTEN")]
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+/// `[log]`: logging (installed by the binary).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogConfig {
+    /// Log filter, e.g. `info` or `holoface_server=debug`; RUST_LOG overrides [default: info].
+    #[arg(long = "log-level", env = "HOLOFACE_LOG")]
+    pub level: Option<String>,
+}
+
+impl LogConfig {
+    /// The `tracing_subscriber::EnvFilter` directive: `RUST_LOG` if set, else
+    /// the configured level, with quinn and rustls capped at `info`.
+    pub fn filter_directive(&self) -> String {
+        if let Ok(env) = std::env::var("RUST_LOG")
+            && !env.trim().is_empty()
+        {
+            return env;
+        }
+        let level = self.level.as_deref().unwrap_or("info");
+        format!("{level},quinn=info,quinn_proto=info,rustls=info")
+    }
+}
+
+/// Everything the server can be configured with, as parsed (all optional).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Parser, Serialize, Deserialize)]
+#[command(
+    name = "holoface-server",
+    version,
+    about = "HoloFace alignment server (QUIC + ONNX Runtime)"
+)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// TOML config file (see deploy/server.example.toml).
+    #[arg(long, short = 'c', env = "HOLOFACE_CONFIG")]
+    #[serde(skip)]
+    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub quic: QuicConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub auth: AuthConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub limits: LimitsConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub batch: BatchConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub engine: EngineConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub refine: RefineConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub internal: InternalConfig,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub log: LogConfig,
+}
+
+macro_rules! merge_fields {
+    ($hi:expr, $lo:expr, $($f:ident),+) => {
+        Self { $($f: $hi.$f.or($lo.$f)),+ }
+    };
+}
+
+impl QuicConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(
+            self,
+            lo,
+            listen,
+            cert,
+            key,
+            self_signed_names,
+            fingerprint_file,
+            idle_timeout_ms,
+            hello_timeout_ms,
+            reply_channel
+        )
+    }
+}
+impl AuthConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, tokens, tokens_file, allow_anonymous)
+    }
+}
+impl LimitsConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(
+            self,
+            lo,
+            max_clients,
+            max_pending,
+            max_in_flight,
+            max_frame_age_ms,
+            shutdown_timeout_ms,
+            max_frame_rate
+        )
+    }
+}
+impl BatchConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, max_batch, policy, max_wait_us, per_client_queue)
+    }
+}
+impl EngineConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(
+            self,
+            lo,
+            model,
+            ort_dylib,
+            intra_threads,
+            cuda,
+            cuda_device,
+            cuda_required,
+            spin,
+            instances
+        )
+    }
+}
+impl RefineConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, enabled, model)
+    }
+}
+impl InternalConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, metrics_listen)
+    }
+}
+impl LogConfig {
+    fn merge(self, lo: Self) -> Self {
+        merge_fields!(self, lo, level)
+    }
+}
+
+impl ServerConfig {
+    /// Field-by-field: values set in `self` win, unset ones come from `lower`.
+    pub fn merge(self, lower: Self) -> Self {
+        Self {
+            config: self.config.or(lower.config),
+            quic: self.quic.merge(lower.quic),
+            auth: self.auth.merge(lower.auth),
+            limits: self.limits.merge(lower.limits),
+            batch: self.batch.merge(lower.batch),
+            engine: self.engine.merge(lower.engine),
+            refine: self.refine.merge(lower.refine),
+            internal: self.internal.merge(lower.internal),
+            log: self.log.merge(lower.log),
+        }
+    }
+
+    /// Parses a TOML config file's text.
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Toml {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })
+    }
+
+    /// Parses `args` (program name first), reads the `--config` file through
+    /// `read_file` if one is named, and merges: CLI/env over file. Pure apart
+    /// from `read_file` and clap's environment look-ups.
+    pub fn parse_and_merge<I, T>(
+        args: I,
+        read_file: impl FnOnce(&Path) -> std::io::Result<String>,
+    ) -> Result<Self, ConfigError>
+    where
+        I: IntoIterator<Item = T>,
+        T: Into<OsString> + Clone,
+    {
+        let cli = Self::try_parse_from(args)?;
+        let Some(path) = cli.config.clone() else {
+            return Ok(cli);
+        };
+        let text = read_file(&path).map_err(|source| ConfigError::Read {
+            path: path.clone(),
+            source,
+        })?;
+        let file = Self::from_toml(&text, &path)?;
+        Ok(cli.merge(file))
+    }
+
+    /// The binary's entry point: process arguments, the config file, then
+    /// [`Self::resolve`].
+    pub fn load() -> Result<(Settings, LogConfig), ConfigError> {
+        let cfg = Self::parse_and_merge(std::env::args_os(), |p| std::fs::read_to_string(p))?;
+        let log = cfg.log.clone();
+        Ok((cfg.resolve()?, log))
+    }
+
+    /// Applies defaults and checks ranges. Reads `auth.tokens_file` if set.
+    pub fn resolve(self) -> Result<Settings, ConfigError> {
+        let invalid = |m: String| ConfigError::Invalid(m);
+        let q = self.quic;
+        let tls = match (q.cert, q.key) {
+            (Some(cert), Some(key)) => TlsSource::Files { cert, key },
+            (None, None) => TlsSource::SelfSigned {
+                names: q
+                    .self_signed_names
+                    .unwrap_or_else(|| vec!["localhost".to_owned()]),
+            },
+            _ => return Err(invalid("quic.cert and quic.key must be given together".into())),
+        };
+        let listen = match q.listen {
+            Some(a) => a,
+            None => DEFAULT_LISTEN
+                .parse()
+                .map_err(|e| invalid(format!("default listen address: {e}")))?,
+        };
+        let (tokens, allow_anonymous) = resolve_tokens(self.auth)?;
+        // Zero and too-small durations are refused, not silently raised: an operator who wrote 0 meant
+        // something (off? immediate?) that the server cannot do.
+        let idle_timeout_ms = q.idle_timeout_ms.unwrap_or(10_000);
+        if idle_timeout_ms < MIN_IDLE_TIMEOUT_MS {
+            return Err(invalid(format!(
+                "quic.idle_timeout_ms = {idle_timeout_ms}: must be at least {MIN_IDLE_TIMEOUT_MS} (a shorter idle \
+                 timeout closes healthy connections between keep-alives)"
+            )));
+        }
+        let hello_timeout_ms = q.hello_timeout_ms.unwrap_or(5_000);
+        if hello_timeout_ms == 0 {
+            return Err(invalid("quic.hello_timeout_ms = 0: must be at least 1".into()));
+        }
+        let max_frame_age_ms = self.limits.max_frame_age_ms.unwrap_or(100);
+        if max_frame_age_ms == 0 {
+            return Err(invalid(
+                "limits.max_frame_age_ms = 0: must be at least 1 (0 would expire every frame)".into(),
+            ));
+        }
+        let max_batch = self.batch.max_batch.unwrap_or(8);
+        if !(1..=256).contains(&max_batch) {
+            return Err(invalid(format!("batch.max_batch = {max_batch}, allowed 1..=256")));
+        }
+        let policy = match (
+            self.batch.policy.unwrap_or(BatchPolicyName::WorkConserving),
+            self.batch.max_wait_us,
+        ) {
+            (BatchPolicyName::WorkConserving, None) => BatchPolicy::WorkConserving,
+            (BatchPolicyName::WorkConserving, Some(us)) => {
+                return Err(invalid(format!(
+                    "batch.max_wait_us = {us} applies only to batch.policy = \"max-wait\" \
+                     (the default policy, work-conserving, never waits)"
+                )));
+            }
+            (BatchPolicyName::MaxWait, us) => {
+                BatchPolicy::MaxWait(Duration::from_micros(us.unwrap_or(2_000)))
+            }
+        };
+        let max_clients = self.limits.max_clients.unwrap_or(64);
+        if max_clients == 0 {
+            return Err(invalid("limits.max_clients must be at least 1".into()));
+        }
+        let max_in_flight = self.limits.max_in_flight.unwrap_or(8).max(1);
+        if let Some(addr) = self.internal.metrics_listen
+            && !is_internal_addr(addr.ip())
+        {
+            return Err(invalid(format!(
+                "internal.metrics_listen {addr} must be a loopback or private address"
+            )));
+        }
+        let provider = resolve_provider(&self.engine)?;
+        let ort_dylib = self
+            .engine
+            .ort_dylib
+            .unwrap_or_else(holoface_inference::default_ort_dylib);
+        let engine_instances = self.engine.instances.unwrap_or(1);
+        if !(1..=64).contains(&engine_instances) {
+            return Err(invalid(format!(
+                "engine.instances {engine_instances} must be within 1..=64"
+            )));
+        }
+        let intra_threads = self
+            .engine
+            .intra_threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from))
+            .max(1);
+        Ok(Settings {
+            listen,
+            tls,
+            fingerprint_file: q.fingerprint_file,
+            idle_timeout: Duration::from_millis(idle_timeout_ms),
+            hello_timeout: Duration::from_millis(hello_timeout_ms),
+            reply_channel: q.reply_channel.unwrap_or(ReplyMode::Datagram).into(),
+            tokens,
+            allow_anonymous,
+            max_clients,
+            max_pending: self.limits.max_pending.unwrap_or(max_clients.max(16)).max(1),
+            max_in_flight,
+            max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
+            shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
+            max_frame_rate: self.limits.max_frame_rate.unwrap_or(240),
+            batch: BatcherConfig {
+                max_batch,
+                policy,
+                per_client_queue: self.batch.per_client_queue.unwrap_or(1).max(1),
+                max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
+            },
+            engine: OnnxOptions {
+                model: self.engine.model.unwrap_or_else(|| PathBuf::from(DEFAULT_MODEL)),
+                ort_dylib,
+                intra_threads,
+                max_batch,
+                provider,
+                spin: self.engine.spin.unwrap_or(false),
+            },
+            engine_instances,
+            refine_model: match (self.refine.enabled.unwrap_or(true), self.refine.model) {
+                (true, model) => Some(model.unwrap_or_else(|| PathBuf::from(DEFAULT_REFINE_MODEL))),
+                (false, None) => None,
+                (false, Some(m)) => {
+                    return Err(invalid(format!(
+                        "refine.model = {} is set but refine.enabled = false: drop one of them",
+                        m.display()
+                    )));
+                }
+            },
+            metrics_listen: self.internal.metrics_listen,
+        })
+    }
+}
+
+/// The access tokens (inline and from `auth.tokens_file`) and whether anonymous clients are allowed.
+fn resolve_tokens(auth: AuthConfig) -> Result<(Vec<String>, bool), ConfigError> {
+    let invalid = |m: String| ConfigError::Invalid(m);
+    let mut tokens = auth.tokens.unwrap_or_default();
+    if let Some(path) = &auth.tokens_file {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::TokensFile {
+            path: path.clone(),
+            source,
+        })?;
+        tokens.extend(
+            text.lines()
+                .map(str::trim)
+                .filter(|l| !l.is_empty() && !l.starts_with('#'))
+                .map(str::to_owned),
+        );
+    }
+    tokens.retain(|t| !t.is_empty());
+    let allow_anonymous = auth.allow_anonymous.unwrap_or(false);
+    if tokens.is_empty() && !allow_anonymous {
+        return Err(invalid(
+            "no access tokens: set auth.tokens / --token / HOLOFACE_TOKENS (or auth.allow_anonymous for development)"
+                .into(),
+        ));
+    }
+    if let Some(t) = tokens
+        .iter()
+        .find(|t| t.len() > holoface_protocol::limits::MAX_TOKEN_LEN)
+    {
+        return Err(invalid(format!(
+            "a token is {} bytes; the protocol allows at most {}",
+            t.len(),
+            holoface_protocol::limits::MAX_TOKEN_LEN
+        )));
+    }
+    Ok((tokens, allow_anonymous))
+}
+
+/// The execution provider: the CPU, or CUDA with its device and whether it is required.
+fn resolve_provider(engine: &EngineConfig) -> Result<Provider, ConfigError> {
+    let provider = match (
+        engine.cuda.unwrap_or(false),
+        engine.cuda_device,
+        engine.cuda_required,
+    ) {
+        (true, device, required) => {
+            let device = device.unwrap_or(0);
+            if device < 0 {
+                return Err(ConfigError::Invalid(format!(
+                    "engine.cuda_device {device} must be 0 or more"
+                )));
+            }
+            Provider::Cuda {
+                device,
+                required: required.unwrap_or(false),
+            }
+        }
+        (false, Some(_), _) | (false, _, Some(true)) => {
+            return Err(ConfigError::Invalid(
+                "engine.cuda_device and engine.cuda_required need engine.cuda = true".into(),
+            ));
+        }
+        (false, _, _) => Provider::Cpu,
+    };
+    Ok(provider)
+}
+
+/// Where the server's certificate comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TlsSource {
+    /// PEM files.
+    Files {
+        /// Certificate chain.
+        cert: PathBuf,
+        /// Private key.
+        key: PathBuf,
+    },
+    /// A self-signed certificate generated at start for these names.
+    SelfSigned {
+        /// Subject alternative names.
+        names: Vec<String>,
+    },
+}
+
+/// The resolved configuration the server runs with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// UDP listen address.
+    pub listen: SocketAddr,
+    /// Certificate source.
+    pub tls: TlsSource,
+    /// Where to write the certificate fingerprint, if anywhere.
+    pub fingerprint_file: Option<PathBuf>,
+    /// QUIC idle timeout.
+    pub idle_timeout: Duration,
+    /// Time allowed for the ClientHello.
+    pub hello_timeout: Duration,
+    /// Reply transport offered to clients.
+    pub reply_channel: ReplyChannel,
+    /// Accepted tokens.
+    pub tokens: Vec<String>,
+    /// Accept any token.
+    pub allow_anonymous: bool,
+    /// Concurrent client cap (authenticated clients).
+    pub max_clients: usize,
+    /// Budget of connections without an authenticated hello.
+    pub max_pending: usize,
+    /// Per-client frames in flight.
+    pub max_in_flight: u16,
+    /// Server-side cap on a frame's age.
+    pub max_frame_age: Duration,
+    /// Bound on graceful shutdown.
+    pub shutdown_timeout: Duration,
+    /// Frames per second per client (token bucket, 1 s burst); 0 = unlimited.
+    pub max_frame_rate: u32,
+    /// Batcher limits.
+    pub batch: BatcherConfig,
+    /// ONNX Runtime engine options (each instance's).
+    pub engine: OnnxOptions,
+    /// Engine instances fed by the batcher.
+    pub engine_instances: usize,
+    /// The refinement cascade run after DAN (`None`: off).
+    pub refine_model: Option<PathBuf>,
+    /// Internal metrics listener.
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+impl Settings {
+    /// Settings for tests and benchmarks: loopback on an ephemeral port,
+    /// self-signed certificate, one token, the refinement cascade `refine_model` (`None`: off),
+    /// everything else default.
+    pub fn for_loopback(
+        token: &str,
+        model: PathBuf,
+        refine_model: Option<PathBuf>,
+        ort_dylib: PathBuf,
+    ) -> Result<Self, ConfigError> {
+        let cfg = ServerConfig {
+            quic: QuicConfig {
+                listen: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
+                ..QuicConfig::default()
+            },
+            auth: AuthConfig {
+                tokens: Some(vec![token.to_owned()]),
+                ..AuthConfig::default()
+            },
+            engine: EngineConfig {
+                model: Some(model),
+                ort_dylib: Some(ort_dylib),
+                ..EngineConfig::default()
+            },
+            refine: RefineConfig {
+                enabled: Some(refine_model.is_some()),
+                model: refine_model,
+            },
+            ..ServerConfig::default()
+        };
+        cfg.resolve()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TOML: &str = r#"
+        [quic]
+        listen = "127.0.0.1:5000"
+        reply_channel = "stream"
+        [auth]
+        tokens = ["from-file"]
+        [batch]
+        max_batch = 16
+        policy = "max-wait"
+        max_wait_us = 500
+        [engine]
+        model = "/srv/dan.onnx"
+        intra_threads = 3
+        [limits]
+        max_clients = 7
+    "#;
+
+    fn parse(args: &[&str]) -> ServerConfig {
+        let mut argv = vec!["holoface-server", "--config", "server.toml"];
+        argv.extend_from_slice(args);
+        ServerConfig::parse_and_merge(argv, |p| {
+            assert_eq!(p, Path::new("server.toml"));
+            Ok(TOML.to_owned())
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_when_flags_absent() {
+        let cfg = parse(&[]);
+        assert_eq!(cfg.batch.max_batch, Some(16));
+        assert_eq!(cfg.batch.max_wait_us, Some(500));
+        assert_eq!(cfg.quic.reply_channel, Some(ReplyMode::Stream));
+        assert_eq!(cfg.engine.intra_threads, Some(3));
+        assert_eq!(cfg.limits.max_clients, Some(7));
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.batch.max_batch, 16);
+        assert_eq!(s.batch.policy, BatchPolicy::MaxWait(Duration::from_micros(500)));
+        assert_eq!(s.reply_channel, ReplyChannel::Stream);
+        assert_eq!(s.listen, "127.0.0.1:5000".parse().unwrap());
+        assert_eq!(s.tokens, vec!["from-file".to_owned()]);
+    }
+
+    #[test]
+    fn batching_is_work_conserving_unless_max_wait_is_chosen() {
+        let resolve = |toml: &str| {
+            ServerConfig::parse_and_merge(
+                ["holoface-server", "--config", "s.toml", "--allow-anonymous"],
+                |_| Ok(toml.to_owned()),
+            )
+            .unwrap()
+            .resolve()
+        };
+        assert_eq!(resolve("").unwrap().batch.policy, BatchPolicy::WorkConserving);
+        assert_eq!(
+            resolve("[batch]\npolicy = \"max-wait\"").unwrap().batch.policy,
+            BatchPolicy::MaxWait(Duration::from_millis(2))
+        );
+        let err = resolve("[batch]\nmax_wait_us = 2000").unwrap_err().to_string();
+        assert!(err.contains("max_wait_us") && err.contains("max-wait"), "{err}");
+        let cli = ServerConfig::parse_and_merge(
+            [
+                "holoface-server",
+                "--allow-anonymous",
+                "--batch-policy",
+                "max-wait",
+                "--max-wait-us",
+                "700",
+            ],
+            |_| unreachable!("no config file"),
+        )
+        .unwrap()
+        .resolve()
+        .unwrap();
+        assert_eq!(cli.batch.policy, BatchPolicy::MaxWait(Duration::from_micros(700)));
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_other_fields_of_a_section() {
+        // Setting one batch flag must not reset the other batch fields.
+        let cfg = parse(&["--max-batch", "4"]);
+        assert_eq!(cfg.batch.max_batch, Some(4));
+        assert_eq!(cfg.batch.max_wait_us, Some(500));
+        assert_eq!(cfg.engine.model, Some(PathBuf::from("/srv/dan.onnx")));
+    }
+
+    #[test]
+    fn cli_does_not_clobber_toml_but_explicit_flags_win() {
+        let cfg = parse(&[
+            "--listen",
+            "127.0.0.1:6000",
+            "--reply-channel",
+            "datagram",
+            "--token",
+            "a,b",
+        ]);
+        assert_eq!(cfg.quic.listen, Some("127.0.0.1:6000".parse().unwrap()));
+        assert_eq!(cfg.quic.reply_channel, Some(ReplyMode::Datagram));
+        assert_eq!(cfg.auth.tokens, Some(vec!["a".to_owned(), "b".to_owned()]));
+        assert_eq!(cfg.limits.max_clients, Some(7));
+    }
+
+    #[test]
+    fn defaults_without_a_file() {
+        let cfg =
+            ServerConfig::parse_and_merge(["holoface-server", "--token", "t"], |_| panic!("no file named"))
+                .unwrap();
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.listen, DEFAULT_LISTEN.parse().unwrap());
+        assert_eq!(s.batch.max_batch, 8);
+        assert_eq!(s.batch.per_client_queue, 1);
+        assert_eq!(s.max_in_flight, 8);
+        assert_eq!(s.reply_channel, ReplyChannel::Datagram);
+        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+        assert_eq!(
+            s.refine_model,
+            Some(PathBuf::from(DEFAULT_REFINE_MODEL)),
+            "refinement is on by default"
+        );
+        assert_eq!(s.metrics_listen, None);
+        assert!(matches!(s.tls, TlsSource::SelfSigned { ref names } if names == &["localhost"]));
+    }
+
+    #[test]
+    fn cuda_settings_resolve_to_a_provider() {
+        let parse = |toml: &'static str| {
+            ServerConfig::parse_and_merge(["x", "-c", "f.toml", "--token", "t"], move |_| Ok(toml.into()))
+                .and_then(ServerConfig::resolve)
+                .map(|s| s.engine.provider)
+        };
+        assert_eq!(parse("").unwrap(), Provider::Cpu);
+        assert_eq!(
+            parse("[engine]\ncuda = true\n").unwrap(),
+            Provider::Cuda {
+                device: 0,
+                required: false
+            }
+        );
+        assert_eq!(
+            parse("[engine]\ncuda = true\ncuda_device = 1\ncuda_required = true\n").unwrap(),
+            Provider::Cuda {
+                device: 1,
+                required: true
+            }
+        );
+        for bad in ["[engine]\ncuda_device = 1\n", "[engine]\ncuda_required = true\n"] {
+            let e = parse(bad).unwrap_err().to_string();
+            assert!(e.contains("need engine.cuda = true"), "{bad}: {e}");
+        }
+        let e = parse("[engine]\ncuda = true\ncuda_device = -1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("cuda_device -1"), "{e}");
+    }
+
+    #[test]
+    fn unknown_toml_keys_are_rejected() {
+        let err =
+            ServerConfig::parse_and_merge(["x", "-c", "f.toml"], |_| Ok("[batch]\nmax_bach = 3\n".into()))
+                .unwrap_err();
+        assert!(err.to_string().contains("max_bach"), "{err}");
+    }
+
+    #[test]
+    fn invalid_values_are_refused() {
+        let no_tokens = ServerConfig::default().resolve().unwrap_err().to_string();
+        assert!(no_tokens.contains("no access tokens"), "{no_tokens}");
+        let mut cfg = ServerConfig::default();
+        cfg.auth.allow_anonymous = Some(true);
+        cfg.internal.metrics_listen = Some("0.0.0.0:9000".parse().unwrap());
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("loopback or private")
+        );
+        cfg.internal.metrics_listen = None;
+        cfg.quic.cert = Some("c.pem".into());
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("together")
+        );
+        cfg.quic.cert = None;
+        cfg.batch.max_batch = Some(0);
+        assert!(
+            cfg.clone()
+                .resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("max_batch")
+        );
+        cfg.batch.max_batch = None;
+        assert_eq!(
+            cfg.clone().resolve().unwrap().engine_instances,
+            1,
+            "one instance by default"
+        );
+        for bad in [0, 65] {
+            cfg.engine.instances = Some(bad);
+            let e = cfg.clone().resolve().unwrap_err().to_string();
+            assert!(e.contains("engine.instances"), "{e}");
+        }
+        cfg.engine.instances = Some(2);
+        assert_eq!(cfg.resolve().unwrap().engine_instances, 2);
+    }
+
+    #[test]
+    fn zero_durations_are_refused_not_raised() {
+        let base = || {
+            let mut cfg = ServerConfig::default();
+            cfg.auth.allow_anonymous = Some(true);
+            cfg
+        };
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(0);
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(
+            e.contains("idle_timeout_ms = 0") && e.contains("at least 100"),
+            "{e}"
+        );
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(99);
+        assert!(cfg.resolve().is_err());
+        let mut cfg = base();
+        cfg.quic.idle_timeout_ms = Some(100);
+        assert_eq!(cfg.resolve().unwrap().idle_timeout, Duration::from_millis(100));
+        let mut cfg = base();
+        cfg.limits.max_frame_age_ms = Some(0);
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(e.contains("max_frame_age_ms = 0"), "{e}");
+        let mut cfg = base();
+        cfg.quic.hello_timeout_ms = Some(0);
+        assert!(
+            cfg.resolve()
+                .unwrap_err()
+                .to_string()
+                .contains("hello_timeout_ms")
+        );
+    }
+
+    #[test]
+    fn a_missing_tokens_file_is_named_as_such() {
+        let mut cfg = ServerConfig::default();
+        cfg.auth.tokens_file = Some("/nonexistent/holoface-tokens".into());
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(
+            e.starts_with("reading tokens file /nonexistent/holoface-tokens"),
+            "{e}"
+        );
+        assert!(!e.contains("config file"), "{e}");
+    }
+
+    #[test]
+    fn refinement_is_configured_by_file_flag_and_environment() {
+        let from = |args: &[&str], toml: &'static str| {
+            ServerConfig::parse_and_merge(args.iter().copied(), |_| Ok(toml.to_owned()))
+                .and_then(ServerConfig::resolve)
+        };
+        let off = from(&["s", "--token", "t", "-c", "f"], "[refine]\nenabled = false\n").unwrap();
+        assert_eq!(off.refine_model, None);
+        let other = from(
+            &["s", "--token", "t", "-c", "f"],
+            "[refine]\nmodel = \"/srv/r.bin\"\n",
+        )
+        .unwrap();
+        assert_eq!(other.refine_model, Some(PathBuf::from("/srv/r.bin")));
+        // The flag turns it back on over the file.
+        let on = from(
+            &["s", "--token", "t", "--refine", "-c", "f"],
+            "[refine]\nenabled = false\n",
+        )
+        .unwrap();
+        assert_eq!(on.refine_model, Some(PathBuf::from(DEFAULT_REFINE_MODEL)));
+        let both = from(
+            &["s", "--token", "t", "-c", "f"],
+            "[refine]\nenabled = false\nmodel = \"/srv/r.bin\"\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(both.contains("refine.enabled = false"), "{both}");
+    }
+
+    #[test]
+    fn example_config_parses() {
+        let text = include_str!("../../deploy/server.example.toml");
+        let cfg = ServerConfig::from_toml(text, Path::new("deploy/server.example.toml")).unwrap();
+        let s = cfg.resolve().unwrap();
+        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+    }
+}
