@@ -42,7 +42,7 @@ fn main() -> anyhow::Result<()> {
     let r = still.process(&frame)?;
     let face = r
         .face()
-        .ok_or_else(|| anyhow::anyhow!("no face in {path}: {:?}", r.outcome))?;
+        .ok_or_else(|| anyhow::anyhow!("no face in {path}: {:?}", r.no_face))?;
     println!(
         "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
         face.fit.translation.to_array(),

@@ -1,5 +1,6 @@
-//! The frame loop, written once: [`TrackerSession::prepare_faces`] -> an [`Aligner`] per face ->
-//! [`TrackerSession::complete_faces`], timed per step ([`step_faces`]), and its one-face form [`step`].
+//! One frame's step, written once: [`TrackerSession::prepare_faces`] -> an [`Aligner`] per face ->
+//! [`TrackerSession::complete_faces`], timed per step ([`step_faces`]). A one-face caller reads the first
+//! candidate, alignment and face of the one [`FacesStep`].
 //! [`crate::tracker::FaceTracker`], the FFI and every command-line tool that tracks frames go through these;
 //! they differ only in which aligner they pass and what they do with the result.
 //!
@@ -7,10 +8,10 @@
 
 use std::time::{Duration, Instant};
 
-use crate::align::{AlignError, Aligner, Alignment, align_from};
+use crate::align::{AlignError, Aligner, Alignment};
 use crate::detect::DetectError;
 use crate::frame::Frame;
-use crate::session::{Candidate, FrameFaces, FrameResult, Prepared, TrackerSession};
+use crate::session::{Candidate, FrameFaces, TrackerSession};
 
 /// Time spent per step of one frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -23,20 +24,7 @@ pub struct Timings {
     pub complete: Duration,
 }
 
-/// One frame through the loop.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Step {
-    /// What the session prepared: the initial shape and where it came from, or "no face".
-    pub prepared: Prepared,
-    /// What the aligner answered (`None` when nothing was aligned).
-    pub alignment: Option<Alignment>,
-    /// The frame's answer.
-    pub result: FrameResult,
-    /// Time per step.
-    pub timings: Timings,
-}
-
-/// Why a frame could not be processed (a "no face" is not an error: it is a [`FrameResult`]).
+/// Why a frame could not be processed (a "no face" is not an error: it is a [`FrameFaces`] without faces).
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum StepError {
@@ -46,33 +34,6 @@ pub enum StepError {
     /// Alignment failed.
     #[error(transparent)]
     Align(#[from] AlignError),
-}
-
-/// Runs one frame: prepare, align with `aligner` (its detection variant after a detection), complete.
-pub fn step<A: Aligner + ?Sized>(
-    session: &mut TrackerSession,
-    aligner: &mut A,
-    frame: &Frame<'_>,
-) -> Result<Step, StepError> {
-    let t0 = Instant::now();
-    let prepared = session.prepare(frame)?;
-    let t1 = Instant::now();
-    let alignment = match prepared {
-        Prepared::Align { init, source } => Some(align_from(aligner, &frame.image, &init, source)?),
-        Prepared::NoFace => None,
-    };
-    let t2 = Instant::now();
-    let result = session.complete(frame, alignment);
-    Ok(Step {
-        prepared,
-        alignment,
-        result,
-        timings: Timings {
-            prepare: t1 - t0,
-            align: t2 - t1,
-            complete: t2.elapsed(),
-        },
-    })
 }
 
 /// One frame through the loop, every face.
@@ -88,6 +49,18 @@ pub struct FacesStep {
     pub faces: FrameFaces,
     /// Time per step (align: all faces together).
     pub timings: Timings,
+}
+
+impl FacesStep {
+    /// The first candidate (the oldest track, or the first detection), if any.
+    pub fn first_candidate(&self) -> Option<&Candidate> {
+        self.candidates.first()
+    }
+
+    /// What the aligner answered for the first candidate.
+    pub fn first_alignment(&self) -> Option<Alignment> {
+        self.alignments.first().copied().flatten()
+    }
 }
 
 /// Runs one frame with every tracked face: prepare, align each candidate with `aligner` (its detection

@@ -2,17 +2,18 @@
 //!
 //! Call order per frame (the aligner runs in between, locally or over the network):
 //!
-//! 1. [`TrackerSession::prepare`] decides between detection and tracking and returns the initial shape:
-//!    the previous landmarks moved with the headset (motion compensation), or the mean shape placed on a
-//!    fresh detection; or "no face" when nothing is tracked and the detector finds nothing.
-//! 2. The caller aligns the frame from that shape with any [`crate::align::Aligner`] (KRFWS on the
-//!    headset, DAN over QUIC) or gives up (`None`, e.g. the link missed its deadline and no local aligner).
-//! 3. [`TrackerSession::complete`] verifies the alignment with the aligner's own signal, fits CANDIDE-3,
-//!    converts to a world pose, predicts it ahead with the Kalman filters, denoises, derives attributes,
-//!    and updates the tracking state. Every frame gets a [`FrameResult`]: a face or an explicit "no face".
+//! 1. [`TrackerSession::prepare_faces`] decides between detection and tracking and returns one candidate
+//!    per face: its previous landmarks moved with the headset (motion compensation), or the mean shape
+//!    placed on a fresh detection; none when nothing is tracked and the detector finds nothing.
+//! 2. The caller aligns each candidate with any [`crate::align::Aligner`] (KRFWS on the headset, DAN over
+//!    QUIC) or gives up on it (`None`, e.g. the link missed its deadline and no local aligner).
+//! 3. [`TrackerSession::complete_faces`] verifies each alignment with the aligner's own signal, fits
+//!    CANDIDE-3, converts to a world pose, predicts it ahead with the Kalman filters, denoises, derives
+//!    attributes, and updates the tracks. Every frame gets a [`FrameFaces`]: its faces, or an explicit "no
+//!    face" with the reason ([`FrameFaces::first`] is the one-face view).
 //!
 //! The session never reads a clock: time comes from the frames' timestamps. The three steps are driven in one
-//! place, [`crate::frame_step::step`]; call that rather than writing the sequence out again.
+//! place, [`crate::frame_step::step_faces`]; call that rather than writing the sequence out again.
 
 use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
@@ -64,6 +65,37 @@ impl Default for SessionOptions {
             max_faces: 1,
             detect_every: 10,
         }
+    }
+}
+
+/// Most faces one tracker follows at once.
+pub const MAX_TRACKED_FACES: usize = 64;
+/// The longest look-ahead of the prediction, seconds (HoloFace predicts 0.12 s; past a second the Kalman
+/// prediction is a guess).
+pub const MAX_LOOKAHEAD_S: f64 = 1.0;
+
+/// Why tracker settings were refused; the message names the setting as the front ends spell it.
+#[derive(Debug, thiserror::Error, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum SessionOptionsError {
+    /// The look-ahead is negative, not finite or longer than [`MAX_LOOKAHEAD_S`].
+    #[error("lookahead_ms {} must be within 0..=1000", .0 * 1e3)]
+    Lookahead(f64),
+    /// `max_faces` is 0 or more than [`MAX_TRACKED_FACES`].
+    #[error("max_faces {0} must be within 1..=64")]
+    MaxFaces(usize),
+}
+
+impl SessionOptions {
+    /// Checks the settings an app sets (the C ABI, Python and `FaceTracker::new` all call this).
+    pub fn validate(&self) -> Result<(), SessionOptionsError> {
+        if !(self.lookahead_s.is_finite() && (0.0..=MAX_LOOKAHEAD_S).contains(&self.lookahead_s)) {
+            return Err(SessionOptionsError::Lookahead(self.lookahead_s));
+        }
+        if !(1..=MAX_TRACKED_FACES).contains(&self.max_faces) {
+            return Err(SessionOptionsError::MaxFaces(self.max_faces));
+        }
+        Ok(())
     }
 }
 
@@ -129,22 +161,6 @@ impl FrameFaces {
             |f| FrameResult::Face(f.update),
         )
     }
-}
-
-/// What `prepare` decided.
-// One value per frame, moved once: boxing the large variant would only add an allocation per frame.
-#[allow(clippy::large_enum_variant)]
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Prepared {
-    /// Align from this shape (image pixels).
-    Align {
-        /// Initial 68-point shape.
-        init: [Point2; 68],
-        /// Where it came from.
-        source: InitSource,
-    },
-    /// Nothing tracked and nothing detected: the frame's answer is "no face".
-    NoFace,
 }
 
 /// A tracked face in one frame.
@@ -281,27 +297,6 @@ impl TrackerSession {
     pub fn reset(&mut self) {
         self.tracks.clear();
         self.pending.clear();
-    }
-
-    /// Step 1, one face: the initial shape for `frame`, from tracking or detection. With
-    /// `max_faces > 1` use [`Self::prepare_faces`]; this returns its first candidate only.
-    pub fn prepare(&mut self, frame: &Frame<'_>) -> Result<Prepared, DetectError> {
-        Ok(self
-            .prepare_faces(frame)?
-            .first()
-            .map_or(Prepared::NoFace, |c| Prepared::Align {
-                init: c.init,
-                source: c.source,
-            }))
-    }
-
-    /// Step 3, one face: completes the first candidate of [`Self::prepare`] (`None`: no aligner answered).
-    pub fn complete(&mut self, frame: &Frame<'_>, alignment: Option<Alignment>) -> FrameResult {
-        let mut alignments = vec![None; self.pending.len()];
-        if let Some(first) = alignments.first_mut() {
-            *first = alignment;
-        }
-        self.complete_faces(frame, &alignments).first()
     }
 
     /// Step 1: one [`Candidate`] per tracked face (its previous landmarks moved with the headset) and, when
@@ -596,16 +591,21 @@ mod tests {
             accepted,
             answered_by: crate::align::AnsweredBy::RemoteDan,
         };
+        // One face per frame: the first candidate, completed with `alignment`.
+        let one = |s: &mut TrackerSession, f: &Frame<'_>, alignment: Option<Alignment>| {
+            let candidates = s.prepare_faces(f).unwrap();
+            assert!(candidates.len() <= 1, "{candidates:?}");
+            let alignments = vec![alignment; candidates.len()];
+            (
+                candidates.first().copied(),
+                s.complete_faces(f, &alignments).first(),
+            )
+        };
         // Frame 1: detection.
         let f1 = frame(0);
-        assert!(matches!(
-            s.prepare(&f1).unwrap(),
-            Prepared::Align {
-                source: InitSource::Detection,
-                ..
-            }
-        ));
-        let FrameResult::Face(u) = s.complete(&f1, Some(answer(true))) else {
+        let (c, r) = one(&mut s, &f1, Some(answer(true)));
+        assert_eq!(c.map(|c| c.source), Some(InitSource::Detection));
+        let FrameResult::Face(u) = r else {
             panic!("expected a face")
         };
         assert!(
@@ -615,25 +615,20 @@ mod tests {
         );
         // Frame 2: tracking from the previous landmarks, no detector call.
         let f2 = frame(33_000);
-        match s.prepare(&f2).unwrap() {
-            Prepared::Align {
-                init,
-                source: InitSource::Tracking,
-            } => assert!(init[30].dist(lm[30]) < 1e-3),
-            other => panic!("{other:?}"),
-        }
-        assert!(matches!(
-            s.complete(&f2, Some(answer(true))),
-            FrameResult::Face(_)
-        ));
+        let (c, r) = one(&mut s, &f2, Some(answer(true)));
+        let c = c.expect("a tracked candidate");
+        assert_eq!(c.source, InitSource::Tracking);
+        assert!(c.init[30].dist(lm[30]) < 1e-3);
+        assert!(matches!(r, FrameResult::Face(_)));
         // Frame 3: no answer in time keeps the track; frame 4: rejection loses it.
         let f3 = frame(66_000);
-        s.prepare(&f3).unwrap();
-        assert_eq!(s.complete(&f3, None), FrameResult::NoFace(NoFaceReason::NoAnswer));
-        assert!(s.is_tracking());
-        s.prepare(&f3).unwrap();
         assert_eq!(
-            s.complete(&f3, Some(answer(false))),
+            one(&mut s, &f3, None).1,
+            FrameResult::NoFace(NoFaceReason::NoAnswer)
+        );
+        assert!(s.is_tracking());
+        assert_eq!(
+            one(&mut s, &f3, Some(answer(false))).1,
             FrameResult::NoFace(NoFaceReason::Rejected)
         );
         assert!(!s.is_tracking());

@@ -40,7 +40,7 @@ use crate::frame::{Frame, OwnedFrame};
 use crate::frame_step::StepError;
 pub use crate::frame_step::Timings;
 use crate::link::{LinkState, LinkStatus, LinkWatch, RemoteOptions};
-use crate::session::{FaceUpdate, FrameResult, SessionOptions, TrackedFace, TrackerSession};
+use crate::session::{FaceUpdate, FrameResult, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -95,6 +95,9 @@ pub enum TrackerError {
     /// An asset could not be loaded (path and cause in the message).
     #[error(transparent)]
     Asset(#[from] crate::assets::AssetError),
+    /// A setting is out of its range.
+    #[error(transparent)]
+    Options(#[from] crate::session::SessionOptionsError),
     /// The link thread could not start.
     #[error("starting the link: {0}")]
     Link(#[from] std::io::Error),
@@ -120,10 +123,10 @@ pub struct FaceResult {
     /// The frame's timestamp.
     pub timestamp_us: u64,
     /// Every face tracked in this frame with its stable id, oldest track first (at most
-    /// [`SessionOptions::max_faces`]); empty when there is none ([`FaceResult::outcome`] says why).
+    /// [`SessionOptions::max_faces`]); empty when there is none (`no_face` says why).
     pub faces: Vec<TrackedFace>,
-    /// The single-face view: the first face of `faces`, or "no face" with the reason.
-    pub outcome: FrameResult,
+    /// Why the frame has no face (`None` when `faces` is not empty).
+    pub no_face: Option<NoFaceReason>,
     /// Which aligner answered the first candidate (`None` when nothing was aligned); per face in
     /// [`FaceUpdate::answered_by`].
     pub answered_by: Option<AnsweredBy>,
@@ -137,11 +140,16 @@ pub struct FaceResult {
 }
 
 impl FaceResult {
-    /// The tracked face, if any.
+    /// The oldest tracked face, if any (a one-face view of `faces`).
     pub fn face(&self) -> Option<&FaceUpdate> {
-        match &self.outcome {
-            FrameResult::Face(u) => Some(u),
-            FrameResult::NoFace(_) => None,
+        self.faces.first().map(|f| &f.update)
+    }
+
+    /// The one-face view: the oldest face, or "no face" with the reason.
+    pub fn first(&self) -> FrameResult {
+        match (self.face(), self.no_face) {
+            (Some(u), _) => FrameResult::Face(*u),
+            (None, reason) => FrameResult::NoFace(reason.unwrap_or(NoFaceReason::NotDetected)),
         }
     }
 }
@@ -166,6 +174,7 @@ impl std::fmt::Debug for FaceTracker {
 impl FaceTracker {
     /// Loads the assets and, for [`AlignerChoice::Remote`], starts connecting in the background.
     pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
+        opts.session.validate()?;
         let a = &opts.assets;
         let mut detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
         if opts.session.max_faces > 1 {
@@ -216,7 +225,7 @@ impl FaceTracker {
         let step = crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
         Ok(FaceResult {
             timestamp_us: frame.timestamp_us,
-            outcome: step.faces.first(),
+            no_face: step.faces.no_face_reason(),
             answered_by: step.alignments.first().copied().flatten().map(|a| a.answered_by),
             detected: step.detected,
             faces: step.faces.faces,

@@ -388,14 +388,11 @@ fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
     if let Some(p) = path(o.candide, "candide")? {
         t.assets.candide = p;
     }
-    if !(o.lookahead_ms.is_finite() && (0.0..=1000.0).contains(&o.lookahead_ms)) {
-        return Err(fail(
-            HfStatus::InvalidArgument,
-            "lookahead_ms must be within 0..=1000",
-        ));
-    }
     t.session.lookahead_s = f64::from(o.lookahead_ms) / 1e3;
     t.session.motion_compensation = o.motion_compensation != 0;
+    t.session
+        .validate()
+        .map_err(|e| fail(HfStatus::InvalidArgument, e.to_string()))?;
     // SAFETY: as above.
     if let Some(server) = unsafe { opt_str(o.server, "server") }? {
         // SAFETY: as above.
@@ -494,6 +491,9 @@ unsafe fn new_tracker(
             // SAFETY: checked non-NULL, writable per the contract.
             unsafe { out.write(ptr) };
             HfStatus::Ok
+        }
+        Err(e @ holoface_client::tracker::TrackerError::Options(_)) => {
+            fail(HfStatus::InvalidArgument, e.to_string())
         }
         Err(e) => fail(HfStatus::AssetError, e.to_string()),
     }
@@ -763,9 +763,9 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
 
 fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
     let by = answered_by_c(r.answered_by);
-    match &r.outcome {
-        FrameResult::Face(u) => face_to_c(u, by),
-        FrameResult::NoFace(reason) => empty_result(by, no_face_code(*reason)),
+    match r.first() {
+        FrameResult::Face(u) => face_to_c(&u, by),
+        FrameResult::NoFace(reason) => empty_result(by, no_face_code(reason)),
     }
 }
 
@@ -787,10 +787,7 @@ fn faces_to_c(r: &holoface_client::tracker::FaceResult, struct_size: u32) -> HfF
         };
     }
     out.count = u32::try_from(r.faces.len().min(HF_MAX_FACES)).unwrap_or(0);
-    out.no_face_reason = match &r.outcome {
-        FrameResult::NoFace(reason) if r.faces.is_empty() => no_face_code(*reason),
-        _ => 0,
-    };
+    out.no_face_reason = r.no_face.map_or(0, no_face_code);
     out
 }
 

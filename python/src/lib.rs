@@ -14,7 +14,7 @@ use std::sync::{Mutex, PoisonError};
 use holoface_client::align::AnsweredBy;
 use holoface_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
 use holoface_client::link::{LinkState, RemoteOptions};
-use holoface_client::session::{FaceUpdate, FrameResult};
+use holoface_client::session::FaceUpdate;
 use holoface_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
@@ -177,25 +177,16 @@ impl PyTrackerOptions {
                 )));
             }
         };
-        if !(self.lookahead_ms.is_finite() && (0.0..=1000.0).contains(&self.lookahead_ms)) {
-            return Err(PyValueError::new_err(format!(
-                "lookahead_ms {} must be within 0..=1000",
-                self.lookahead_ms
-            )));
-        }
         let mut o = tracker::TrackerOptions {
             mode,
             ..tracker::TrackerOptions::default()
         };
         o.session.lookahead_s = self.lookahead_ms / 1e3;
         o.session.motion_compensation = self.motion_compensation;
-        if !(1..=64).contains(&self.max_faces) {
-            return Err(PyValueError::new_err(format!(
-                "max_faces {} must be within 1..=64",
-                self.max_faces
-            )));
-        }
         o.session.max_faces = self.max_faces;
+        o.session
+            .validate()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let paths = [
             (&self.ort_dylib, &mut o.assets.ort_dylib),
             (&self.detector_model, &mut o.assets.detector),
@@ -399,10 +390,7 @@ fn result_to_py(py: Python<'_>, r: &tracker::FaceResult) -> PyResult<PyFaceResul
         .iter()
         .map(|f| Py::new(py, face_to_py(py, f.id, &f.update)?))
         .collect::<PyResult<Vec<_>>>()?;
-    let no_face_reason = match &r.outcome {
-        FrameResult::Face(_) => None,
-        FrameResult::NoFace(reason) => Some(variant_name(reason)),
-    };
+    let no_face_reason = r.no_face.map(|reason| variant_name(&reason));
     let (link_state, link_failure) = match r.link.map(link_names) {
         Some((s, f)) => (Some(s), f),
         None => (None, None),
@@ -500,7 +488,7 @@ fn gray_array<'a, 'py>(image: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, 
 fn tracker_error(e: TrackerError) -> PyErr {
     match e {
         TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
-        TrackerError::Timestamp { .. } => PyValueError::new_err(e.to_string()),
+        TrackerError::Timestamp { .. } | TrackerError::Options(_) => PyValueError::new_err(e.to_string()),
         _ => ProcessingError::new_err(e.to_string()),
     }
 }

@@ -1,6 +1,6 @@
 //! Client CPU per tracked frame **excluding the aligner** (the target: ≤ 0.5 ms), one thread:
-//! `prepare` (tracking init with headset-motion compensation), the 112×112 DAN crop the remote path
-//! sends, and `complete` (verification, CANDIDE-3 fit warm-started, world pose, Kalman prediction,
+//! `prepare_faces` (tracking init with headset-motion compensation), the 112×112 DAN crop the remote path
+//! sends, and `complete_faces` (verification, CANDIDE-3 fit warm-started, world pose, Kalman prediction,
 //! two-frame denoising, attributes). The aligner's answer is replaced by the true landmarks of the
 //! rendered frame (a perfect aligner), so the numbers contain none of its cost. Also reported: the JPEG
 //! q75 encoding of the crop (the remote path's wire format).
@@ -22,7 +22,7 @@ use holoface_client::assets::load_face_model;
 use holoface_client::detect::BlazeFace;
 use holoface_client::frame::Frame;
 use holoface_client::link::CropCodec;
-use holoface_client::session::{FrameResult, Prepared, SessionOptions, TrackerSession};
+use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -109,12 +109,15 @@ fn bench_frame(c: &mut Criterion) {
             intrinsics: SCENE_CAMERA,
             world_from_camera: *cam,
         };
-        let Prepared::Align { init, .. } = session.prepare(&frame).unwrap() else {
+        let candidates = session.prepare_faces(&frame).unwrap();
+        let Some(first) = candidates.first() else {
             panic!("frame {n}: no face")
         };
-        let sim = crop_from_image(&init, &canonical).unwrap();
+        let sim = crop_from_image(&first.init, &canonical).unwrap();
         crop_bilinear(&frame.image, &sim, crop).unwrap();
-        session.complete(&frame, Some(truth_alignment(truth)))
+        session
+            .complete_faces(&frame, &[Some(truth_alignment(truth))])
+            .first()
     };
     // Start tracking (the detector runs here, outside the measurement).
     let mut n = 0usize;

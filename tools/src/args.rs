@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use clap::Args;
+use clap::{Args, ValueEnum};
 use holoface_client::assets::{
     CANDIDE_ENV, DAN_ENV, DEFAULT_CANDIDE, DEFAULT_DAN, DEFAULT_DETECTOR, DEFAULT_KRFWS, DETECTOR_ENV,
     KRFWS_ENV,
@@ -108,5 +108,32 @@ impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
         Ok(holoface_client::assets::load_face_model(&self.candide)?)
+    }
+}
+
+/// Which aligner answers: one choice for every command (`track`, `eval`, `multi-face`, `tracking-losses`); a
+/// command refuses, with a message, the ones it cannot run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlignerKind {
+    /// KRFWS, the headset's local aligner (51 inner points; reported on the 49-point protocol only).
+    Krfws,
+    /// DAN in-process through ONNX Runtime (DAN alone).
+    Dan,
+    /// What a headset gets from the alignment server: DAN, then the refinement cascade. `track`: over QUIC
+    /// (`--server`, `--fingerprint`, `--token`), KRFWS on the same frame when the server misses the deadline
+    /// or the link is down; `multi-face`: a server started in this process, on loopback; `eval`: the
+    /// server's engine in-process, the crop through the wire's JPEG q75 round trip.
+    Remote,
+}
+
+impl AlignerKind {
+    /// The name in reports and on the command line.
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::Krfws => "krfws",
+            Self::Dan => "dan",
+            Self::Remote => "remote",
+        }
     }
 }

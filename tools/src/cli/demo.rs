@@ -226,8 +226,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             world_from_camera: pose,
         };
         let t0 = Instant::now();
-        let step = holoface_client::frame_step::step(&mut session, &mut aligner, &frame)?;
-        let (result, alignment) = (step.result, step.alignment);
+        let step = holoface_client::frame_step::step_faces(&mut session, &mut aligner, &frame)?;
+        let (result, alignment) = (step.faces.first(), step.first_alignment());
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = aligner.last_report();
         let (answered_by, landmarks) = match (&result, alignment) {

@@ -12,7 +12,7 @@ use holoface_models::metrics::{ErrorSummary, largest_yaw, nme49, nme68, summaris
 use holoface_models::shape::{dan_mean_shape, fit_to_box};
 use serde::Serialize;
 
-use crate::args::RuntimeArgs;
+use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::plot::{Curve, ced_plot_png};
 use holoface_client::align::{Aligner, Confidence};
@@ -37,30 +37,6 @@ pub enum SplitArg {
     Validation,
 }
 
-/// Aligners `eval` can run.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum AlignerArg {
-    /// DAN through ONNX Runtime in-process (DAN alone).
-    Dan,
-    /// What a headset gets from the server, in-process: the crop through the wire's JPEG q75 round trip,
-    /// DAN, then the refinement cascade (the server's own engine type).
-    Remote,
-    /// KRFWS (51 inner points; reported on the 49-point protocol only).
-    Krfws,
-}
-
-impl AlignerArg {
-    /// The name in reports.
-    fn label(self) -> &'static str {
-        match self {
-            Self::Dan => "dan",
-            Self::Remote => "remote",
-            Self::Krfws => "krfws",
-        }
-    }
-}
-
 /// Arguments of `holoface eval`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
@@ -72,7 +48,7 @@ pub struct Args {
     pub split: SplitArg,
     /// Aligners to run (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "dan")]
-    pub aligner: Vec<AlignerArg>,
+    pub aligner: Vec<AlignerKind>,
     /// Initial shape.
     #[arg(long, value_enum, default_value = "detector")]
     pub init: Init,
@@ -250,19 +226,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut remote = None;
         let mut krfws = None;
         let aligner: &mut dyn Aligner = match which {
-            AlignerArg::Dan => {
+            AlignerKind::Dan => {
                 let d = dan.insert(args.runtime.dan_aligner()?);
                 d.set_wire_codec(args.crop_encoding);
                 d
             }
-            AlignerArg::Remote => {
+            AlignerKind::Remote => {
                 let r = remote.insert(args.runtime.remote_aligner()?);
                 if args.crop_encoding.is_some() {
                     r.set_wire_codec(args.crop_encoding);
                 }
                 r
             }
-            AlignerArg::Krfws => {
+            AlignerKind::Krfws => {
                 let k = krfws.insert(args.runtime.krfws_aligner()?);
                 k.set_detection_starts(args.krfws_starts);
                 k

@@ -20,7 +20,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
-use clap::{Args as ClapArgs, ValueEnum};
+use clap::Args as ClapArgs;
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
@@ -30,24 +30,12 @@ use serde_json::json;
 
 use super::tracking_losses::{FRAME_H, FRAME_W};
 use super::tracking_losses::{SequenceExport, cut_face_with_margin};
-use crate::args::RuntimeArgs;
+use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
 use holoface_client::align::Aligner;
 use holoface_client::frame::Frame;
 use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
-
-/// Aligner for the measurement.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum SceneAligner {
-    /// KRFWS (the headset's local aligner).
-    Krfws,
-    /// DAN in-process through ONNX Runtime.
-    Dan,
-    /// DAN on an alignment server started in this process, over QUIC on loopback: every face's crop of a
-    /// frame goes out at once, and KRFWS answers each face whose reply misses `--deadline-ms`.
-    Remote,
-}
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -76,7 +64,7 @@ pub struct Args {
     pub spacing_cm: f64,
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
-    pub aligner: SceneAligner,
+    pub aligner: AlignerKind,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -429,9 +417,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model = args.candide.load()?;
     let mut server = None;
     let mut aligner: Box<dyn Aligner> = match args.aligner {
-        SceneAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
-        SceneAligner::Dan => Box::new(args.runtime.dan_aligner()?),
-        SceneAligner::Remote => {
+        AlignerKind::Krfws => Box::new(args.runtime.krfws_aligner()?),
+        AlignerKind::Dan => Box::new(args.runtime.dan_aligner()?),
+        AlignerKind::Remote => {
             let (s, a) = remote_aligner(&args)?;
             server = Some(s);
             Box::new(a)
@@ -561,7 +549,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "detect_every": args.detect_every,
         "spacing_cm": args.spacing_cm,
         "realtime": args.realtime,
-        "deadline_ms": (args.aligner == SceneAligner::Remote).then_some(args.deadline_ms),
+        "deadline_ms": (args.aligner == AlignerKind::Remote).then_some(args.deadline_ms),
         "scenes": scenes,
     });
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {

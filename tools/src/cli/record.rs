@@ -80,13 +80,12 @@ impl CropCutter {
 
     /// The crop payload of `f`, or `None` when no face is tracked.
     fn cut(&mut self, f: &holoface_client::frame::OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
-        use holoface_client::session::Prepared;
         let frame = f.view();
-        let step = holoface_client::frame_step::step(&mut self.session, &mut self.local, &frame)?;
-        let Prepared::Align { init, .. } = step.prepared else {
+        let step = holoface_client::frame_step::step_faces(&mut self.session, &mut self.local, &frame)?;
+        let Some(first) = step.first_candidate() else {
             return Ok(None);
         };
-        let sim = holoface_client::align::crop_from_image(&init, &self.mean)?;
+        let sim = holoface_client::align::crop_from_image(&first.init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
         let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;

@@ -4,27 +4,15 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use clap::{Args as ClapArgs, ValueEnum};
+use clap::Args as ClapArgs;
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use crate::args::RuntimeArgs;
+use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_client::align::{Aligner, AnsweredBy};
 use holoface_client::link::RemoteOptions;
 use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
 use holoface_sources::source::open_source;
-
-/// Local aligner for `track`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum TrackAligner {
-    /// KRFWS (the headset's local aligner).
-    Krfws,
-    /// DAN in-process through ONNX Runtime.
-    Dan,
-    /// DAN on an alignment server over QUIC (`--server`, `--fingerprint`, `--token`), KRFWS on the same
-    /// frame when the server misses the deadline or the link is down.
-    Remote,
-}
 
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
@@ -43,7 +31,7 @@ pub struct Args {
     pub fps: f64,
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
-    pub aligner: TrackAligner,
+    pub aligner: AlignerKind,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -148,9 +136,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         detector.tiles = usize::from(tiles);
     }
     let (mut aligner, link): (Box<dyn Aligner>, _) = match args.aligner {
-        TrackAligner::Krfws => (Box::new(args.runtime.krfws_aligner()?), None),
-        TrackAligner::Dan => (Box::new(args.runtime.dan_aligner()?), None),
-        TrackAligner::Remote => {
+        AlignerKind::Krfws => (Box::new(args.runtime.krfws_aligner()?), None),
+        AlignerKind::Dan => (Box::new(args.runtime.dan_aligner()?), None),
+        AlignerKind::Remote => {
             let (aligner, watch) = remote_aligner(&args)?;
             (aligner, Some(watch))
         }

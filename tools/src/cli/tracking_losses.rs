@@ -22,7 +22,7 @@ use std::path::PathBuf;
 
 use crate::render::SCENE_CAMERA;
 use anyhow::{Context, bail};
-use clap::{Args as ClapArgs, ValueEnum};
+use clap::Args as ClapArgs;
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
@@ -30,21 +30,12 @@ use holoface_models::metrics::nme49;
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
-use crate::args::RuntimeArgs;
+use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
 use holoface_client::align::Aligner;
 use holoface_client::frame::Frame;
-use holoface_client::session::{FrameResult, InitSource, Prepared, SessionOptions, TrackerSession};
-
-/// Aligner for the measurement.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum LossAligner {
-    /// KRFWS (the headset's local aligner).
-    Krfws,
-    /// DAN in-process through ONNX Runtime.
-    Dan,
-}
+use holoface_client::session::{FrameResult, InitSource, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface tracking-losses`.
 #[derive(Debug, ClapArgs)]
@@ -69,7 +60,7 @@ pub struct Args {
     pub headset_period_s: f64,
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
-    pub aligner: LossAligner,
+    pub aligner: AlignerKind,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -230,12 +221,9 @@ struct Runner {
 
 impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
-        let step = holoface_client::frame_step::step(&mut self.session, &mut *self.aligner, frame)?;
-        let init = match step.prepared {
-            Prepared::Align { source, .. } => Some(source),
-            Prepared::NoFace => None,
-        };
-        let result = step.result;
+        let step = holoface_client::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
+        let init = step.first_candidate().map(|c| c.source);
+        let result = step.faces.first();
         self.tally.record(&result, init, truth);
         Ok(())
     }
@@ -307,8 +295,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model = args.candide.load()?;
     let make_aligner = || -> anyhow::Result<Box<dyn Aligner>> {
         Ok(match args.aligner {
-            LossAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
-            LossAligner::Dan => Box::new(args.runtime.dan_aligner()?),
+            AlignerKind::Krfws => Box::new(args.runtime.krfws_aligner()?),
+            AlignerKind::Dan => Box::new(args.runtime.dan_aligner()?),
+            AlignerKind::Remote => {
+                bail!("tracking-losses measures an aligner in-process: --aligner krfws or dan")
+            }
         })
     };
     let mut runners = Vec::new();
