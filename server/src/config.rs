@@ -162,7 +162,8 @@ pub struct LimitsConfig {
     #[arg(long)]
     pub max_pending: Option<usize>,
     /// Crops one client may have in flight (open frame streams; a headset sends one per tracked face per
-    /// frame) [default: 8].
+    /// frame), so the most faces one client is served for; announced in the welcome as its
+    /// `max_in_flight` [default: 8].
     #[arg(long)]
     pub max_in_flight: Option<u16>,
     /// Frames older than this (or their own deadline) are dropped, ms [default: 100; at least 1].
@@ -172,10 +173,14 @@ pub struct LimitsConfig {
     #[arg(long)]
     pub shutdown_timeout_ms: Option<u64>,
     /// Crops (frame streams) per second one client may send, 1 s burst; a frame with three faces counts
-    /// three. Above it the client is closed with Overloaded; 0 = unlimited [default: 240].
+    /// three. Above it the client is closed with Overloaded; 0 = unlimited [default: what one headset
+    /// needs: max_in_flight faces x 30 fps, 240 with the defaults].
     #[arg(long)]
     pub max_frame_rate: Option<u32>,
 }
+
+/// The frame rate a headset's camera runs at; with `limits.max_in_flight` it sets the default crop rate.
+pub const HEADSET_FPS: u32 = 30;
 
 /// `[batch]`: the dynamic batcher.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
@@ -551,7 +556,11 @@ impl ServerConfig {
             max_in_flight,
             max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
             shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
-            max_frame_rate: self.limits.max_frame_rate.unwrap_or(240),
+            // What one headset needs at most: every face it may have in flight, at 30 fps.
+            max_frame_rate: self
+                .limits
+                .max_frame_rate
+                .unwrap_or(u32::from(max_in_flight) * HEADSET_FPS),
             batch: BatcherConfig {
                 max_batch,
                 policy,
