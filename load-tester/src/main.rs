@@ -113,12 +113,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    let env = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(env)
-        .with_writer(std::io::stderr)
-        .try_init();
+    holoface_server::logging::init(holoface_server::logging::env_filter_or("warn"));
     match run(args) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::from(3),

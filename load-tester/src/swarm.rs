@@ -52,7 +52,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
                     eprintln!(
                         "headset {id}: server going away ({}): {}",
                         g.reason.name(),
-                        g.text
+                        holoface_protocol::untrusted(&g.text)
                     );
                     stats.lock().unwrap_or_else(PoisonError::into_inner).goaways += 1;
                     let _ = goaway_tx.send(true);

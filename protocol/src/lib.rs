@@ -49,6 +49,7 @@ pub mod error;
 pub mod limits;
 pub mod message;
 pub mod recording;
+pub mod text;
 
 pub use codec::{Decode, Encode};
 pub use error::{CloseCode, DecodeError, EncodeError, RecordingError};
@@ -60,6 +61,7 @@ pub use recording::{
     CameraIntrinsics, FormatVersion, FramePayload, FrameRecord, RecordingHeader, RecordingReader,
     RecordingWriter,
 };
+pub use text::untrusted;
 
 /// The newest protocol version, carried in [`ClientHello::version`]. The
 /// server serves every version in [`MIN_PROTOCOL_VERSION`]`..=`this one at the

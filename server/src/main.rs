@@ -10,10 +10,7 @@ async fn main() -> anyhow::Result<()> {
         Err(ConfigError::Cli(e)) => e.exit(),
         Err(e) => return Err(e).context("configuration"),
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::new(log.filter_directive()))
-        .with_writer(std::io::stderr)
-        .init();
+    holoface_server::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
     let server = Server::bind(settings)
         .await
         .context("starting the alignment server")?;

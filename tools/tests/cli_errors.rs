@@ -39,6 +39,31 @@ fn eval_without_annotations_names_the_missing_file() {
     );
 }
 
+/// A log written to a pipe or a file carries no colour codes (issue 30): the `holoface` binary's own
+/// subscriber, stderr captured (not a terminal).
+#[test]
+fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
+    let d = tmp("no-ansi");
+    write_png(&d.join("a.png"), 64, 64);
+    std::fs::write(d.join("a.pts"), pts68()).unwrap();
+    let (out, plot) = (d.join("eval.json"), d.join("ced.png"));
+    let (_, text) = holoface(&[
+        "eval",
+        "--data",
+        d.to_str().unwrap(),
+        "--init",
+        "gt-box",
+        "--aligner",
+        "krfws",
+        "--out",
+        out.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
+    assert!(text.contains("INFO") && text.contains("evaluating"), "{text}");
+    assert!(!text.contains('\u{1b}'), "colour codes: {text:?}");
+}
+
 #[test]
 fn eval_with_a_corrupt_image_names_it() {
     let d = tmp("corrupt");

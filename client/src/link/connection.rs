@@ -308,10 +308,16 @@ impl Control {
     /// The next control message; `Goaway` and `Error` come back as errors with the server's text.
     pub async fn next(&mut self) -> Result<Message, LinkError> {
         match read_framed(&mut self.recv, &mut self.buf).await? {
-            Message::Goaway(g) => Err(LinkError::Goaway(format!("{:?}: {}", g.reason, g.text))),
+            // The server's texts go into errors and logs: escaped and bounded.
+            Message::Goaway(g) => Err(LinkError::Goaway(format!(
+                "{:?}: {}",
+                g.reason,
+                holoface_protocol::untrusted(&g.text)
+            ))),
             Message::Error(e) => Err(LinkError::Protocol(format!(
                 "server error {:?}: {}",
-                e.code, e.text
+                e.code,
+                holoface_protocol::untrusted(&e.text)
             ))),
             other => Ok(other),
         }

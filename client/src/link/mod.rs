@@ -411,7 +411,7 @@ async fn supervise(
                 delay = backoff.initial;
                 shared.counters.connects.fetch_add(1, Ordering::Relaxed);
                 let (conn, welcome, control, replies) = s.split();
-                tracing::info!(server = %cfg.server, model = %welcome.model_version, encoding = ?welcome.encoding, "link up");
+                tracing::info!(server = %cfg.server, model = %holoface_protocol::untrusted(&welcome.model_version), encoding = ?welcome.encoding, "link up");
                 // Frames queued while down are stale.
                 while frames.try_recv().is_ok() {}
                 *shared.current.lock().unwrap_or_else(PoisonError::into_inner) = Some(conn.clone());

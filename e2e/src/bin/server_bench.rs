@@ -656,11 +656,7 @@ async fn idle(cli: &Cli, connections: usize, hold_seconds: f64) -> anyhow::Resul
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::new(
-            std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into()),
-        ))
-        .init();
+    holoface_server::logging::init(holoface_server::logging::env_filter_or("warn"));
     let cli = Cli::parse();
     println!(
         "machine: {} cores; note any background load (load average {})",

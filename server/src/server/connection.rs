@@ -238,7 +238,8 @@ async fn send_welcome(
     info!(
         client,
         remote = %conn.remote_address(),
-        name = %hello.client_name,
+        // The name is the client's own text: escaped and bounded so it cannot forge a log line.
+        name = %holoface_protocol::untrusted(&hello.client_name),
         ?encoding,
         ?reply_channel,
         max_in_flight,

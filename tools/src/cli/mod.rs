@@ -66,10 +66,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 
 /// Installs the tracing subscriber (binaries only; libraries never do).
 pub fn init_logging(filter: &str) {
-    let env = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("{filter},quinn=info,rustls=info")));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(env)
-        .with_writer(std::io::stderr)
-        .try_init();
+    holoface_server::logging::init(holoface_server::logging::env_filter_or(&format!(
+        "{filter},quinn=info,rustls=info"
+    )));
 }
