@@ -27,6 +27,10 @@ use serde::Deserialize;
 
 use holoface_client::frame::{FrameSource, OwnedFrame, SourceError};
 
+/// The farthest a camera may be from its world's origin, metres: a headset's world is a room, a building or
+/// a site, never beyond 10 km (a sidecar with 3e38 m is corrupt, not a pose).
+pub const MAX_TRANSLATION_M: f64 = 1e4;
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Line {
@@ -75,21 +79,23 @@ impl PoseSidecar {
                     l.frame
                 )
             })?;
+            let t = world_from_camera.translation;
+            let distance = t.x.hypot(t.y).hypot(t.z);
+            if !distance.is_finite() || distance > MAX_TRANSLATION_M {
+                bail!(
+                    "{}: camera_to_world of frame {} puts the camera {distance:.1e} m from the world origin \
+                     (at most {MAX_TRANSLATION_M} m)",
+                    at(),
+                    l.frame
+                );
+            }
             let intrinsics = match l.intrinsics {
                 Some([fx, fy, cx, cy]) => {
-                    if !(fx > 0.0
-                        && fy > 0.0
-                        && fx.is_finite()
-                        && fy.is_finite()
-                        && cx.is_finite()
-                        && cy.is_finite())
-                    {
-                        bail!(
-                            "{}: intrinsics need positive finite focal lengths and a finite principal point",
-                            at()
-                        );
+                    let k = Intrinsics { fx, fy, cx, cy };
+                    if let Err(why) = k.check() {
+                        bail!("{}: intrinsics of frame {}: {why}", at(), l.frame);
                     }
-                    Some(Intrinsics { fx, fy, cx, cy })
+                    Some(k)
                 }
                 None => None,
             };
@@ -256,7 +262,25 @@ mod tests {
             ),
             (
                 format!("{{\"frame\": 0, \"camera_to_world\": {ident}, \"intrinsics\": [0, 1, 2, 3]}}"),
-                "focal lengths",
+                "focal length fx = 0 px",
+            ),
+            // Physically absurd values (issue 30): a 1e308-px focal length, a principal point 1e9 px away, a
+            // camera 3e38 m from the world origin; each names the line and the frame.
+            (
+                format!(
+                    "{{\"frame\": 0, \"camera_to_world\": {ident}}}\n{{\"frame\": 1, \"camera_to_world\": {ident}, \"intrinsics\": [1e308, 1e308, 320, 240]}}"
+                ),
+                "line 2: intrinsics of frame 1: focal length fx = 1e308 px",
+            ),
+            (
+                format!(
+                    "{{\"frame\": 0, \"camera_to_world\": {ident}, \"intrinsics\": [500, 500, 1e9, 240]}}"
+                ),
+                "line 1: intrinsics of frame 0: principal point cx",
+            ),
+            (
+                "{\"frame\": 4, \"camera_to_world\": [1,0,0,3e38, 0,1,0,0, 0,0,1,0, 0,0,0,1]}".to_string(),
+                "line 1: camera_to_world of frame 4 puts the camera 3.0e38 m",
             ),
             (
                 format!("{{\"frame\": 0, \"camera_to_world\": {ident}, \"extra\": 1}}"),

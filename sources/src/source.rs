@@ -111,6 +111,9 @@ impl RecordedStream {
             cx: f64::from(c.cx),
             cy: f64::from(c.cy),
         };
+        if let Err(why) = intrinsics.check() {
+            bail!("{}: the header's intrinsics: {why}", path.display());
+        }
         Ok(Self {
             reader,
             intrinsics,

@@ -64,6 +64,45 @@ fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
     assert!(!text.contains('\u{1b}'), "colour codes: {text:?}");
 }
 
+/// A physically absurd pose sidecar (issue 30): a 1e308-px focal length, or a camera 3e38 m from the world
+/// origin, is an error naming the file, the line and the frame; no output is written.
+#[test]
+fn an_absurd_pose_sidecar_names_the_file_line_and_frame() {
+    let (d, frames) = faceless_frames("absurd-poses", 2);
+    let ident = "[1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]";
+    for (name, second, want) in [
+        (
+            "focal.jsonl",
+            format!("{{\"frame\": 1, \"camera_to_world\": {ident}, \"intrinsics\": [1e308, 1e308, 80, 60]}}"),
+            "line 2: intrinsics of frame 1: focal length fx = 1e308 px",
+        ),
+        (
+            "far.jsonl",
+            "{\"frame\": 1, \"camera_to_world\": [1,0,0,3e38, 0,1,0,0, 0,0,1,0, 0,0,0,1]}".to_owned(),
+            "line 2: camera_to_world of frame 1 puts the camera 3.0e38 m",
+        ),
+    ] {
+        let poses = d.join(name);
+        std::fs::write(
+            &poses,
+            format!("{{\"frame\": 0, \"camera_to_world\": {ident}}}\n{second}\n"),
+        )
+        .unwrap();
+        let out = d.join(format!("{name}.out.jsonl"));
+        let (ok, text) = holoface(&[
+            "track",
+            "--source",
+            frames.to_str().unwrap(),
+            "--poses",
+            poses.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(!ok, "{text}");
+        assert!(text.contains(name) && text.contains(want), "{text}");
+    }
+}
+
 #[test]
 fn eval_with_a_corrupt_image_names_it() {
     let d = tmp("corrupt");

@@ -131,7 +131,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut count = 0usize;
     while let Some(f) = frame {
         if let Some(cutter) = cutter.as_mut() {
-            if let Some(payload) = cutter.cut(&f).with_context(|| format!("frame {}", f.index))? {
+            if let Some(payload) = cutter
+                .cut(&f)
+                .with_context(|| format!("frame {} of {}", f.index, args.source.display()))?
+            {
                 writer
                     .write_record(&FrameRecord {
                         timestamp_us: f.timestamp_us,

@@ -166,7 +166,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
-        let step = holoface_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)?;
+        let step = holoface_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)
+            .with_context(|| format!("frame {} of {}", sf.index, args.source.display()))?;
         let link_state = link.as_ref().map(|w| w.status().state());
         remote_frames += step
             .faces
