@@ -249,8 +249,7 @@ pub(crate) fn finish(
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         }
     }
-    std::fs::write(&args.out, serde_json::to_string_pretty(&report)?)
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
     let series = |key: &str, label: &str| Series {
         label: label.to_owned(),
         points: report["timeline"]
@@ -269,7 +268,7 @@ pub(crate) fn finish(
         "time s",
         "latency ms",
     );
-    std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
+    holoface_sources::output::write_atomic(&args.plot, png)?;
     println!("wrote {} and {}", args.out.display(), args.plot.display());
     if s.goaways > 0 {
         println!(

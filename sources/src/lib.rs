@@ -2,7 +2,8 @@
 //! ([`images`], [`source::ImageSequence`]), MP4/H.264 videos in and out ([`video`], feature `h264`),
 //! YUV4MPEG2 streams and files ([`y4m`]: a live camera piped through ffmpeg), recorded streams (`.hfrec`,
 //! [`source::RecordedStream`]) and pose sidecars that give frames their camera-to-world poses ([`poses`]).
-//! [`open_source`] picks the reader from the path.
+//! [`open_source`] picks the reader from the path. [`output`] makes every file the tools write appear whole
+//! or not at all.
 //!
 //! Every source implements the runtime's [`FrameSource`] trait and hands over
 //! [`OwnedFrame`]s; the headset runtime (`holoface-client`) knows only that trait, so a headset app never
@@ -12,6 +13,7 @@
 #![deny(missing_docs)]
 
 pub mod images;
+pub mod output;
 pub mod poses;
 pub mod source;
 #[cfg(feature = "h264")]

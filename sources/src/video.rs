@@ -15,7 +15,7 @@
 
 use std::collections::VecDeque;
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Seek, Write};
+use std::io::BufReader;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
@@ -24,6 +24,7 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
+use crate::output::Output;
 use holoface_client::frame::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
@@ -278,8 +279,9 @@ pub struct Mp4Writer {
     height: usize,
     fps: u32,
     encoder: openh264::encoder::Encoder,
-    mux: Option<mp4::Mp4Writer<BufWriter<File>>>,
-    file: Option<BufWriter<File>>,
+    mux: Option<mp4::Mp4Writer<Output>>,
+    /// The file until the first frame starts the muxer; it appears at `path` only when `finish` succeeds.
+    file: Option<Output>,
     frames: u64,
     yuv: Vec<u8>,
 }
@@ -310,7 +312,7 @@ impl Mp4Writer {
             .rate_control_mode(RateControlMode::Quality);
         let encoder = openh264::encoder::Encoder::with_api_config(openh264::OpenH264API::from_source(), cfg)
             .map_err(|e| anyhow!("starting the H.264 encoder: {e}"))?;
-        let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        let file = Output::create(path)?;
         Ok(Self {
             path: path.to_path_buf(),
             width,
@@ -318,7 +320,7 @@ impl Mp4Writer {
             fps,
             encoder,
             mux: None,
-            file: Some(BufWriter::new(file)),
+            file: Some(file),
             frames: 0,
             yuv: vec![128; width * height * 3 / 2],
         })
@@ -464,10 +466,7 @@ impl Mp4Writer {
             .with_context(|| format!("{}: no frames were written", self.path.display()))?;
         mux.write_end()
             .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
-        let mut w = mux.into_writer();
-        w.flush()
-            .and_then(|()| w.stream_position().map(drop))
-            .with_context(|| format!("writing {}", self.path.display()))?;
+        mux.into_writer().commit()?;
         Ok(self.frames)
     }
 }

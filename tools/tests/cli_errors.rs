@@ -5,7 +5,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{holoface, tmp};
+use common::{holoface, tmp, workspace};
 
 fn write_png(path: &Path, w: u32, h: u32) {
     let px: Vec<u8> = (0..w * h).map(|i| (i % 251) as u8).collect();
@@ -65,7 +65,7 @@ fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
 }
 
 /// A physically absurd pose sidecar (issue 30): a 1e308-px focal length, or a camera 3e38 m from the world
-/// origin, is an error naming the file, the line and the frame; no output is written.
+/// origin, is an error naming the file, the line and the frame; no output is left.
 #[test]
 fn an_absurd_pose_sidecar_names_the_file_line_and_frame() {
     let (d, frames) = faceless_frames("absurd-poses", 2);
@@ -100,6 +100,7 @@ fn an_absurd_pose_sidecar_names_the_file_line_and_frame() {
         ]);
         assert!(!ok, "{text}");
         assert!(text.contains(name) && text.contains(want), "{text}");
+        assert!(!out.exists(), "{}", out.display());
     }
 }
 
@@ -192,6 +193,40 @@ fn track_rejects_missing_bad_and_truncated_sources() {
         d.join("o.jsonl").to_str().unwrap(),
     ]);
     assert!(!ok && text.contains("file ends inside record"), "{text}");
+    // A failed run leaves no output (issue 30): not even an empty .jsonl, nor a temporary file.
+    assert!(!d.join("o.jsonl").exists(), "a failed track left its output");
+    assert_no_temporary_files(&d);
+}
+
+/// No `.NAME.tmp-PID` file of an abandoned output is left in `dir`.
+fn assert_no_temporary_files(dir: &std::path::Path) {
+    let left: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp-"))
+        .collect();
+    assert!(left.is_empty(), "temporary files left: {left:?}");
+}
+
+/// `record --crops` failing on a missing asset (the detector) exits 1 and leaves no `.hfrec` behind: it left
+/// a 114-byte header that a later `[ -s file ]` took for a recording (issue 30).
+#[test]
+fn a_failed_record_leaves_no_file() {
+    let (d, frames) = faceless_frames("record-fails", 2);
+    let out = d.join("crops.hfrec");
+    let missing = d.join("no-such-detector.onnx");
+    let result = std::process::Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(["record", "--source", frames.to_str().unwrap(), "--crops", "jpeg:75", "--out"])
+        .arg(&out)
+        .current_dir(workspace())
+        .env("HOLOFACE_DETECTOR_MODEL", &missing)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&result.stderr);
+    assert!(!result.status.success(), "{text}");
+    assert!(text.contains("no-such-detector.onnx"), "{text}");
+    assert!(!out.exists(), "a failed record left {}", out.display());
+    assert_no_temporary_files(&d);
 }
 
 #[test]

@@ -7,6 +7,7 @@
 //! moved into each frame by its homography (so "error" means drift from that reference, not from a human
 //! annotation). Prints a summary table, writes one JSON line per frame and a PNG strip of annotated frames.
 
+use holoface_sources::output::{Output, write_atomic};
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -182,9 +183,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
 
     let log_path = args.out.join("frames.jsonl");
-    let mut log = std::io::BufWriter::new(
-        std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?,
-    );
+    let mut log = Output::create(&log_path)?;
     let interval = Duration::from_secs_f64(1.0 / args.fps);
     let cut_end = args.cut_at + args.cut_frames;
     let strip_at = strip_frames(args.frames, args.cut_at, cut_end);
@@ -283,7 +282,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let wall = start.elapsed().as_secs_f64();
-    log.flush()?;
+    log.commit()?;
     let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| {
         let sent = aligner
             .link()
@@ -298,12 +297,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     server.stop();
 
     let strip_path = args.out.join("strip.png");
-    std::fs::write(&strip_path, strip_png(&strip))
-        .with_context(|| format!("writing {}", strip_path.display()))?;
+    write_atomic(&strip_path, strip_png(&strip))?;
     let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
     let summary_path = args.out.join("summary.json");
-    std::fs::write(&summary_path, serde_json::to_string_pretty(&summary)?)
-        .with_context(|| format!("writing {}", summary_path.display()))?;
+    write_atomic(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     println!(
         "wrote {}, {} and {}",
         log_path.display(),

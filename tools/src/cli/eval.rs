@@ -381,9 +381,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let json = serde_json::to_string_pretty(&reports)?;
-    std::fs::write(&args.out, json).with_context(|| format!("writing {}", args.out.display()))?;
+    holoface_sources::output::write_atomic(&args.out, &json)?;
     let png = ced_plot_png(&curves, 0.08);
-    std::fs::write(&args.plot, png).with_context(|| format!("writing {}", args.plot.display()))?;
+    holoface_sources::output::write_atomic(&args.plot, &png)?;
     println!("wrote {} and {}", args.out.display(), args.plot.display());
     Ok(())
 }

@@ -1,5 +1,6 @@
 //! `holoface record`: writes a recorded stream (`.hfrec`, the protocol's format) from any frame source.
 
+use holoface_sources::output::Output;
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
@@ -120,12 +121,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis() as u64),
     };
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    let file =
-        std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let mut writer = RecordingWriter::new(std::io::BufWriter::new(file), &header)?;
+    // The recording appears at --out only when it is complete: a failed run leaves no file.
+    let mut writer = RecordingWriter::new(Output::create(&args.out)?, &header)?;
     let mut cutter = args.crops.map(|c| CropCutter::new(c, &args)).transpose()?;
     let mut frame = Some(first);
     let mut count = 0usize;
@@ -185,7 +182,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     writer
         .finish()
-        .with_context(|| format!("finishing {}", args.out.display()))?;
+        .with_context(|| format!("finishing {}", args.out.display()))?
+        .commit()?;
     println!("wrote {count} frames to {}", args.out.display());
     Ok(())
 }

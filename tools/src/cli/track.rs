@@ -1,5 +1,6 @@
 //! `holoface track`: runs the tracker session over a frame source and writes one JSON line per frame.
 
+use holoface_sources::output::{Output, write_atomic};
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -152,12 +153,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    let file =
-        std::fs::File::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let mut out = std::io::BufWriter::new(file);
+    // The lines appear at --out only when every frame was tracked: a failed run leaves no file.
+    let mut out = Output::create(&args.out)?;
     let mut annotated = args
         .annotate
         .as_deref()
@@ -208,8 +205,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         serde_json::to_writer(&mut out, &line)?;
         out.write_all(b"\n")?;
     }
-    out.flush()
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    out.commit()?;
     println!("{frames} frames, {faces} faces; wrote {}", args.out.display());
     if let Some(a) = annotated {
         println!("{}", a.finish()?);
@@ -272,7 +268,7 @@ impl Annotated {
         match self {
             Self::Pngs(dir) => {
                 let path = dir.join(format!("frame_{index:06}.png"));
-                std::fs::write(&path, canvas.to_png()).with_context(|| format!("writing {}", path.display()))
+                write_atomic(&path, canvas.to_png())
             }
             Self::Video { path, fps, writer } => {
                 let w = match writer {

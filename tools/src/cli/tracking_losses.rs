@@ -233,19 +233,14 @@ impl Runner {
 /// JSON line per frame); `multi-face --write-sequence` uses it too.
 pub(crate) struct SequenceExport {
     video: holoface_sources::video::Mp4Writer,
-    poses: std::io::BufWriter<std::fs::File>,
-    truth: std::io::BufWriter<std::fs::File>,
+    poses: holoface_sources::output::Output,
+    truth: holoface_sources::output::Output,
 }
 
 impl SequenceExport {
     pub(crate) fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let file = |name: &str| -> anyhow::Result<_> {
-            let p = dir.join(name);
-            Ok(std::io::BufWriter::new(
-                std::fs::File::create(&p).with_context(|| format!("creating {}", p.display()))?,
-            ))
-        };
+        let file = |name: &str| holoface_sources::output::Output::create(&dir.join(name));
         Ok(Self {
             video: holoface_sources::video::Mp4Writer::create(
                 &dir.join("sequence.mp4"),
@@ -274,9 +269,9 @@ impl SequenceExport {
         Ok(())
     }
 
-    pub(crate) fn finish(mut self) -> anyhow::Result<u64> {
-        self.poses.flush()?;
-        self.truth.flush()?;
+    pub(crate) fn finish(self) -> anyhow::Result<u64> {
+        self.poses.commit()?;
+        self.truth.commit()?;
         self.video.finish()
     }
 }
@@ -418,8 +413,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    std::fs::write(&args.out, serde_json::to_vec_pretty(&report)?)
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
     println!("wrote {}", args.out.display());
     Ok(())
 }

@@ -373,7 +373,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     if !args.evaluate {
-        std::fs::write(&args.out, &bytes).with_context(|| format!("writing {}", args.out.display()))?;
+        holoface_sources::output::write_atomic(&args.out, &bytes)?;
     }
     let rep = Report {
         model: args.out.display().to_string(),
@@ -416,8 +416,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let json_path = args
         .out
         .with_extension(if args.evaluate { "eval.json" } else { "json" });
-    std::fs::write(&json_path, serde_json::to_string_pretty(&rep)? + "\n")
-        .with_context(|| format!("writing {}", json_path.display()))?;
+    holoface_sources::output::write_atomic(
+        &json_path,
+        (serde_json::to_string_pretty(&rep)? + "\n").as_bytes(),
+    )?;
     println!(
         "training time        {:.1} s ({} samples/stage)",
         training_seconds, report.samples

@@ -776,11 +776,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         validation_detector_init: val,
         file_bytes: bytes.len(),
     };
-    let tmp = args.out.with_extension("bin.tmp");
-    std::fs::write(&tmp, &bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &args.out)?;
+    holoface_sources::output::write_atomic(&args.out, &bytes)?;
     let json = args.out.with_extension("json");
-    std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")?;
+    holoface_sources::output::write_atomic(&json, serde_json::to_string_pretty(&report)? + "\n")?;
     println!(
         "wrote {} ({} bytes) and {}",
         args.out.display(),
