@@ -153,6 +153,25 @@ def test_bad_files_raise_source_errors(tmp_path, clip):
         holoface.read_gray(truncated)
 
 
+def _png_declaring(side):
+    """A PNG whose header declares side x side grey pixels, with a token IDAT."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
+
+
+def test_an_image_over_the_size_limit_raises_before_it_is_decoded(tmp_path):
+    huge = tmp_path / "huge.png"
+    huge.write_bytes(_png_declaring(20000))
+    with pytest.raises(holoface.SourceError, match=r"huge.png.*20000 x 20000 pixels .* image-size limit"):
+        holoface.read_gray(huge)
+
+
 def test_a_closed_tracker_raises():
     tracker = holoface.FaceTracker()
     tracker.close()

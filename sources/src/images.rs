@@ -3,8 +3,40 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use holoface_models::image::GrayImage;
+
+/// The largest image (or video frame) any reader decodes, in pixels: 40 megapixels takes an 8K frame (33
+/// megapixels) and keeps one decode well under 1 GiB even as 16-bit RGBA (8 bytes a pixel, 320 MB).
+pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 40_000_000;
+/// Environment variable that sets another limit (pixels).
+pub const MAX_IMAGE_PIXELS_ENV: &str = "HOLOFACE_MAX_IMAGE_PIXELS";
+
+/// The image-size limit in force: `$HOLOFACE_MAX_IMAGE_PIXELS` when it is a positive number, else
+/// [`DEFAULT_MAX_IMAGE_PIXELS`].
+pub fn max_image_pixels() -> u64 {
+    std::env::var(MAX_IMAGE_PIXELS_ENV)
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&n| n > 0)
+        .unwrap_or(DEFAULT_MAX_IMAGE_PIXELS)
+}
+
+/// Refuses a `width` x `height` image over [`max_image_pixels`] before anything is allocated for it; the
+/// message gives the size and the limit (the caller's context names the file and the frame).
+pub fn check_image_size(width: u64, height: u64) -> anyhow::Result<()> {
+    let limit = max_image_pixels();
+    let pixels = width.saturating_mul(height);
+    if pixels > limit {
+        bail!(
+            "{width} x {height} pixels ({:.1} megapixels) is over the image-size limit of {:.1} megapixels \
+             (set {MAX_IMAGE_PIXELS_ENV} to change it)",
+            pixels as f64 / 1e6,
+            limit as f64 / 1e6
+        );
+    }
+    Ok(())
+}
 
 /// Image paths (`.jpg`, `.jpeg`, `.png`) under `root`, one level of subfolders deep, sorted by name.
 pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
@@ -60,7 +92,16 @@ pub fn decode_gray(bytes: &[u8]) -> anyhow::Result<GrayImage> {
             bytes.len()
         );
     }
-    let img = image::load_from_memory_with_format(bytes, format)?.to_luma8();
+    // The header's size is checked before the decoder allocates anything for the pixels, and the decoder
+    // may allocate no more than the largest allowed image needs (16-bit RGBA, 8 bytes a pixel).
+    let header = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
+    let (w, h) = header.into_dimensions()?;
+    check_image_size(u64::from(w), u64::from(h))?;
+    let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(max_image_pixels().saturating_mul(8).saturating_add(1 << 20));
+    reader.limits(limits);
+    let img = reader.decode()?.to_luma8();
     let (w, h) = (img.width() as usize, img.height() as usize);
     Ok(GrayImage::from_vec(img.into_raw(), w, h)?)
 }
@@ -129,6 +170,63 @@ mod tests {
         let mut out = std::io::Cursor::new(Vec::new());
         img.write_to(&mut out, format).unwrap();
         out.into_inner()
+    }
+
+    /// A PNG whose header declares `w` x `h` grey pixels, with a token IDAT: what a 389 KB file saying
+    /// 20000 x 20000 looks like to a decoder before it allocates.
+    pub(crate) fn png_declaring(w: u32, h: u32) -> Vec<u8> {
+        fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+            out.extend_from_slice(&u32::try_from(data.len()).unwrap().to_be_bytes());
+            let start = out.len();
+            out.extend_from_slice(kind);
+            out.extend_from_slice(data);
+            let crc = crc32fast::hash(&out[start..]);
+            out.extend_from_slice(&crc.to_be_bytes());
+        }
+        let mut out = vec![137, 80, 78, 71, 13, 10, 26, 10];
+        let mut ihdr = Vec::new();
+        ihdr.extend_from_slice(&w.to_be_bytes());
+        ihdr.extend_from_slice(&h.to_be_bytes());
+        ihdr.extend_from_slice(&[8, 0, 0, 0, 0]);
+        chunk(&mut out, b"IHDR", &ihdr);
+        chunk(
+            &mut out,
+            b"IDAT",
+            &[0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
+        );
+        chunk(&mut out, b"IEND", &[]);
+        out
+    }
+
+    #[test]
+    fn an_image_over_the_size_limit_is_refused_before_it_is_decoded() {
+        let err = format!("{:#}", decode_gray(&png_declaring(20_000, 20_000)).unwrap_err());
+        assert!(
+            err.contains(
+                "20000 x 20000 pixels (400.0 megapixels) is over the image-size limit of 40.0 megapixels"
+            ),
+            "{err}"
+        );
+        let path = std::env::temp_dir().join(format!("holoface-huge-{}.png", std::process::id()));
+        std::fs::write(&path, png_declaring(20_000, 20_000)).unwrap();
+        let err = format!("{:#}", read_gray(&path).unwrap_err());
+        assert!(
+            err.contains(&path.display().to_string()) && err.contains("image-size limit"),
+            "{err}"
+        );
+        std::fs::remove_file(&path).unwrap();
+        // Within the limit, the size check passes and the decoder reports the token pixel data.
+        let err = format!("{:#}", decode_gray(&png_declaring(64, 64)).unwrap_err());
+        assert!(!err.contains("limit"), "{err}");
+    }
+
+    #[test]
+    fn y4m_frames_over_the_size_limit_are_refused() {
+        let err = format!(
+            "{:#}",
+            crate::y4m::Y4mHeader::parse(b"YUV4MPEG2 W16384 H16384 F30:1 Cmono").unwrap_err()
+        );
+        assert!(err.contains("268.4 megapixels") && err.contains("limit"), "{err}");
     }
 
     #[test]

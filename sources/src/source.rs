@@ -156,17 +156,17 @@ impl RecordedStream {
             let image = match encoding {
                 CropEncoding::Raw => GrayImage::from_vec(data.to_vec(), w, h)?,
                 CropEncoding::Png | CropEncoding::Jpeg => {
-                    let img = image::load_from_memory(&data)
-                        .with_context(|| format!("decoding frame {} of {}", self.index, self.path.display()))?
-                        .to_luma8();
-                    if (img.width() as usize, img.height() as usize) != (w, h) {
+                    let img = crate::images::decode_gray(&data).with_context(|| {
+                        format!("decoding frame {} of {}", self.index, self.path.display())
+                    })?;
+                    if (img.width(), img.height()) != (w, h) {
                         bail!(
                             "frame {} of {}: encoded image size differs from the record",
                             self.index,
                             self.path.display()
                         );
                     }
-                    GrayImage::from_vec(img.into_raw(), w, h)?
+                    img
                 }
             };
             let world_from_camera = Pose::from_row_major_4x4(&rec.camera_to_world).with_context(|| {

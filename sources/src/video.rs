@@ -106,6 +106,8 @@ impl Mp4Source {
             .avc1
             .as_ref()
             .ok_or_else(|| anyhow!("{}: the H.264 track has no avc1 description", path.display()))?;
+        crate::images::check_image_size(u64::from(avc.width), u64::from(avc.height))
+            .with_context(|| format!("{}: the H.264 track's frame size", path.display()))?;
         let length_size = usize::from(avc.avcc.length_size_minus_one & 3) + 1;
         let mut parameter_sets = Vec::new();
         for nal in avc
@@ -188,6 +190,7 @@ impl Mp4Source {
     fn grey_from(lut: &[u8; 256], yuv: &openh264::decoder::DecodedYUV<'_>) -> anyhow::Result<GrayImage> {
         use openh264::formats::YUVSource;
         let (w, h) = yuv.dimensions();
+        crate::images::check_image_size(w as u64, h as u64).context("a decoded picture")?;
         let (stride, _, _) = yuv.strides();
         let y = yuv.y();
         let mut out = Vec::with_capacity(w * h);

@@ -105,6 +105,7 @@ impl Y4mHeader {
             (1..=MAX_SIDE).contains(&width) && (1..=MAX_SIDE).contains(&height),
             "frame size {width}x{height}: each side must be within 1..={MAX_SIDE}"
         );
+        crate::images::check_image_size(width as u64, height as u64).context("the YUV4MPEG2 frame size")?;
         let (cw, ch) = (width.div_ceil(2), height.div_ceil(2));
         let extra_plane_bytes = match colour {
             "mono" => 0,

@@ -65,10 +65,43 @@ pub fn read_pts(path: &Path) -> anyhow::Result<[Point2; 68]> {
     parse_pts68(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
+/// One annotated face before its image is decoded: what `eval` streams (decode, align, drop), so its memory
+/// does not grow with the folder.
+#[derive(Debug, Clone)]
+pub struct Entry {
+    /// `<subset>/<stem>` relative to the data root (or the stem for a flat folder).
+    pub name: String,
+    /// The image file.
+    pub path: PathBuf,
+    /// Ground-truth landmarks in image pixels, when a `.pts` file exists.
+    pub landmarks: Option<[Point2; 68]>,
+}
+
+impl Entry {
+    /// Decodes the image (bounded by the image-size limit of `holoface_sources::images`).
+    pub fn image(&self) -> anyhow::Result<GrayImage> {
+        read_gray(&self.path)
+    }
+}
+
 /// Loads a folder of images with their `.pts` annotations.
 ///
 /// With `require_landmarks`, a folder without any `.pts` file or an image without one is an error.
 pub fn load_folder(root: &Path, split: Split, require_landmarks: bool) -> anyhow::Result<Vec<Sample>> {
+    list_folder(root, split, require_landmarks)?
+        .into_iter()
+        .map(|e| {
+            Ok(Sample {
+                image: e.image()?,
+                name: e.name,
+                landmarks: e.landmarks,
+            })
+        })
+        .collect()
+}
+
+/// The folder's annotated faces without decoding their images (see [`load_folder`]).
+pub fn list_folder(root: &Path, split: Split, require_landmarks: bool) -> anyhow::Result<Vec<Entry>> {
     if !root.is_dir() {
         bail!(
             "data folder {} does not exist (set --data or HOLOFACE_DATA)",
@@ -94,9 +127,9 @@ pub fn load_folder(root: &Path, split: Split, require_landmarks: bool) -> anyhow
         } else {
             None
         };
-        out.push(Sample {
+        out.push(Entry {
             name,
-            image: read_gray(&path)?,
+            path,
             landmarks,
         });
     }

@@ -104,6 +104,73 @@ fn an_absurd_pose_sidecar_names_the_file_line_and_frame() {
     }
 }
 
+/// A 57-byte PNG whose header declares `side` x `side` grey pixels (the 389 KB 20000 x 20000 file of issue
+/// 30 costs 400 MB to decode; its header is all a reader needs to refuse it).
+fn huge_png(side: u32) -> Vec<u8> {
+    let mut out = vec![137, 80, 78, 71, 13, 10, 26, 10];
+    let mut ihdr = [0u8; 13];
+    ihdr[..4].copy_from_slice(&side.to_be_bytes());
+    ihdr[4..8].copy_from_slice(&side.to_be_bytes());
+    ihdr[8] = 8;
+    for (kind, data) in [
+        (&b"IHDR"[..], &ihdr[..]),
+        (b"IDAT", &[0x78, 0x9c, 3, 0, 0, 0, 0, 1]),
+        (b"IEND", &[]),
+    ] {
+        out.extend_from_slice(&u32::try_from(data.len()).unwrap().to_be_bytes());
+        let body = [kind, data].concat();
+        out.extend_from_slice(&body);
+        out.extend_from_slice(&crc32fast::hash(&body).to_be_bytes());
+    }
+    out
+}
+
+/// Images over the size limit (issue 30): `eval` over 24 files declaring 20000 x 20000 stops at the first
+/// with an error naming it, its size and the limit (it decoded every image first and aborted on memory);
+/// `track` on one likewise (it took 846 MiB and exited 0).
+#[test]
+fn images_over_the_size_limit_are_clear_errors() {
+    let d = tmp("huge-images");
+    for i in 0..24 {
+        std::fs::write(d.join(format!("big{i:02}.png")), huge_png(20_000)).unwrap();
+        std::fs::write(d.join(format!("big{i:02}.pts")), pts68()).unwrap();
+    }
+    let (ok, text) = holoface(&[
+        "eval",
+        "--data",
+        d.to_str().unwrap(),
+        "--init",
+        "gt-box",
+        "--aligner",
+        "krfws",
+        "--out",
+        d.join("eval.json").to_str().unwrap(),
+        "--plot",
+        d.join("ced.png").to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("big00.png")
+            && text.contains("20000 x 20000 pixels (400.0 megapixels) is over the image-size limit"),
+        "{text}"
+    );
+    assert!(!d.join("eval.json").exists());
+    let out = d.join("track.jsonl");
+    let (ok, text) = holoface(&[
+        "track",
+        "--source",
+        d.join("big03.png").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("big03.png") && text.contains("image-size limit"),
+        "{text}"
+    );
+    assert!(!out.exists());
+}
+
 #[test]
 fn eval_with_a_corrupt_image_names_it() {
     let d = tmp("corrupt");
@@ -199,7 +266,7 @@ fn track_rejects_missing_bad_and_truncated_sources() {
 }
 
 /// No `.NAME.tmp-PID` file of an abandoned output is left in `dir`.
-fn assert_no_temporary_files(dir: &std::path::Path) {
+fn assert_no_temporary_files(dir: &Path) {
     let left: Vec<_> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -216,7 +283,14 @@ fn a_failed_record_leaves_no_file() {
     let out = d.join("crops.hfrec");
     let missing = d.join("no-such-detector.onnx");
     let result = std::process::Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(["record", "--source", frames.to_str().unwrap(), "--crops", "jpeg:75", "--out"])
+        .args([
+            "record",
+            "--source",
+            frames.to_str().unwrap(),
+            "--crops",
+            "jpeg:75",
+            "--out",
+        ])
         .arg(&out)
         .current_dir(workspace())
         .env("HOLOFACE_DETECTOR_MODEL", &missing)
