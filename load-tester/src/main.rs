@@ -100,6 +100,10 @@ struct Args {
     /// SLO: fail when the measured p99 latency exceeds this, ms.
     #[arg(long)]
     max_p99_ms: Option<f64>,
+    /// SLO: fail when fewer than this fraction of the frames that fell due got an answer (landmarks or an
+    /// explicit drop): frames lost, or never sent because the server was unreachable, break it. 0 = off.
+    #[arg(long, default_value_t = 0.9)]
+    min_answered: f64,
     /// SLO: fail when more than this fraction of frames is dropped or unanswered.
     #[arg(long)]
     max_drop_rate: Option<f64>,
@@ -184,6 +188,12 @@ fn target(args: &Args, rt: &tokio::runtime::Runtime) -> anyhow::Result<Target> {
 fn run(args: Args) -> anyhow::Result<bool> {
     if args.clients == 0 || args.duration_s <= 0.0 || args.interval_s <= 0.0 {
         bail!("--clients, --duration-s and --interval-s must be positive");
+    }
+    if !(0.0..=1.0).contains(&args.min_answered) {
+        bail!(
+            "--min-answered {} must be within 0..=1 (0 turns the check off)",
+            args.min_answered
+        );
     }
     let mut streams = Vec::new();
     for p in &args.recordings {

@@ -25,6 +25,19 @@ pub(crate) struct Counts {
     pub(crate) misses: u64,
     /// Frames the server dropped, by reason.
     pub(crate) dropped: HashMap<&'static str, u64>,
+    /// Frames that fell due while the headset had no connection (the server was unreachable).
+    pub(crate) unsent: u64,
+}
+
+/// A time a headset had no connection to the server.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Outage {
+    /// Which headset.
+    pub(crate) headset: usize,
+    /// When the connection broke.
+    pub(crate) at: Instant,
+    /// How long until it reconnected; `None` when the run ended first.
+    pub(crate) length: Option<Duration>,
 }
 
 /// What every headset records into, and the report reads out.
@@ -41,6 +54,8 @@ pub(crate) struct Stats {
     pub(crate) measuring: bool,
     /// Headsets that stopped sending because the server said Goaway.
     pub(crate) goaways: u64,
+    /// Every time a headset lost its connection.
+    pub(crate) outages: Vec<Outage>,
 }
 
 impl Stats {
@@ -52,6 +67,7 @@ impl Stats {
             totals: Counts::default(),
             measuring: false,
             goaways: 0,
+            outages: Vec::new(),
         })
     }
 
@@ -74,6 +90,8 @@ fn rss_kib(pid: Option<u32>) -> Option<u64> {
 
 /// The measurement window and what was sampled over it.
 pub(crate) struct Measured {
+    /// When the headsets started (outages are reported from here).
+    t0: Instant,
     /// One row per report interval.
     timeline: Vec<serde_json::Value>,
     /// Resident memory at the end of the warm-up and at the last interval, KiB.
@@ -169,6 +187,7 @@ pub(crate) fn monitor(
         }
     }
     Measured {
+        t0,
         timeline,
         rss: (rss_start, rss_end),
         duration,
@@ -184,6 +203,7 @@ pub(crate) fn finish(
     stagger: Duration,
 ) -> anyhow::Result<bool> {
     let Measured {
+        t0,
         timeline,
         rss: (rss_start, rss_end),
         duration,
@@ -195,6 +215,22 @@ pub(crate) fn finish(
     let p = |q: f64| s.total.value_at_quantile(q) as f64 / 1e3;
     let throughput = s.totals.answered as f64 / secs;
     let drop_rate = (dropped + lost) as f64 / s.totals.sent.max(1) as f64;
+    // Frames that got any answer (landmarks or an explicit drop) out of all that fell due, the ones that
+    // could not be sent while the server was unreachable included.
+    let due = s.totals.sent + s.totals.unsent;
+    let answered_fraction = (s.totals.answered + dropped) as f64 / due.max(1) as f64;
+    let outages: Vec<serde_json::Value> = s
+        .outages
+        .iter()
+        .map(|o| {
+            json!({
+                "headset": o.headset,
+                "at_s": o.at.saturating_duration_since(t0).as_secs_f64(),
+                "length_s": o.length.map(|l| l.as_secs_f64()),
+                "recovered": o.length.is_some(),
+            })
+        })
+        .collect();
     let growth = match (rss_start, rss_end) {
         (Some(a), Some(b)) if a > 0 => Some(100.0 * (b as f64 - a as f64) / a as f64),
         _ => None,
@@ -202,6 +238,13 @@ pub(crate) fn finish(
     let mut broken = Vec::new();
     if let Some(m) = args.max_p99_ms.filter(|&m| p(0.99) > m) {
         broken.push(format!("p99 {:.2} ms > {m} ms", p(0.99)));
+    }
+    if args.min_answered > 0.0 && answered_fraction < args.min_answered {
+        broken.push(format!(
+            "answered {answered_fraction:.3} of the frames < {} ({lost} sent frames got no answer, {} could not \
+             be sent while the server was unreachable)",
+            args.min_answered, s.totals.unsent
+        ));
     }
     if let Some(m) = args.max_drop_rate.filter(|&m| drop_rate > m) {
         broken.push(format!("drop rate {drop_rate:.4} > {m}"));
@@ -226,17 +269,20 @@ pub(crate) fn finish(
             "sent": s.totals.sent, "answered": s.totals.answered, "dropped": s.totals.dropped,
             "unanswered": lost, "deadline_misses": s.totals.misses, "throughput_per_s": throughput,
             "drop_rate": drop_rate, "headsets_told_goaway": s.goaways,
+            "unsent": s.totals.unsent, "answered_fraction": answered_fraction,
             "latency_ms": {"p50": p(0.5), "p99": p(0.99), "p999": p(0.999), "max": s.total.max() as f64 / 1e3,
                            "mean": s.total.mean() / 1e3},
         },
         "rss_kib": {"start": rss_start, "end": rss_end, "growth_pct": growth},
         "timeline": timeline,
+        "outages": outages,
         "slo": {"broken": broken},
     });
     println!(
-        "total: {} sent, {} answered ({throughput:.1}/s), {dropped} dropped, {lost} unanswered, {} deadline misses; \
-         latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",
+        "total: {} sent, {} unsent, {} answered ({throughput:.1}/s), {dropped} dropped, {lost} unanswered, {} \
+         deadline misses; latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",
         s.totals.sent,
+        s.totals.unsent,
         s.totals.answered,
         s.totals.misses,
         p(0.5),
@@ -275,6 +321,20 @@ pub(crate) fn finish(
             "{} of {} headsets stopped early on the server's Goaway",
             s.goaways, args.clients
         );
+    }
+    for o in &s.outages {
+        let at = o.at.saturating_duration_since(t0).as_secs_f64();
+        match o.length {
+            Some(l) => eprintln!(
+                "outage: headset {} without a server from {at:.1} s for {:.2} s",
+                o.headset,
+                l.as_secs_f64()
+            ),
+            None => eprintln!(
+                "outage: headset {} without a server from {at:.1} s to the end of the run",
+                o.headset
+            ),
+        }
     }
     for b in &broken {
         eprintln!("SLO broken: {b}");

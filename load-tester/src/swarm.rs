@@ -6,11 +6,12 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use holoface_client::link::Backoff;
 use holoface_client::link::connection::{ConnectConfig, client_endpoint, connect, send_frame};
 use holoface_protocol::{FrameRequest, Message, ReplyOutcome};
 
 use crate::replay::ReplayFrame;
-use crate::report::Stats;
+use crate::report::{Outage, Stats};
 
 /// What one simulated headset does.
 pub(crate) struct Plan {
@@ -24,28 +25,137 @@ pub(crate) struct Plan {
     pub(crate) deadline: Duration,
 }
 
-/// Connects, replays `plan.frames` in a loop from `plan.start` to `plan.end` (or the server's Goaway) and
-/// records every answer, drop and deadline miss in `stats`.
+impl Plan {
+    /// When frame `k` (1-based, counting every loop) is due.
+    fn due(&self, k: u64) -> Instant {
+        let n = self.frames.len() as u64;
+        let i = k.saturating_sub(1);
+        self.start
+            + self.period * u32::try_from(i / n).unwrap_or(u32::MAX)
+            + self.frames[(i % n) as usize].offset
+    }
+}
+
+/// How a connection ended.
+enum SessionEnd {
+    /// The run is over (its end, or every frame sent).
+    Done,
+    /// The server said Goaway: the headset leaves, as a real one does.
+    Goaway,
+    /// The connection broke (the server died, the network dropped it): reconnect.
+    Lost(String),
+}
+
+/// Connects like the real client, replays `plan.frames` in a loop from `plan.start` to `plan.end` (or the
+/// server's Goaway) and records every answer, drop and deadline miss in `stats`. When the connection breaks
+/// it reconnects with the client's backoff (100 ms doubling to 2 s), counts every frame that fell due
+/// meanwhile as unsent, and records the outage (when, how long; unrecovered when the run ends first).
 pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Result<()> {
-    let Plan {
-        id,
-        cfg,
-        frames,
-        period,
-        start,
-        end,
-        deadline,
-    } = plan;
-    let endpoint = client_endpoint(&cfg)?;
-    let session = connect(&endpoint, &cfg)
-        .await
-        .with_context(|| format!("headset {id}: connecting to {}", cfg.server))?;
+    let endpoint = client_endpoint(&plan.cfg)?;
+    let backoff = Backoff::default();
+    let mut delay = backoff.initial;
+    let mut next_frame = 1u64;
+    let mut outage: Option<Instant> = None;
+    let mut ever_connected = false;
+    loop {
+        // An attempt never outlives the run (a dead server makes it wait for the connect timeout).
+        let attempt = tokio::time::timeout_at(plan.end.into(), connect(&endpoint, &plan.cfg)).await;
+        if attempt.is_err() && ever_connected {
+            skip_unsent(&plan, next_frame, plan.end, &stats);
+            break;
+        }
+        let attempt = attempt.unwrap_or_else(|_| {
+            Err(holoface_client::link::LinkError::Timeout(
+                plan.cfg.connect_timeout,
+            ))
+        });
+        match attempt {
+            Err(e) if !ever_connected => {
+                return Err(e)
+                    .with_context(|| format!("headset {}: connecting to {}", plan.id, plan.cfg.server));
+            }
+            Err(_) => {
+                let retry_at = (Instant::now() + delay).min(plan.end);
+                next_frame = skip_unsent(&plan, next_frame, retry_at, &stats);
+                if retry_at >= plan.end {
+                    break;
+                }
+                tokio::time::sleep_until(retry_at.into()).await;
+                delay = (delay * 2).min(backoff.max);
+            }
+            Ok(session) => {
+                ever_connected = true;
+                delay = backoff.initial;
+                if let Some(since) = outage.take() {
+                    let gone = since.elapsed();
+                    eprintln!(
+                        "headset {}: reconnected to {} after {:.2} s",
+                        plan.id,
+                        plan.cfg.server,
+                        gone.as_secs_f64()
+                    );
+                    lock(&stats).outages.push(Outage {
+                        headset: plan.id,
+                        at: since,
+                        length: Some(gone),
+                    });
+                }
+                match run_session(&plan, session, &mut next_frame, &stats).await {
+                    SessionEnd::Done | SessionEnd::Goaway => break,
+                    SessionEnd::Lost(why) => {
+                        eprintln!(
+                            "headset {}: connection to {} lost ({why}); reconnecting",
+                            plan.id, plan.cfg.server
+                        );
+                        outage = Some(Instant::now());
+                    }
+                }
+            }
+        }
+    }
+    if let Some(since) = outage {
+        eprintln!(
+            "headset {}: {} still unreachable at the end of the run",
+            plan.id, plan.cfg.server
+        );
+        lock(&stats).outages.push(Outage {
+            headset: plan.id,
+            at: since,
+            length: None,
+        });
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(1), endpoint.wait_idle()).await;
+    Ok(())
+}
+
+fn lock(stats: &Mutex<Stats>) -> std::sync::MutexGuard<'_, Stats> {
+    stats.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Counts the frames from `next` that fall due before `until` (and before the end) as unsent; returns the
+/// first frame still to come.
+fn skip_unsent(plan: &Plan, mut next: u64, until: Instant, stats: &Mutex<Stats>) -> u64 {
+    while plan.due(next) < until.min(plan.end) {
+        lock(stats).each(|c| c.unsent += 1);
+        next += 1;
+    }
+    next
+}
+
+/// One connection: replays frames from `next_frame` until the end, a Goaway or the connection breaking.
+async fn run_session(
+    plan: &Plan,
+    session: holoface_client::link::connection::Established,
+    next_frame: &mut u64,
+    stats: &Arc<Mutex<Stats>>,
+) -> SessionEnd {
+    let (id, deadline) = (plan.id, plan.deadline);
     let (conn, _welcome, mut control, mut replies) = session.split();
     // A headset honours the server's Goaway: it stops sending new frames, lets the in-flight ones be
     // answered, and leaves (the server refuses frame streams that arrive well after its Goaway).
     let (goaway_tx, mut goaway) = tokio::sync::watch::channel(false);
     let watcher = {
-        let stats = Arc::clone(&stats);
+        let stats = Arc::clone(stats);
         tokio::spawn(async move {
             while let Ok(msg) = control.next_message().await {
                 if let Message::Goaway(g) = msg {
@@ -54,7 +164,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
                         g.reason.name(),
                         holoface_protocol::untrusted(&g.text)
                     );
-                    stats.lock().unwrap_or_else(PoisonError::into_inner).goaways += 1;
+                    lock(&stats).goaways += 1;
                     let _ = goaway_tx.send(true);
                     break;
                 }
@@ -63,7 +173,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
     };
     let sent_at: Arc<Mutex<HashMap<u64, Instant>>> = Arc::default();
     let reader = {
-        let (sent_at, stats) = (Arc::clone(&sent_at), Arc::clone(&stats));
+        let (sent_at, stats) = (Arc::clone(&sent_at), Arc::clone(stats));
         tokio::spawn(async move {
             while let Ok(r) = replies.next().await {
                 let Some(t) = sent_at
@@ -74,7 +184,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
                     continue;
                 };
                 let latency = t.elapsed();
-                let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
+                let mut s = lock(&stats);
                 match r.outcome {
                     ReplyOutcome::Landmarks { .. } => {
                         let us = latency.as_micros().max(1) as u64;
@@ -95,22 +205,26 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             }
         })
     };
-    let mut k = 0u64;
-    loop {
-        let f = &frames[(k % frames.len() as u64) as usize];
-        let due = start + period * (k / frames.len() as u64) as u32 + f.offset;
-        if due >= end || *goaway.borrow() {
-            break;
+    let end = loop {
+        let k = *next_frame;
+        let due = plan.due(k);
+        if due >= plan.end {
+            break SessionEnd::Done;
+        }
+        if *goaway.borrow() {
+            break SessionEnd::Goaway;
         }
         tokio::select! {
             () = tokio::time::sleep_until(due.into()) => {}
-            _ = goaway.changed() => break,
+            _ = goaway.changed() => break SessionEnd::Goaway,
+            e = conn.closed() => break SessionEnd::Lost(e.to_string()),
         }
-        k += 1;
+        *next_frame += 1;
+        let f = &plan.frames[((k - 1) % plan.frames.len() as u64) as usize];
         let req = FrameRequest {
             track_id: 0,
             frame_id: k,
-            captured_at_us: due.duration_since(start).as_micros() as u64,
+            captured_at_us: due.duration_since(plan.start).as_micros() as u64,
             deadline_ms: u16::try_from(deadline.as_millis()).unwrap_or(u16::MAX),
             crop: f.crop.clone(),
         };
@@ -118,10 +232,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .insert(k, Instant::now());
-        stats
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .each(|c| c.sent += 1);
+        lock(stats).each(|c| c.sent += 1);
         let conn = conn.clone();
         tokio::spawn(async move {
             let _ = send_frame(&conn, &req).await;
@@ -132,14 +243,15 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .retain(|_, t| *t > stale);
+    };
+    if !matches!(end, SessionEnd::Lost(_)) {
+        // Let the last replies arrive.
+        tokio::time::sleep(deadline + Duration::from_millis(200)).await;
     }
-    // Let the last replies arrive.
-    tokio::time::sleep(deadline + Duration::from_millis(200)).await;
     reader.abort();
     watcher.abort();
     conn.close(0u32.into(), b"load test done");
-    endpoint.wait_idle().await;
-    Ok(())
+    end
 }
 
 /// Starts one task per simulated headset (`--clients`), taking the streams in turn, staggered by `stagger`.
@@ -159,7 +271,8 @@ pub(crate) fn launch(
             let mut cfg = ConnectConfig::new(target.addr, target.fingerprint, target.token.clone());
             cfg.client_name = format!("load-{c}");
             cfg.encodings = vec![frames[0].crop.encoding];
-            cfg.connect_timeout = Duration::from_secs(5);
+            // The real client's timeouts and keep-alives (ConnectConfig's defaults), so a dead server is
+            // noticed and reconnected to as a headset would.
             let plan = Plan {
                 id: c,
                 cfg,

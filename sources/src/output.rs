@@ -31,7 +31,13 @@ impl Output {
         tmp_name.push(name);
         tmp_name.push(format!(".tmp-{}", std::process::id()));
         let tmp = path.with_file_name(tmp_name);
-        let file = File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        let file = File::create(&tmp).with_context(|| {
+            format!(
+                "writing {} (its temporary file {})",
+                path.display(),
+                tmp.display()
+            )
+        })?;
         Ok(Self {
             path: path.to_path_buf(),
             tmp,
