@@ -79,7 +79,7 @@ pub const MAX_LOOKAHEAD_S: f64 = 1.0;
 #[non_exhaustive]
 pub enum SessionOptionsError {
     /// The look-ahead is negative, not finite or longer than [`MAX_LOOKAHEAD_S`].
-    #[error("lookahead_ms {} must be within 0..=1000", .0 * 1e3)]
+    #[error("lookahead_ms {} must be within 0..=1000", (.0 * 1e6).round() / 1e3)]
     Lookahead(f64),
     /// `max_faces` is 0 or more than [`MAX_TRACKED_FACES`].
     #[error("max_faces {0} must be within 1..=64")]

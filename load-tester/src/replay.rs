@@ -52,5 +52,12 @@ pub(crate) fn read_stream(path: &Path, fps: Option<f64>) -> anyhow::Result<(Vec<
         None if n > 1 => last / (n - 1),
         None => Duration::from_secs_f64(1.0 / 30.0),
     };
-    Ok((frames, last + step))
+    let period = last + step;
+    if period.is_zero() {
+        bail!(
+            "{}: every frame has the same timestamp, so the stream has no timing; give --fps",
+            path.display()
+        );
+    }
+    Ok((frames, period))
 }

@@ -218,7 +218,8 @@ pub(crate) fn finish(
     // Frames that got any answer (landmarks or an explicit drop) out of all that fell due, the ones that
     // could not be sent while the server was unreachable included.
     let due = s.totals.sent + s.totals.unsent;
-    let answered_fraction = (s.totals.answered + dropped) as f64 / due.max(1) as f64;
+    // (Replies to frames sent in the warm-up can land in the totals: at most everything was answered.)
+    let answered_fraction = ((s.totals.answered + dropped) as f64 / due.max(1) as f64).min(1.0);
     let outages: Vec<serde_json::Value> = s
         .outages
         .iter()

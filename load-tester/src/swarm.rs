@@ -70,7 +70,16 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             ))
         });
         match attempt {
-            Err(e) if !ever_connected => {
+            // The first attempt failing, or a refusal retrying cannot fix (a revoked token, another
+            // certificate, an unserved version), ends the headset with the error, as the real client gives up.
+            Err(e) if !ever_connected || e.kind().is_permanent() => {
+                if let Some(since) = outage.take() {
+                    lock(&stats).outages.push(Outage {
+                        headset: plan.id,
+                        at: since,
+                        length: None,
+                    });
+                }
                 return Err(e)
                     .with_context(|| format!("headset {}: connecting to {}", plan.id, plan.cfg.server));
             }
@@ -86,6 +95,8 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             Ok(session) => {
                 ever_connected = true;
                 delay = backoff.initial;
+                // Frames that fell due while this attempt was in progress were not sent either.
+                next_frame = skip_unsent(&plan, next_frame, Instant::now(), &stats);
                 if let Some(since) = outage.take() {
                     let gone = since.elapsed();
                     eprintln!(

@@ -37,14 +37,20 @@
 //!   waited `max_wait` (fuller batches at the cost of latency). Either way a
 //!   batch fires as soon as `max_batch` frames are queued.
 //! * **Fair shares per client, then per face**: batches are filled by
-//!   round robin over the clients with queued crops, one crop per client per
-//!   round (deficit round robin with a quantum of one crop: every crop costs
-//!   the engine the same), and within a client round robin over its faces.
-//!   So a client's share of the engine does not grow with its number of
-//!   faces: a headset sending eight faces gets one slot a round like a
-//!   one-face headset, and can fill only the slots nobody else wants. The
-//!   rotations continue across batches, so a deep queue cannot starve others,
-//!   and an idle engine slot is never left empty while any crop is waiting.
+//!   round robin over the clients with queued crops and, within a client,
+//!   over its faces; the rotations continue across batches, so a deep queue
+//!   cannot starve others. A client alone (no other client pushed within
+//!   [`ACTIVE_WINDOW`]) fills whole batches. While several are active, a
+//!   batch takes at most one crop per client (a quantum of one crop: every
+//!   crop costs the engine about the same on a CPU), and a client with a
+//!   backlog that was in the last batch sits the next one out when another
+//!   client has a crop waiting. So a client's share of the engine does not
+//!   grow with its number of faces, and a crop never waits behind more than
+//!   one other client's batch. The price: while several clients are active,
+//!   batches hold at most one crop per client, which on an engine whose
+//!   batch cost is nearly flat (a GPU) gives up throughput that larger
+//!   batches would have bought; an engine is never left idle while a crop is
+//!   queued.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -57,9 +63,9 @@ pub type ClientId = u64;
 /// One face of one client: what supersede, expiry and fairness are keyed by.
 pub type QueueKey = (ClientId, u16);
 
-/// A client that pushed a crop within this long is active: the active clients share every batch (each may
-/// fill at most `max_batch / active` of it), so one headset's many faces cannot hold the engine for a whole
-/// batch while another headset waits. Three frame intervals at 30 fps.
+/// A client that pushed a crop within this long is active: while more than one is, each puts at most one
+/// crop in a batch, so one headset's many faces cannot hold the engine for a whole batch while another
+/// headset waits. Three frame intervals at 30 fps.
 pub const ACTIVE_WINDOW: Duration = Duration::from_millis(100);
 
 /// When an idle engine gets a partial batch.
@@ -210,6 +216,11 @@ impl<T> DynamicBatcher<T> {
         if queue.len() >= self.cfg.per_client_queue {
             evicted = queue.pop_front();
         } else if self.len >= self.cfg.max_queued {
+            if was_empty {
+                // Nothing queued for this face: forget its empty queue, so a client cycling through track
+                // ids while the server is overloaded cannot grow the map.
+                self.queues.remove(&key);
+            }
             return self.drop_item(item, DropReason::Overloaded);
         }
         queue.push_back(item);
@@ -767,8 +778,9 @@ mod tests {
         assert_eq!(got, vec![((7, 1), 10), ((7, 2), 11), ((7, 3), 10)]);
     }
 
-    /// Fairness is per client, then per face: a three-face headset gets one slot a round like a one-face
-    /// headset, its faces take turns, and it fills the slots the other leaves.
+    /// Fairness is per client, then per face: a three-face headset gets one slot a batch like a one-face
+    /// headset while both are active, its faces take turns, and once the other has nothing queued it is
+    /// served alone, one crop a batch (the other is still active).
     #[test]
     fn fairness_is_per_client_then_per_face() {
         let c = Clock(Instant::now());
@@ -836,6 +848,26 @@ mod tests {
         assert!(p99 <= per_crop * 2, "one-face client p99 {p99:?}");
         // The heavy client gets the rest of the engine, not less than its fair part.
         assert!(answered[1] as f64 >= 0.5 * 75.0 * 10.0, "{answered:?}");
+    }
+
+    /// Under overload a client cycling through track ids leaves no empty queue behind.
+    #[test]
+    fn overload_does_not_grow_the_queue_map() {
+        let c = Clock(Instant::now());
+        let mut b = DynamicBatcher::new(BatcherConfig {
+            max_queued: 2,
+            ..cfg(8, 0, 1)
+        });
+        for track in 0..1000u16 {
+            b.push(tracked(&c, (1, track), 1, 0, 100), c.at(0));
+        }
+        assert_eq!(b.len(), 2);
+        assert_eq!(
+            b.queues.len(),
+            2,
+            "one queue per queued crop, none for the shed ones"
+        );
+        assert_eq!(drops(&mut b).len(), 998);
     }
 
     #[test]

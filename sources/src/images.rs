@@ -79,6 +79,19 @@ pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
 /// marker, a PNG cut short, an unknown format) is an error naming the file: decoders otherwise fill a
 /// truncated JPEG with grey and report success.
 pub fn read_gray(path: &Path) -> anyhow::Result<GrayImage> {
+    // No compressed image of the largest allowed size needs more bytes than its raw 16-bit RGBA pixels:
+    // a bigger file is refused before it is read into memory.
+    let size = std::fs::metadata(path)
+        .with_context(|| format!("reading image {}", path.display()))?
+        .len();
+    let most = max_image_pixels().saturating_mul(8).saturating_add(1 << 20);
+    if size > most {
+        bail!(
+            "image {} is {size} bytes, more than any image within the image-size limit can need ({most} bytes; \
+             {MAX_IMAGE_PIXELS_ENV})",
+            path.display()
+        );
+    }
     let bytes = std::fs::read(path).with_context(|| format!("reading image {}", path.display()))?;
     decode_gray(&bytes).with_context(|| format!("decoding image {}", path.display()))
 }

@@ -14,13 +14,31 @@ use anyhow::Context;
 #[derive(Debug)]
 pub struct Output {
     path: PathBuf,
-    tmp: PathBuf,
+    /// The temporary file; `None` when writing straight to a destination that is not a regular file
+    /// (`/dev/null`, `/dev/stdout`, a pipe), which cannot be replaced by a rename.
+    tmp: Option<PathBuf>,
     file: Option<BufWriter<File>>,
 }
 
 impl Output {
-    /// Starts writing `path` (its folder is created if missing).
+    /// Starts writing `path` (its folder is created if missing). A symbolic link is followed: the file it
+    /// points to is replaced, not the link. A destination that exists and is not a regular file (a device,
+    /// a pipe) is written to directly.
     pub fn create(path: &Path) -> anyhow::Result<Self> {
+        if let Ok(meta) = std::fs::metadata(path)
+            && !meta.is_file()
+        {
+            let file = std::fs::OpenOptions::new()
+                .write(true)
+                .open(path)
+                .with_context(|| format!("opening {}", path.display()))?;
+            return Ok(Self {
+                path: path.to_path_buf(),
+                tmp: None,
+                file: Some(BufWriter::new(file)),
+            });
+        }
+        let path = &std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         }
@@ -40,7 +58,7 @@ impl Output {
         })?;
         Ok(Self {
             path: path.to_path_buf(),
-            tmp,
+            tmp: Some(tmp),
             file: Some(BufWriter::new(file)),
         })
     }
@@ -50,17 +68,34 @@ impl Output {
         &self.path
     }
 
-    /// Flushes, syncs and renames the file to its destination.
+    /// Flushes, syncs and renames the file to its destination. On failure (a full disk, a destination
+    /// that cannot be replaced) the temporary file is removed and the destination is untouched.
     pub fn commit(mut self) -> anyhow::Result<()> {
-        let what = || format!("writing {}", self.path.display());
-        if let Some(w) = self.file.take() {
-            let file = w
-                .into_inner()
-                .map_err(std::io::IntoInnerError::into_error)
-                .with_context(what)?;
-            file.sync_all().with_context(what)?;
+        let result = self.finish();
+        if result.is_err()
+            && let Some(tmp) = &self.tmp
+        {
+            let _ = std::fs::remove_file(tmp);
         }
-        std::fs::rename(&self.tmp, &self.path).with_context(what)
+        result
+    }
+
+    fn finish(&mut self) -> anyhow::Result<()> {
+        let what = || format!("writing {}", self.path.display());
+        let Some(w) = self.file.take() else {
+            return Ok(());
+        };
+        let file = w
+            .into_inner()
+            .map_err(std::io::IntoInnerError::into_error)
+            .with_context(what)?;
+        match &self.tmp {
+            Some(tmp) => {
+                file.sync_all().with_context(what)?;
+                std::fs::rename(tmp, &self.path).with_context(what)
+            }
+            None => Ok(()),
+        }
     }
 }
 
@@ -88,8 +123,10 @@ impl std::io::Seek for Output {
 
 impl Drop for Output {
     fn drop(&mut self) {
-        if self.file.take().is_some() {
-            let _ = std::fs::remove_file(&self.tmp);
+        if self.file.take().is_some()
+            && let Some(tmp) = &self.tmp
+        {
+            let _ = std::fs::remove_file(tmp);
         }
     }
 }
@@ -140,6 +177,16 @@ mod tests {
 
         write_atomic(&path, b"replaced").unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), b"replaced");
+
+        // A symbolic link is followed: its target is replaced, the link stays.
+        let link = d.join("link.jsonl");
+        std::os::unix::fs::symlink(&path, &link).unwrap();
+        write_atomic(&link, b"through the link").unwrap();
+        assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+        assert_eq!(std::fs::read(&path).unwrap(), b"through the link");
+        // A device is written to, not replaced.
+        write_atomic(Path::new("/dev/null"), b"gone").unwrap();
+        assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
         std::fs::remove_dir_all(&d).unwrap();
     }
 }

@@ -31,6 +31,19 @@ use holoface_client::frame::{FrameSource, OwnedFrame, SourceError};
 /// a site, never beyond 10 km (a sidecar with 3e38 m is corrupt, not a pose).
 pub const MAX_TRANSLATION_M: f64 = 1e4;
 
+/// Refuses a camera farther than [`MAX_TRANSLATION_M`] from its world's origin (the message continues
+/// "camera_to_world of frame N ...").
+pub(crate) fn check_distance(world_from_camera: &Pose) -> Result<(), String> {
+    let t = world_from_camera.translation;
+    let distance = t.x.hypot(t.y).hypot(t.z);
+    if !distance.is_finite() || distance > MAX_TRANSLATION_M {
+        return Err(format!(
+            "puts the camera {distance:.1e} m from the world origin (at most {MAX_TRANSLATION_M} m)"
+        ));
+    }
+    Ok(())
+}
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Line {
@@ -79,15 +92,8 @@ impl PoseSidecar {
                     l.frame
                 )
             })?;
-            let t = world_from_camera.translation;
-            let distance = t.x.hypot(t.y).hypot(t.z);
-            if !distance.is_finite() || distance > MAX_TRANSLATION_M {
-                bail!(
-                    "{}: camera_to_world of frame {} puts the camera {distance:.1e} m from the world origin \
-                     (at most {MAX_TRANSLATION_M} m)",
-                    at(),
-                    l.frame
-                );
+            if let Err(why) = check_distance(&world_from_camera) {
+                bail!("{}: camera_to_world of frame {} {why}", at(), l.frame);
             }
             let intrinsics = match l.intrinsics {
                 Some([fx, fy, cx, cy]) => {

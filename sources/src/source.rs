@@ -176,6 +176,9 @@ impl RecordedStream {
                     self.path.display()
                 )
             })?;
+            if let Err(why) = crate::poses::check_distance(&world_from_camera) {
+                bail!("frame {} of {}: {why}", self.index, self.path.display());
+            }
             let index = self.index;
             self.index += 1;
             return Ok(Some(OwnedFrame {
@@ -283,6 +286,13 @@ mod tests {
     use super::*;
 
     fn recording(name: &str, payloads: Vec<FramePayload>) -> PathBuf {
+        let identity = [
+            1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        ];
+        recording_at(name, payloads, identity)
+    }
+
+    fn recording_at(name: &str, payloads: Vec<FramePayload>, camera_to_world: [f32; 16]) -> PathBuf {
         let path = std::env::temp_dir().join(format!("holoface-source-{name}-{}.hfrec", std::process::id()));
         let header = RecordingHeader {
             intrinsics: CameraIntrinsics {
@@ -300,9 +310,7 @@ mod tests {
         for (k, payload) in payloads.into_iter().enumerate() {
             w.write_record(&FrameRecord {
                 timestamp_us: k as u64 * 33_333,
-                camera_to_world: [
-                    1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
-                ],
+                camera_to_world,
                 payload,
                 ground_truth: None,
                 face_present: None,
@@ -352,6 +360,25 @@ mod tests {
         let err = format!("{:#}", src.next_frame().unwrap_err());
         assert!(err.contains("bad.jpg"), "the error names the file: {err}");
         std::fs::remove_dir_all(dir).ok();
+    }
+
+    /// A recorded pose 3e38 m from the world origin is refused like the same pose in a sidecar (issue 30).
+    #[test]
+    fn a_recorded_pose_far_outside_any_world_is_an_error_naming_the_frame() {
+        let full = FramePayload::FullFrame {
+            width: 16,
+            height: 16,
+            encoding: CropEncoding::Raw,
+            data: vec![9; 256].into(),
+        };
+        let far = [
+            1.0, 0.0, 0.0, 3e38, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        ];
+        let path = recording_at("far", vec![full], far);
+        let mut src = RecordedStream::open(&path).unwrap();
+        let err = src.next_frame().unwrap_err().to_string();
+        assert!(err.contains("frame 0 of") && err.contains("3.0e38 m"), "{err}");
+        std::fs::remove_file(path).ok();
     }
 
     #[test]

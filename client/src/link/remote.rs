@@ -100,14 +100,27 @@ impl RemoteOptions {
         Ok(o)
     }
 
+    /// Checks the options a caller set field by field (what [`Self::parse`] checks on text).
+    pub fn check(&self) -> Result<(), RemoteOptionsError> {
+        if self.deadline.is_zero() || self.deadline > MAX_DEADLINE {
+            return Err(RemoteOptionsError::Deadline(
+                u64::try_from(self.deadline.as_millis()).unwrap_or(u64::MAX),
+            ));
+        }
+        Ok(())
+    }
+
     /// Starts connecting in the background (retrying with the default backoff) and returns the aligner that
     /// sends each frame's crops to the server and lets `local` answer what misses the deadline or arrives
-    /// while the link is down. `max_faces` crops (one per tracked face) may be in flight at once.
+    /// while the link is down. `max_faces` crops (one per tracked face) may be in flight at once. Options
+    /// out of range ([`Self::check`]) are an `InvalidInput` error.
     pub fn start<A: crate::align::Aligner>(
         &self,
         local: A,
         max_faces: usize,
     ) -> std::io::Result<LinkedAligner<A>> {
+        self.check()
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
         let mut cfg = ConnectConfig::new(self.server, self.fingerprint, self.token.clone());
         cfg.client_name.clone_from(&self.client_name);
         cfg.encodings = vec![self.codec.encoding()];
@@ -137,6 +150,16 @@ mod tests {
         assert_eq!(o.token, "t");
         let d = RemoteOptions::parse("127.0.0.1:4433", Some(FP), "", 33, None).unwrap();
         assert_eq!(d.codec, CropCodec::default());
+    }
+
+    #[test]
+    fn options_set_field_by_field_are_checked_too() {
+        let mut o = RemoteOptions::new("127.0.0.1:9".parse().unwrap(), FP.parse().unwrap(), "");
+        assert!(o.check().is_ok());
+        o.deadline = Duration::ZERO;
+        assert_eq!(o.check(), Err(RemoteOptionsError::Deadline(0)));
+        o.deadline = Duration::from_secs(3600);
+        assert_eq!(o.check(), Err(RemoteOptionsError::Deadline(3_600_000)));
     }
 
     #[test]

@@ -1,5 +1,5 @@
 //! The KRFWS local aligner: HoloFace's simplified K-cluster Regression Forests with Weighted Splitting
-//! (algorithms.md 2.2–2.4), trained by [`train`], loaded with [`Krfws::from_bytes`].
+//! (algorithms.md 2.2–2.4), trained by `train` (feature `train`), loaded with [`Krfws::from_bytes`].
 //!
 //! **Inference** ([`Krfws::align`]), per face:
 //! 1. the start shape is the model's 51-point mean shape similarity-fitted to the caller's `init`
@@ -459,7 +459,7 @@ fn prefetch<T>(data: Option<&[T]>) {
 }
 
 /// The failure detector: `score = weights·hog + intercept`, a ridge regression of the fit's NME49
-/// (clipped at [`train::FAILURE_TARGET_CAP`]) on the last stage's HOG. The fit is accepted when
+/// (clipped at the trainer's `FAILURE_TARGET_CAP`) on the last stage's HOG. The fit is accepted when
 /// `score < threshold`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FailureModel {

@@ -14,7 +14,7 @@
 //! leaf holds a 136-d shape increment in the mean-shape frame (the learning rate already applied); the
 //! stage sums its trees' leaves and moves the shape by that sum turned back into crop pixels.
 //!
-//! Training ([`train`]) is gradient boosting of those trees on the residuals `ground truth − current`
+//! Training (`train`, feature `train`) is gradient boosting of those trees on the residuals `ground truth − current`
 //! (in the mean-shape frame), stage after stage, from DAN's real outputs on augmented training crops.
 //! The file format is in [`mod@format`].
 

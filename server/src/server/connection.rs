@@ -309,7 +309,11 @@ async fn frame_loop(
                     match decode_framed(&mut ctl_buf) {
                         Ok(None) => {}
                         Ok(Some(Message::Error(e))) => {
-                            break ConnectionEnd::Gone(format!("client error {}: {}", e.code, e.text));
+                            break ConnectionEnd::Gone(format!(
+                                "client error {}: {}",
+                                e.code,
+                                holoface_protocol::untrusted(&e.text)
+                            ));
                         }
                         Ok(Some(m)) => {
                             break Fault::new(

@@ -124,11 +124,8 @@ fn reference_landmarks(args: &Args, photo: &GrayImage) -> anyhow::Result<[Point2
 }
 
 fn load_scene(args: &Args) -> anyhow::Result<PlanarScene> {
-    let photo = image::open(&args.sample)
-        .with_context(|| format!("reading the sample {} (run `make setup`)", args.sample.display()))?
-        .into_luma8();
-    let (w, h) = (photo.width() as usize, photo.height() as usize);
-    let photo = GrayImage::from_vec(photo.into_raw(), w, h)?;
+    let photo = holoface_sources::images::read_gray(&args.sample)
+        .with_context(|| format!("reading the sample {} (run `make setup`)", args.sample.display()))?;
     let reference = reference_landmarks(args, &photo)?;
     PlanarScene::life_size(photo, reference)
 }

@@ -205,10 +205,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         serde_json::to_writer(&mut out, &line)?;
         out.write_all(b"\n")?;
     }
+    // The annotation first: when it fails, the lines are not committed either.
+    let annotated = annotated.map(Annotated::finish).transpose()?;
     out.commit()?;
     println!("{frames} frames, {faces} faces; wrote {}", args.out.display());
     if let Some(a) = annotated {
-        println!("{}", a.finish()?);
+        println!("{a}");
     }
     if let Some(status) = link.as_ref().map(holoface_client::link::LinkWatch::status) {
         if status.welcome().is_some() {

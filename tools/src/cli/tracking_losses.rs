@@ -269,10 +269,12 @@ impl SequenceExport {
         Ok(())
     }
 
+    /// The video first: when it fails, the sidecar and the truth are not committed either.
     pub(crate) fn finish(self) -> anyhow::Result<u64> {
+        let frames = self.video.finish()?;
         self.poses.commit()?;
         self.truth.commit()?;
-        self.video.finish()
+        Ok(frames)
     }
 }
 
