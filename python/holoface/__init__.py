@@ -10,8 +10,11 @@ CANDIDE-3 for the head pose and expression, predict the pose ahead and denoise i
     if result.face is not None:
         print(result.face.landmarks.shape, result.face.world_pose[:3, 3])
 
-Model paths default to the same places as the Rust API (the environment variables ORT_DYLIB_PATH,
-HOLOFACE_DETECTOR_MODEL, HOLOFACE_KRFWS_MODEL and HOLOFACE_CANDIDE, then the set-up's paths).
+Assets: a TrackerOptions field, else its environment variable (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL,
+HOLOFACE_KRFWS_MODEL, HOLOFACE_CANDIDE), else what the installed package has: ONNX Runtime from the pinned
+onnxruntime package, the detector and the KRFWS model from the wheel's package data, and CANDIDE-3 from the
+user's data folder (data_dir()), where install_candide(path) puts a copy of the user's candide3.wfm (it is
+free for research use and not redistributed with holoface).
 """
 
 from ._holoface import (
@@ -26,6 +29,8 @@ from ._holoface import (
     SourceFrame,
     TrackerOptions,
     __version__,
+    data_dir,
+    install_candide,
     read_gray,
 )
 
@@ -41,5 +46,7 @@ __all__ = [
     "SourceFrame",
     "TrackerOptions",
     "__version__",
+    "data_dir",
+    "install_candide",
     "read_gray",
 ]

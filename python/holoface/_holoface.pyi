@@ -1,6 +1,7 @@
 """Type stubs of the extension module (python/src/lib.rs)."""
 
 from os import PathLike
+from pathlib import Path
 from typing import Iterator, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -139,6 +140,12 @@ class FrameSource:
     def __init__(self, path: _Path, fps: float = 30.0, poses: Optional[_Path] = None) -> None: ...
     def __iter__(self) -> Iterator[SourceFrame]: ...
     def __next__(self) -> SourceFrame: ...
+
+def data_dir() -> Path:
+    """The user's holoface data folder: $HOLOFACE_HOME, else $XDG_DATA_HOME/holoface, else ~/.local/share/holoface."""
+
+def install_candide(path: _Path) -> Path:
+    """Checks that `path` is a CANDIDE-3 .wfm and copies it into data_dir(); returns where it went."""
 
 def read_gray(path: _Path) -> npt.NDArray[np.uint8]:
     """Reads a PNG or JPEG as uint8 grayscale with the decoder `holoface track` uses."""

@@ -8,6 +8,8 @@
 // PyO3's macros expand to unsafe code (the CPython ABI); this crate writes none of its own.
 #![allow(unsafe_code)]
 
+mod installed;
+
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
@@ -167,7 +169,7 @@ impl Default for PyTrackerOptions {
 }
 
 impl PyTrackerOptions {
-    fn to_rust(&self) -> PyResult<tracker::TrackerOptions> {
+    fn to_rust(&self, py: Python<'_>) -> PyResult<tracker::TrackerOptions> {
         let mode = match self.mode.as_str() {
             "video" => RunningMode::Video,
             "image" => RunningMode::Image,
@@ -198,6 +200,7 @@ impl PyTrackerOptions {
                 slot.clone_from(p);
             }
         }
+        installed::resolve(py, self, &mut o.assets)?;
         if let Some(server) = &self.server {
             let remote = RemoteOptions::parse(
                 server,
@@ -512,7 +515,7 @@ impl PyFaceTracker {
     #[new]
     #[pyo3(signature = (options = None))]
     fn new(py: Python<'_>, options: Option<PyTrackerOptions>) -> PyResult<Self> {
-        let opts = options.unwrap_or_default().to_rust()?;
+        let opts = options.unwrap_or_default().to_rust(py)?;
         let inner = py
             .detach(|| tracker::FaceTracker::new(opts))
             .map_err(|e| match e {
@@ -688,6 +691,8 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyFrameSource>()?;
     m.add_class::<PySourceFrame>()?;
     m.add_function(wrap_pyfunction!(read_gray, m)?)?;
+    m.add_function(wrap_pyfunction!(installed::install_candide, m)?)?;
+    m.add_function(wrap_pyfunction!(installed::data_dir, m)?)?;
     m.add("HoloFaceError", py.get_type::<HoloFaceError>())?;
     m.add("AssetError", py.get_type::<AssetError>())?;
     m.add("ProcessingError", py.get_type::<ProcessingError>())?;

@@ -207,3 +207,46 @@ def test_max_faces_gives_ids_and_is_checked(clip):
             r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
             ids.append([f.id for f in r.faces])
     assert ids == [[0]] * len(frames), "one person in the clip: one face, one id throughout"
+
+
+def test_the_wheel_works_outside_the_checkout(tmp_path, clip, cli_lines):
+    """The wheel `make python-test` built, installed into a fresh venv in a temporary folder with its pinned
+    onnxruntime, every HOLOFACE_* and ORT_* variable unset, HOME elsewhere: after install_candide, the first
+    frame of the clip gives the CLI's landmarks."""
+    import os
+    import subprocess
+    import sys
+
+    wheel = os.environ.get("HOLOFACE_WHEEL")
+    if not wheel:
+        pytest.fail("HOLOFACE_WHEEL is not set: make python-test passes the wheel it built")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    # numpy at the project's pin (models/dan/requirements-eval.txt), onnxruntime at the wheel's own pin.
+    subprocess.run([str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q", wheel, "numpy==2.4.6"],
+                   check=True)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("HOLOFACE_", "ORT_", "XDG_"))}
+    env["HOME"] = str(tmp_path / "home")
+    candide = os.path.join(os.environ.get("HOLOFACE_DATA", "../shared/data"), "candide3", "candide3.wfm")
+    script = (
+        "import json, sys, holoface\n"
+        "try:\n"
+        "    holoface.FaceTracker()\n"
+        "except holoface.AssetError as e:\n"
+        "    print(json.dumps({'before_install': str(e)}))\n"
+        "print(json.dumps({'installed': str(holoface.install_candide(sys.argv[1]))}))\n"
+        "r = holoface.FaceTracker().process(holoface.read_gray(sys.argv[2]), 0)\n"
+        "print(json.dumps({'landmarks': r.face.landmarks.tolist() if r.face is not None else None}))\n"
+    )
+    first = sorted(clip.iterdir())[0]
+    out = subprocess.run([str(py), "-c", script, os.path.abspath(candide), str(first)], cwd=tmp_path, env=env,
+                         check=True, capture_output=True, text=True)
+    lines = [__import__("json").loads(line) for line in out.stdout.splitlines()]
+    before = lines[0]["before_install"]
+    assert "CANDIDE-3 model not found" in before and "holoface.install_candide" in before, before
+    assert lines[1]["installed"].startswith(str(tmp_path / "home")), lines[1]
+    got = np.asarray(lines[2]["landmarks"], dtype=np.float32)
+    want = np.asarray(cli_lines[0]["faces"][0]["landmarks_px"], dtype=np.float32)
+    assert got.shape == (68, 2), lines
+    assert np.abs(got - want).max() <= 1e-4
