@@ -21,7 +21,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all py-assets ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
+.PHONY: all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -250,6 +250,11 @@ py-assets: $(BLAZEFACE)
 	cp $(BLAZEFACE_DIR)/LICENSE $(PY_ASSETS)/BLAZEFACE_LICENSE
 	cp models/assets/krfws.bin $(PY_ASSETS)/krfws.bin
 	cp models/KRFWS_MODEL_CARD.md $(PY_ASSETS)/KRFWS_MODEL_CARD.md
+
+# The wheel users install (README, "Python"): release profile, abi3, self-contained but for CANDIDE-3.
+wheel: py-assets $(VENV)/.python-dev-installed
+	rm -rf dist && $(VENV)/bin/maturin build --locked --release --strip -q -m python/Cargo.toml -i $(PY) -o dist
+	@ls dist/holoface-*.whl
 
 python-test: setup $(VENV)/.python-dev-installed test-build py-assets
 	rm -rf target/wheels
