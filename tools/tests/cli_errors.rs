@@ -39,15 +39,10 @@ fn eval_without_annotations_names_the_missing_file() {
     );
 }
 
-/// A log written to a pipe or a file carries no colour codes (issue 30): the `holoface` binary's own
-/// subscriber, stderr captured (not a terminal).
-#[test]
-fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
-    let d = tmp("no-ansi");
-    write_png(&d.join("a.png"), 64, 64);
-    std::fs::write(d.join("a.pts"), pts68()).unwrap();
+/// `holoface eval` of folder `d` with KRFWS from the ground-truth boxes, its JSON and plot written into `d`.
+fn eval_krfws(d: &Path) -> (bool, String) {
     let (out, plot) = (d.join("eval.json"), d.join("ced.png"));
-    let (_, text) = holoface(&[
+    holoface(&[
         "eval",
         "--data",
         d.to_str().unwrap(),
@@ -59,7 +54,17 @@ fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
         out.to_str().unwrap(),
         "--plot",
         plot.to_str().unwrap(),
-    ]);
+    ])
+}
+
+/// A log written to a pipe or a file carries no colour codes (issue 30): the `holoface` binary's own
+/// subscriber, stderr captured (not a terminal).
+#[test]
+fn a_log_that_is_not_a_terminal_has_no_colour_codes() {
+    let d = tmp("no-ansi");
+    write_png(&d.join("a.png"), 64, 64);
+    std::fs::write(d.join("a.pts"), pts68()).unwrap();
+    let (_, text) = eval_krfws(&d);
     assert!(text.contains("INFO") && text.contains("evaluating"), "{text}");
     assert!(!text.contains('\u{1b}'), "colour codes: {text:?}");
 }
@@ -135,19 +140,7 @@ fn images_over_the_size_limit_are_clear_errors() {
         std::fs::write(d.join(format!("big{i:02}.png")), huge_png(20_000)).unwrap();
         std::fs::write(d.join(format!("big{i:02}.pts")), pts68()).unwrap();
     }
-    let (ok, text) = holoface(&[
-        "eval",
-        "--data",
-        d.to_str().unwrap(),
-        "--init",
-        "gt-box",
-        "--aligner",
-        "krfws",
-        "--out",
-        d.join("eval.json").to_str().unwrap(),
-        "--plot",
-        d.join("ced.png").to_str().unwrap(),
-    ]);
+    let (ok, text) = eval_krfws(&d);
     assert!(!ok, "{text}");
     assert!(
         text.contains("big00.png")
