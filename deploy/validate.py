@@ -248,6 +248,7 @@ def check_k8s() -> int:
     cm_toml = next(iter(cms.values()))["data"].get("server.toml", "") if cms else ""
     c.check(cm_toml == container_toml, "configmap.yaml server.toml is identical to deploy/server.container.toml")
     cfg = tomllib.loads(container_toml)
+    check_asset_paths(c, cfg, "server.container.toml")
     mount_paths = {m["mountPath"] for m in ctr.get("volumeMounts", [])}
     c.check("/etc/holoface/server.toml" in mount_paths, "the ConfigMap is mounted where the entrypoint reads it")
     secret_dir = next((m["mountPath"] for m in ctr.get("volumeMounts", []) if vols[m["name"]].get("projected")), "")
@@ -491,6 +492,14 @@ def seconds(v: str) -> float:
     return total
 
 
+def check_asset_paths(c: "Checker", cfg: dict, name: str) -> None:
+    """A service's config names every asset by an absolute path: its user has no holoface data folder
+    (systemd's dynamic user, the image's user without a home), so a default would not be found."""
+    for section, key in [("engine", "model"), ("engine", "ort_dylib"), ("refine", "model")]:
+        value = cfg.get(section, {}).get(key, "")
+        c.check(value.startswith("/"), f"{name}: {section}.{key} is an absolute path ({value or 'unset'})")
+
+
 def check_systemd() -> int:
     c = Checker("systemd")
     path = DEPLOY / "systemd" / "holoface-server.service"
@@ -504,6 +513,7 @@ def check_systemd() -> int:
     c.check(any(k == "StartLimitBurst" for k, _ in unit_sec) and any(k == "StartLimitIntervalSec" for k, _ in unit_sec),
             "start limits in [Unit]")
     cfg = tomllib.loads((DEPLOY / "systemd" / "server.toml").read_text())
+    check_asset_paths(c, cfg, "systemd/server.toml")
     shutdown_s = cfg["limits"]["shutdown_timeout_ms"] / 1000
     c.check(seconds(one("TimeoutStopSec")) > shutdown_s,
             f"TimeoutStopSec={one('TimeoutStopSec')} is above limits.shutdown_timeout_ms ({shutdown_s:g} s)")

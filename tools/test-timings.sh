@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # `make test`, phase by phase, with the wall time of each (BENCHMARKS.md, "Build time"). Runs the same
-# targets in the order `make test` lists them; a phase's time includes whatever set-up it is the first to
-# need. Prints a Markdown table and appends it to runs/test-timings.md.
+# targets in the order `make test` runs them (`setup` runs the test build's `holoface setup`, so it follows
+# `test-build`); a phase's time includes whatever set-up it is the first to need. Prints a Markdown table and appends it to runs/test-timings.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-phases=(setup deploy-check check deps-check test-build unit c-example csharp-example python-test fuzz-build)
+phases=(deploy-check check deps-check test-build setup unit c-example csharp-example python-test fuzz-build)
 mkdir -p runs
 out=runs/test-timings.md
 rows=()

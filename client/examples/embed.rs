@@ -2,11 +2,12 @@
 //! mode), printing the head pose.
 //!
 //! ```sh
-//! make setup   # ONNX Runtime, BlazeFace, the sample photo; the env vars below come from the Makefile
-//! cargo run --release -p holoface-client --example embed -- .cache/samples/astronaut.png
+//! holoface setup --candide /path/to/candide3.wfm   # fills the data folder (in a checkout: make setup)
+//! cargo run --release -p holoface-client --example embed -- [photo.png]
 //! ```
 //! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
-//! `HOLOFACE_CANDIDE` (defaults: the paths `make setup` uses).
+//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_client::assets::home`); the photo defaults
+//! to the data folder's demo sample.
 
 use holoface_client::frame::Frame;
 use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
@@ -15,9 +16,10 @@ use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
 fn main() -> anyhow::Result<()> {
-    let path = std::env::args()
-        .nth(1)
-        .unwrap_or_else(|| ".cache/samples/astronaut.png".into());
+    let path = std::env::args_os().nth(1).map_or_else(
+        || holoface_client::assets::home::SAMPLE.default_path(),
+        std::path::PathBuf::from,
+    );
     let photo = image::open(&path)?.into_luma8();
     let (w, h) = (photo.width() as usize, photo.height() as usize);
     let image = GrayImage::from_vec(photo.into_raw(), w, h)?;
@@ -42,7 +44,7 @@ fn main() -> anyhow::Result<()> {
     let r = still.process(&frame)?;
     let face = r
         .face()
-        .ok_or_else(|| anyhow::anyhow!("no face in {path}: {:?}", r.no_face))?;
+        .ok_or_else(|| anyhow::anyhow!("no face in {}: {:?}", path.display(), r.no_face))?;
     println!(
         "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
         face.fit.translation.to_array(),

@@ -1,27 +1,23 @@
 //! Where the runtime's assets are and how they load: the ONNX Runtime library, the face detector, the KRFWS
-//! model and CANDIDE-3. Each path has a default (where the set-up command puts it) and an environment
-//! variable that overrides it; the tools' command-line options use the same names and defaults.
+//! model and CANDIDE-3. Each path is, in order: given explicitly, else named by its environment variable,
+//! else its file in the holoface data folder (`$HOLOFACE_HOME`, else `$XDG_DATA_HOME/holoface`, else
+//! `~/.local/share/holoface`), which `holoface setup` fills ([`holoface_inference::home`], re-exported as
+//! [`home`]). No default is relative to the working directory; the tools' options use the same variables.
 
 use std::path::{Path, PathBuf};
 
-pub use holoface_inference::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV};
+pub use holoface_inference::ORT_DYLIB_ENV;
+pub use holoface_inference::home;
+pub use holoface_inference::home::{Asset, HOME_ENV, data_dir};
 
 /// Environment variable naming the BlazeFace model.
-pub const DETECTOR_ENV: &str = "HOLOFACE_DETECTOR_MODEL";
-/// Where `make setup` puts the BlazeFace model.
-pub const DEFAULT_DETECTOR: &str = ".cache/blazeface/face_detection_front_128x128.onnx";
+pub const DETECTOR_ENV: &str = home::DETECTOR.env;
 /// Environment variable naming the KRFWS model.
-pub const KRFWS_ENV: &str = "HOLOFACE_KRFWS_MODEL";
-/// The shipped KRFWS model.
-pub const DEFAULT_KRFWS: &str = "models/assets/krfws.bin";
+pub const KRFWS_ENV: &str = home::KRFWS.env;
 /// Environment variable naming the DAN model (in-process DAN, tools only).
-pub const DAN_ENV: &str = "HOLOFACE_DAN_MODEL";
-/// The shipped DAN model.
-pub const DEFAULT_DAN: &str = "models/assets/dan.onnx";
+pub const DAN_ENV: &str = home::DAN.env;
 /// Environment variable naming the CANDIDE-3 `.wfm`.
-pub const CANDIDE_ENV: &str = "HOLOFACE_CANDIDE";
-/// Where the set-up command finds CANDIDE-3.
-pub const DEFAULT_CANDIDE: &str = "../shared/data/candide3/candide3.wfm";
+pub const CANDIDE_ENV: &str = home::CANDIDE.env;
 
 /// Where the runtime assets are; the defaults follow the environment variables above.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -36,20 +32,13 @@ pub struct AssetPaths {
     pub candide: PathBuf,
 }
 
-/// `$var` when set and not empty, else `default`.
-pub fn env_path(var: &str, default: &str) -> PathBuf {
-    std::env::var_os(var)
-        .filter(|v| !v.is_empty())
-        .map_or_else(|| default.into(), PathBuf::from)
-}
-
 impl Default for AssetPaths {
     fn default() -> Self {
         Self {
-            ort_dylib: env_path(ORT_DYLIB_ENV, DEFAULT_ORT_DYLIB),
-            detector: env_path(DETECTOR_ENV, DEFAULT_DETECTOR),
-            krfws: env_path(KRFWS_ENV, DEFAULT_KRFWS),
-            candide: env_path(CANDIDE_ENV, DEFAULT_CANDIDE),
+            ort_dylib: home::ORT_LIBRARY.default_path(),
+            detector: home::DETECTOR.default_path(),
+            krfws: home::KRFWS.default_path(),
+            candide: home::CANDIDE.default_path(),
         }
     }
 }
@@ -58,6 +47,14 @@ impl Default for AssetPaths {
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum AssetError {
+    /// The file does not exist: the message says why that path was looked at and what installs the asset.
+    #[error("{}", asset.not_found(path))]
+    Missing {
+        /// Which asset.
+        asset: Asset,
+        /// Where it was looked for.
+        path: PathBuf,
+    },
     /// The file could not be read (missing, unreadable).
     #[error("reading {asset} {}: {source}", path.display())]
     Read {
@@ -81,11 +78,17 @@ pub enum AssetError {
     },
 }
 
-fn read_asset(asset: &'static str, path: &Path) -> Result<Vec<u8>, AssetError> {
-    std::fs::read(path).map_err(|source| AssetError::Read {
-        asset,
-        path: path.to_owned(),
-        source,
+fn read_asset(asset: Asset, path: &Path) -> Result<Vec<u8>, AssetError> {
+    std::fs::read(path).map_err(|source| match source.kind() {
+        std::io::ErrorKind::NotFound => AssetError::Missing {
+            asset,
+            path: path.to_owned(),
+        },
+        _ => AssetError::Read {
+            asset: asset.name,
+            path: path.to_owned(),
+            source,
+        },
     })
 }
 
@@ -99,16 +102,20 @@ fn invalid(asset: &'static str, path: &Path, reason: impl std::fmt::Display) -> 
 
 /// Loads the CANDIDE-3 face model from a `.wfm` file.
 pub fn load_face_model(path: &Path) -> Result<holoface_models::candide::FaceModel, AssetError> {
-    const ASSET: &str = "CANDIDE-3 model";
-    let text = read_asset(ASSET, path)?;
-    let wfm = holoface_models::candide::Wfm::parse(&String::from_utf8_lossy(&text))
+    parse_face_model(&read_asset(home::CANDIDE, path)?, path)
+}
+
+/// Parses a CANDIDE-3 `.wfm` already read from `path` (named in errors).
+pub fn parse_face_model(text: &[u8], path: &Path) -> Result<holoface_models::candide::FaceModel, AssetError> {
+    const ASSET: &str = home::CANDIDE.name;
+    let wfm = holoface_models::candide::Wfm::parse(&String::from_utf8_lossy(text))
         .map_err(|e| invalid(ASSET, path, e))?;
     holoface_models::candide::FaceModel::from_wfm(&wfm).map_err(|e| invalid(ASSET, path, e))
 }
 
 /// Loads the KRFWS model file.
 pub fn load_krfws(path: &Path) -> Result<holoface_models::krfws::Krfws, AssetError> {
-    const ASSET: &str = "KRFWS model";
-    let bytes = read_asset(ASSET, path)?;
+    const ASSET: &str = home::KRFWS.name;
+    let bytes = read_asset(home::KRFWS, path)?;
     holoface_models::krfws::Krfws::from_bytes(&bytes).map_err(|e| invalid(ASSET, path, e))
 }

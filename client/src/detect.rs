@@ -17,13 +17,13 @@ use thiserror::Error;
 #[non_exhaustive]
 pub enum DetectError {
     /// The model file does not exist.
-    #[error("face detector model {path} not found (run `make setup`)")]
+    #[error("{}", holoface_inference::home::DETECTOR.not_found(path))]
     ModelMissing {
         /// Path tried.
         path: PathBuf,
     },
     /// The ONNX Runtime library does not exist or failed to load.
-    #[error("ONNX Runtime library {path}: {detail} (run `make setup` or set ORT_DYLIB_PATH)")]
+    #[error("{detail}")]
     Runtime {
         /// Path tried.
         path: PathBuf,

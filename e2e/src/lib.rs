@@ -9,7 +9,7 @@
 //!
 //! Paths: the model is `$HOLOFACE_DAN_MODEL`, else `models/assets/dan.onnx`
 //! in the workspace; ONNX Runtime is `$ORT_DYLIB_PATH`, else
-//! `.cache/onnxruntime/…`, else the copy inside `.venv`'s onnxruntime wheel.
+//! `.cache/holoface/…`, else the copy inside `.venv`'s onnxruntime wheel.
 //! A missing file is a test failure with a message saying how to get it.
 
 use std::net::SocketAddr;
@@ -90,7 +90,7 @@ pub fn model_path() -> PathBuf {
 /// The ONNX Runtime library for tests.
 ///
 /// # Panics
-/// If none of `$ORT_DYLIB_PATH`, `.cache/onnxruntime/` or the `.venv` wheel has it.
+/// If none of `$ORT_DYLIB_PATH`, the checkout's data folder `.cache/holoface/` or the `.venv` wheel has it.
 pub fn ort_dylib_path() -> PathBuf {
     let root = workspace_root();
     let mut candidates: Vec<PathBuf> = std::env::var_os("ORT_DYLIB_PATH")
@@ -98,13 +98,16 @@ pub fn ort_dylib_path() -> PathBuf {
         .map(PathBuf::from)
         .into_iter()
         .collect();
-    candidates.push(root.join(holoface_inference::DEFAULT_ORT_DYLIB));
+    candidates.push(
+        root.join(".cache/holoface")
+            .join(holoface_inference::home::ORT_LIBRARY.file),
+    );
     candidates
         .push(root.join(".venv/lib/python3.11/site-packages/onnxruntime/capi/libonnxruntime.so.1.31.1"));
     match candidates.iter().find(|p| p.is_file()) {
         Some(p) => p.clone(),
         None => panic!(
-            "ONNX Runtime library not found (tried {candidates:?}); run `make ort` or set ORT_DYLIB_PATH"
+            "ONNX Runtime library not found (tried {candidates:?}); run `make setup` or set ORT_DYLIB_PATH"
         ),
     }
 }

@@ -2,7 +2,7 @@
 //! with a well-behaved client next to misbehaving ones.
 //!
 //! Needs the model (`$HOLOFACE_DAN_MODEL` or `models/assets/dan.onnx`) and
-//! ONNX Runtime (`$ORT_DYLIB_PATH`, `.cache/onnxruntime/` or `.venv`): the
+//! ONNX Runtime (`$ORT_DYLIB_PATH`, `.cache/holoface/` or `.venv`): the
 //! tests fail, they do not skip, when either is missing.
 
 #![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
@@ -196,7 +196,7 @@ async fn a_missing_or_corrupt_refiner_model_is_a_clear_start_up_error() {
     std::fs::write(dir.join("half.bin"), &corrupt).unwrap();
     std::fs::write(dir.join("text.bin"), b"not a model").unwrap();
     for (file, expect) in [
-        ("missing.bin", "No such file"),
+        ("missing.bin", "not found at"),
         ("half.bin", "checksum"),
         ("text.bin", "bad magic"),
     ] {
@@ -648,7 +648,9 @@ async fn missing_model_is_a_clear_startup_error() {
     s.engine.model = "/nonexistent/dan.onnx".into();
     let err = RunningServer::start(s).await.unwrap_err().to_string();
     assert!(
-        err.contains("model file not found: /nonexistent/dan.onnx"),
+        err.contains("DAN model not found at /nonexistent/dan.onnx")
+            && err.contains("engine.model")
+            && err.contains("holoface setup"),
         "{err}"
     );
     let mut s = settings();

@@ -4,7 +4,8 @@
 //
 //   mcs -out:track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs && LD_LIBRARY_PATH=target/debug mono track.exe face.pgm
 //
-// Asset paths come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL, ...), as for the C example.
+// Asset paths come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL, ...), as for the C example,
+// except where a check passes one to the FaceTracker constructor, as an app that ships its assets does.
 // Exit status 0 = every check passed.
 using System;
 using System.IO;
@@ -121,11 +122,16 @@ static class TrackSample
             Check(withId0 >= 25, "several-face tracker: " + withId0 + " of 30 frames with exactly face #0");
         }
 
-        Expect<InvalidOperationException>("missing model file", () =>
+        // A path the app passes wins over the environment; a missing one names the asset, the path and why.
+        Expect<InvalidOperationException>("missing model file (passed by the app)", () =>
+        {
+            using (new FaceTracker(krfwsModel: "/nonexistent/app/krfws.bin")) { }
+        }, "KRFWS model not found at /nonexistent/app/krfws.bin (the path given");
+        Expect<InvalidOperationException>("missing model file (environment)", () =>
         {
             Environment.SetEnvironmentVariable("HOLOFACE_KRFWS_MODEL", "/nonexistent/krfws.bin");
             using (new FaceTracker()) { }
-        }, "/nonexistent/krfws.bin");
+        }, "KRFWS model not found at /nonexistent/krfws.bin (named by $HOLOFACE_KRFWS_MODEL)");
 
         Console.WriteLine(failures == 0 ? "all checks passed" : failures + " checks failed");
         return failures == 0 ? 0 : 1;

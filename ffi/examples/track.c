@@ -3,8 +3,10 @@
  *
  *   cc -I ffi/include ffi/examples/track.c -L target/debug -lholoface -o track && ./track face.pgm
  *
- * Asset paths come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL, HOLOFACE_KRFWS_MODEL,
- * HOLOFACE_CANDIDE) as set by `make setup`, or can be set in HfOptions. Exit status 0 = tracked. */
+ * Asset paths left NULL in HfOptions come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL,
+ * HOLOFACE_KRFWS_MODEL, HOLOFACE_CANDIDE), else the holoface data folder that `holoface setup` fills (the
+ * Makefile points HOLOFACE_HOME at .cache/holoface). An app that ships its assets passes their paths in
+ * HfOptions. Exit status 0 = tracked. */
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>

@@ -157,7 +157,10 @@ typedef struct HfTracker HfTracker;
 
 /**
  * Tracker options. Initialise with `hf_options_default`, then override fields. Strings are NUL-terminated
- * UTF-8 paths; NULL means the default (environment variable, then the built-in path).
+ * UTF-8 paths; NULL means the default: the asset's environment variable (`ORT_DYLIB_PATH`,
+ * `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL`, `HOLOFACE_CANDIDE`), else its file in the holoface data
+ * folder (`$HOLOFACE_HOME`, else `$XDG_DATA_HOME/holoface`, else `~/.local/share/holoface`, filled by
+ * `holoface setup`). An app that ships its assets passes their paths here.
  */
 typedef struct HfOptions {
   /**

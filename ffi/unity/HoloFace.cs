@@ -107,15 +107,22 @@ namespace HoloFace
         IntPtr handle;
 
         /// <param name="maxFaces">Faces tracked at once (1..HfFaces.MaxFaces); read them with ProcessFaces.</param>
-        public FaceTracker(string server = null, string fingerprint = null, string token = null, uint maxFaces = 1)
+        /// <param name="ortDylib">The ONNX Runtime library the app ships; null: ORT_DYLIB_PATH, else the holoface
+        /// data folder (the same rule for the three models below; see the README, "Installing").</param>
+        /// <param name="detectorModel">face_detection_front_128x128.onnx (BlazeFace).</param>
+        /// <param name="krfwsModel">krfws.bin (the local aligner).</param>
+        /// <param name="candide">The CANDIDE-3 .wfm (head pose and expressions).</param>
+        public FaceTracker(string server = null, string fingerprint = null, string token = null, uint maxFaces = 1,
+            string ortDylib = null, string detectorModel = null, string krfwsModel = null, string candide = null)
         {
             Native.hf_options_default(out var o);
-            var strings = new[] { server, fingerprint, token };
-            var ptrs = new IntPtr[3];
+            var strings = new[] { server, fingerprint, token, ortDylib, detectorModel, krfwsModel, candide };
+            var ptrs = new IntPtr[strings.Length];
             try
             {
-                for (int i = 0; i < 3; i++) ptrs[i] = strings[i] == null ? IntPtr.Zero : Marshal.StringToCoTaskMemUTF8(strings[i]);
+                for (int i = 0; i < strings.Length; i++) ptrs[i] = strings[i] == null ? IntPtr.Zero : Marshal.StringToCoTaskMemUTF8(strings[i]);
                 o.server = ptrs[0]; o.serverFingerprint = ptrs[1]; o.token = ptrs[2];
+                o.ortDylib = ptrs[3]; o.detectorModel = ptrs[4]; o.krfwsModel = ptrs[5]; o.candide = ptrs[6];
                 var s = maxFaces == 1 ? Native.hf_tracker_new(ref o, out handle) : Native.hf_tracker_new_faces(ref o, maxFaces, out handle);
                 if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             }

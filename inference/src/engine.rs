@@ -921,7 +921,10 @@ mod tests {
             spin: false,
         };
         let e = OnnxEngine::load(&opts).unwrap_err().to_string();
-        assert!(e.contains("model file not found: /nonexistent/dan.onnx"), "{e}");
+        assert!(
+            e.contains("DAN model not found at /nonexistent/dan.onnx") && e.contains("engine.model"),
+            "{e}"
+        );
         let e = load_runtime(Path::new("/nonexistent/libonnxruntime.so"))
             .unwrap_err()
             .to_string();

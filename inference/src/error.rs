@@ -7,10 +7,7 @@ use std::path::PathBuf;
 #[non_exhaustive]
 pub enum EngineError {
     /// The ONNX Runtime shared library is not where the config says.
-    #[error(
-        "ONNX Runtime library not found at {path} (set engine.ort_dylib / --ort-dylib or ORT_DYLIB_PATH; \
-         `make ort` puts it in .cache/onnxruntime/)"
-    )]
+    #[error("{}", crate::home::ORT_LIBRARY.not_found(path))]
     RuntimeMissing {
         /// The path that was tried.
         path: PathBuf,
@@ -36,7 +33,7 @@ pub enum EngineError {
         path: PathBuf,
     },
     /// The model file does not exist.
-    #[error("model file not found: {path} (set engine.model / --model)")]
+    #[error("{}", crate::home::DAN.not_found(path))]
     ModelMissing {
         /// The path that was tried.
         path: PathBuf,
@@ -91,6 +88,12 @@ pub enum EngineError {
         path: PathBuf,
         /// What is wrong.
         detail: String,
+    },
+    /// The refinement cascade's model file does not exist.
+    #[error("{}", crate::home::REFINER.not_found(path))]
+    RefinerMissing {
+        /// The path that was tried.
+        path: PathBuf,
     },
     /// The refinement cascade refused an input.
     #[error("refinement: {0}")]

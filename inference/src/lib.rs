@@ -4,6 +4,8 @@
 //! * [`engine`]: the [`InferenceEngine`] trait (the DAN model contract), [`OnnxEngine`] (ort,
 //!   `load-dynamic`), model-contract validation; `FakeEngine` under `cfg(test)` / the `test-util` feature.
 //! * [`refine`]: [`RefinedEngine`], DAN followed by the refinement cascade (the server's pipeline).
+//! * [`home`]: the holoface data folder and the assets in it (where installed binaries find them, and the
+//!   messages when they are missing).
 //! * [`runtime`]: where the ONNX Runtime library is found ([`runtime::default_ort_dylib`]) and the one
 //!   process-wide ONNX Runtime environment ([`runtime::load_runtime`]) that every session in a process shares
 //!   (the server's engines, the client's face detector).
@@ -14,6 +16,7 @@
 pub mod crop;
 pub mod engine;
 pub mod error;
+pub mod home;
 pub mod refine;
 pub mod runtime;
 
@@ -24,4 +27,4 @@ pub use engine::{
 };
 pub use error::EngineError;
 pub use refine::{RefinedEngine, Refinement, RefinerModel};
-pub use runtime::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, default_ort_dylib, load_runtime};
+pub use runtime::{ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

@@ -32,7 +32,12 @@ impl RefinerModel {
         if path.is_dir() {
             return Err(err("is a directory, not a refiner model file".into()));
         }
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        let bytes = std::fs::read(path).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => EngineError::RefinerMissing {
+                path: path.to_path_buf(),
+            },
+            _ => err(e.to_string()),
+        })?;
         Self::from_bytes(&bytes).map_err(|e| match e {
             EngineError::Refine(detail) => err(detail),
             other => other,

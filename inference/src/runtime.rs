@@ -2,25 +2,21 @@
 //!
 //! ONNX Runtime allows one environment per process, ever; [`load_runtime`] creates it on first use and hands
 //! the same one to every later caller (the server's engines and the client's face detector alike). The
-//! library is found at an explicit path, else `$ORT_DYLIB_PATH`, else [`DEFAULT_ORT_DYLIB`]
-//! ([`default_ort_dylib`]): the one place that rule lives.
+//! library is found at an explicit path, else `$ORT_DYLIB_PATH`, else in the holoface data folder
+//! ([`default_ort_dylib`], [`crate::home`]).
 
 use std::path::{Path, PathBuf};
 
 use crate::error::EngineError;
 
-/// Where `make ort` puts the ONNX Runtime library (relative to the working directory).
-pub const DEFAULT_ORT_DYLIB: &str = ".cache/onnxruntime/libonnxruntime.so.1.31.1";
 /// The environment variable that names the ONNX Runtime library (the `ort` crate's convention).
-pub const ORT_DYLIB_ENV: &str = "ORT_DYLIB_PATH";
+pub const ORT_DYLIB_ENV: &str = crate::home::ORT_LIBRARY.env;
 /// The name ONNX Runtime logs for this process's environment.
 const ENVIRONMENT_NAME: &str = "holoface";
 
-/// `$ORT_DYLIB_PATH` when set and not empty, else [`DEFAULT_ORT_DYLIB`].
+/// `$ORT_DYLIB_PATH` when set and not empty, else `libonnxruntime.so.1.31.1` in the data folder.
 pub fn default_ort_dylib() -> PathBuf {
-    std::env::var_os(ORT_DYLIB_ENV)
-        .filter(|v| !v.is_empty())
-        .map_or_else(|| PathBuf::from(DEFAULT_ORT_DYLIB), PathBuf::from)
+    crate::home::ORT_LIBRARY.default_path()
 }
 
 /// The process's ONNX Runtime environment: ort allows one per process, ever,

@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use holoface_client::assets::home;
 use holoface_quic::Fingerprint;
 
 use crate::report::{Stats, Window};
@@ -41,24 +42,16 @@ struct Args {
     #[arg(long)]
     spawn_server: bool,
     /// DAN model for `--spawn-server`.
-    #[arg(long, env = "HOLOFACE_DAN_MODEL", default_value = "models/assets/dan.onnx")]
+    #[arg(long, env = "HOLOFACE_DAN_MODEL", default_value_os_t = home::DAN.default_path())]
     dan_model: PathBuf,
     /// Refinement-cascade model for `--spawn-server`.
-    #[arg(
-        long,
-        env = "HOLOFACE_REFINE_MODEL",
-        default_value = "models/assets/refiner.bin"
-    )]
+    #[arg(long, env = "HOLOFACE_REFINE_MODEL", default_value_os_t = home::REFINER.default_path())]
     refine_model: PathBuf,
     /// `--spawn-server` without the refinement cascade (DAN alone).
     #[arg(long)]
     no_refine: bool,
     /// ONNX Runtime library for `--spawn-server`.
-    #[arg(
-        long,
-        env = "ORT_DYLIB_PATH",
-        default_value = ".cache/onnxruntime/libonnxruntime.so.1.31.1"
-    )]
+    #[arg(long, env = "ORT_DYLIB_PATH", default_value_os_t = home::ORT_LIBRARY.default_path())]
     ort_dylib: PathBuf,
     /// ONNX Runtime intra-op threads of the spawned server.
     #[arg(long, default_value_t = 2)]

@@ -24,7 +24,7 @@ struct Killable {
 
 fn start(dir: &Path, listen: SocketAddr) -> (Killable, SocketAddr, String) {
     let ort = std::env::var_os("ORT_DYLIB_PATH").map_or_else(
-        || workspace().join(".cache/onnxruntime/libonnxruntime.so.1.31.1"),
+        || workspace().join(".cache/holoface/libonnxruntime.so.1.31.1"),
         PathBuf::from,
     );
     let mut s = Settings::for_loopback(

@@ -170,7 +170,7 @@ fn headsets_stop_sending_on_the_servers_goaway() {
     std::fs::create_dir_all(&dir).unwrap();
     let rec = recording(&dir);
     let ort = std::env::var_os("ORT_DYLIB_PATH").map_or_else(
-        || workspace().join(".cache/onnxruntime/libonnxruntime.so.1.31.1"),
+        || workspace().join(".cache/holoface/libonnxruntime.so.1.31.1"),
         PathBuf::from,
     );
     let mut s = holoface_server::config::Settings::for_loopback(

@@ -13,21 +13,17 @@
 
 use std::path::{Path, PathBuf};
 
-use holoface_client::assets::{
-    AssetPaths, CANDIDE_ENV, DEFAULT_ORT_DYLIB, DETECTOR_ENV, KRFWS_ENV, ORT_DYLIB_ENV,
-};
+use holoface_client::assets::{AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home};
 use pyo3::prelude::*;
 
 use crate::{AssetError, PyTrackerOptions};
 
-/// Environment variable naming the user's holoface data folder.
-pub(crate) const HOME_ENV: &str = "HOLOFACE_HOME";
 /// The detector's file name in the package data.
-const DETECTOR_FILE: &str = "face_detection_front_128x128.onnx";
+const DETECTOR_FILE: &str = home::DETECTOR.file;
 /// The KRFWS model's file name in the package data.
-const KRFWS_FILE: &str = "krfws.bin";
+const KRFWS_FILE: &str = home::KRFWS.file;
 /// CANDIDE-3's file name in the data folder.
-const CANDIDE_FILE: &str = "candide3.wfm";
+const CANDIDE_FILE: &str = home::CANDIDE.file;
 
 /// The installed package's folder (where `_holoface` is).
 fn package_dir(py: Python<'_>) -> Option<PathBuf> {
@@ -45,22 +41,16 @@ fn env_set(var: &str) -> bool {
     std::env::var_os(var).is_some_and(|v| !v.is_empty())
 }
 
-/// The user's holoface data folder: `$HOLOFACE_HOME`, else `$XDG_DATA_HOME/holoface`, else
-/// `~/.local/share/holoface` (it need not exist yet).
+/// The user's holoface data folder, shared with the `holoface` CLI and the server: `$HOLOFACE_HOME`, else
+/// `$XDG_DATA_HOME/holoface`, else `~/.local/share/holoface` (it need not exist yet).
 #[pyfunction]
 pub(crate) fn data_dir() -> PyResult<PathBuf> {
-    let var = |v: &str| std::env::var_os(v).filter(|s| !s.is_empty()).map(PathBuf::from);
-    if let Some(home) = var(HOME_ENV) {
-        return Ok(home);
-    }
-    if let Some(xdg) = var("XDG_DATA_HOME") {
-        return Ok(xdg.join("holoface"));
-    }
-    var("HOME")
-        .map(|h| h.join(".local/share/holoface"))
-        .ok_or_else(|| {
-            AssetError::new_err(format!("no data folder: set {HOME_ENV} (HOME is not set either)"))
-        })
+    home::data_dir().ok_or_else(|| {
+        AssetError::new_err(format!(
+            "no data folder: set {} (XDG_DATA_HOME and HOME are not set either)",
+            home::HOME_ENV
+        ))
+    })
 }
 
 /// Checks that `path` is a CANDIDE-3 `.wfm` and copies it into [`data_dir`], where every tracker then finds
@@ -69,8 +59,8 @@ pub(crate) fn data_dir() -> PyResult<PathBuf> {
 pub(crate) fn install_candide(py: Python<'_>, path: PathBuf) -> PyResult<PathBuf> {
     let dest = data_dir()?.join(CANDIDE_FILE);
     py.detach(|| -> Result<(), String> {
-        holoface_client::assets::load_face_model(&path).map_err(|e| e.to_string())?;
         let bytes = std::fs::read(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+        holoface_client::assets::parse_face_model(&bytes, &path).map_err(|e| e.to_string())?;
         holoface_sources::output::write_atomic(&dest, bytes).map_err(|e| format!("{e:#}"))
     })
     .map_err(AssetError::new_err)?;
@@ -80,6 +70,8 @@ pub(crate) fn install_candide(py: Python<'_>, path: PathBuf) -> PyResult<PathBuf
 /// One asset's defaults: where an installed package looks when neither the option nor the variable is set.
 struct Default {
     what: &'static str,
+    /// The `TrackerOptions` field that names it.
+    field: &'static str,
     var: &'static str,
     places: Vec<PathBuf>,
     fix: String,
@@ -89,9 +81,7 @@ struct Default {
 /// package's (see the module docs), or fails naming the places looked and the fix.
 pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut AssetPaths) -> PyResult<()> {
     let pkg = package_dir(py);
-    let ort_name = Path::new(DEFAULT_ORT_DYLIB)
-        .file_name()
-        .map_or_else(PathBuf::new, PathBuf::from);
+    let ort_name = home::ORT_LIBRARY.file;
     let in_pkg = |f: &str| pkg.iter().map(|p| p.join("assets").join(f)).collect::<Vec<_>>();
     let defaults = [
         (
@@ -99,11 +89,12 @@ pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut Asse
             &mut assets.ort_dylib,
             Default {
                 what: "ONNX Runtime library",
+                field: "ort_dylib",
                 var: ORT_DYLIB_ENV,
                 places: pkg
                     .iter()
                     .filter_map(|p| p.parent())
-                    .map(|site| site.join("onnxruntime/capi").join(&ort_name))
+                    .map(|site| site.join("onnxruntime/capi").join(ort_name))
                     .collect(),
                 fix: "pip install onnxruntime==1.31.1 (the holoface wheel depends on it), or set ORT_DYLIB_PATH"
                     .to_owned(),
@@ -114,6 +105,7 @@ pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut Asse
             &mut assets.detector,
             Default {
                 what: "face detector model",
+                field: "detector_model",
                 var: DETECTOR_ENV,
                 places: in_pkg(DETECTOR_FILE),
                 fix: "reinstall the holoface wheel (it ships the model), or set HOLOFACE_DETECTOR_MODEL".to_owned(),
@@ -124,6 +116,7 @@ pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut Asse
             &mut assets.krfws,
             Default {
                 what: "KRFWS model",
+                field: "krfws_model",
                 var: KRFWS_ENV,
                 places: in_pkg(KRFWS_FILE),
                 fix: "reinstall the holoface wheel (it ships the model), or set HOLOFACE_KRFWS_MODEL".to_owned(),
@@ -134,6 +127,7 @@ pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut Asse
             &mut assets.candide,
             Default {
                 what: "CANDIDE-3 model",
+                field: "candide",
                 var: CANDIDE_ENV,
                 places: data_dir().map(|d| vec![d.join(CANDIDE_FILE)]).unwrap_or_default(),
                 fix: "holoface.install_candide(\"/path/to/candide3.wfm\") (CANDIDE-3 is free for research use and \
@@ -144,6 +138,23 @@ pub(crate) fn resolve(py: Python<'_>, opts: &PyTrackerOptions, assets: &mut Asse
     ];
     for (given, slot, d) in defaults {
         if given || env_set(d.var) {
+            // Named explicitly: the fix is that name, not the data folder `holoface setup` fills.
+            if !slot.is_file() {
+                let by = if given {
+                    format!("TrackerOptions.{}", d.field)
+                } else {
+                    format!("${}", d.var)
+                };
+                let default = d.places.first().map_or_else(
+                    || "the installed package's".to_owned(),
+                    |p| p.display().to_string(),
+                );
+                return Err(AssetError::new_err(format!(
+                    "{} not found at {} (named by {by}); correct it, or leave it unset to use {default}",
+                    d.what,
+                    slot.display(),
+                )));
+            }
             continue;
         }
         match d.places.iter().find(|p| p.is_file()) {

@@ -84,13 +84,13 @@ struct PyTrackerOptions {
     motion_compensation: bool,
     /// Most faces tracked at once (1..=64), each with a stable id.
     max_faces: usize,
-    /// ONNX Runtime shared library (default: $ORT_DYLIB_PATH, then the set-up's path).
+    /// ONNX Runtime shared library (default: $ORT_DYLIB_PATH, then the `onnxruntime` package's).
     ort_dylib: Option<PathBuf>,
-    /// BlazeFace ONNX model (default: $HOLOFACE_DETECTOR_MODEL, then the set-up's path).
+    /// BlazeFace ONNX model (default: $HOLOFACE_DETECTOR_MODEL, then the wheel's own copy).
     detector_model: Option<PathBuf>,
-    /// KRFWS model (default: $HOLOFACE_KRFWS_MODEL, then models/assets/krfws.bin).
+    /// KRFWS model (default: $HOLOFACE_KRFWS_MODEL, then the wheel's own copy).
     krfws_model: Option<PathBuf>,
-    /// CANDIDE-3 .wfm (default: $HOLOFACE_CANDIDE, then ../shared/data/candide3/candide3.wfm).
+    /// CANDIDE-3 .wfm (default: $HOLOFACE_CANDIDE, then candide3.wfm in `holoface.data_dir()`).
     candide: Option<PathBuf>,
 }
 

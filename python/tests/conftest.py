@@ -14,7 +14,7 @@ SHIFTS = [0, 2, 4, 6, 8, 10]  # pixels to the right per frame: the face moves, t
 
 
 def sample_path() -> Path:
-    p = Path(os.environ.get("HOLOFACE_SAMPLE", ROOT / ".cache/samples/astronaut.png"))
+    p = Path(os.environ.get("HOLOFACE_SAMPLE", ROOT / ".cache/holoface/astronaut.png"))
     if not p.is_file():
         pytest.fail(f"bundled sample {p} missing: run `make setup` (make python-test does)")
     return p

@@ -26,11 +26,17 @@ use holoface_inference::{OnnxOptions, Provider};
 
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
-/// Default model path (relative to the working directory).
-pub const DEFAULT_MODEL: &str = "models/assets/dan.onnx";
+/// The DAN model when `engine.model` is not set: `$HOLOFACE_DAN_MODEL`, else `dan.onnx` in the holoface data
+/// folder (`holoface setup` installs it; [`holoface_inference::home`]).
+pub fn default_model() -> PathBuf {
+    holoface_inference::home::DAN.default_path()
+}
 
-/// Default refinement-cascade model path (relative to the working directory).
-pub const DEFAULT_REFINE_MODEL: &str = "models/assets/refiner.bin";
+/// The refinement cascade when `refine.model` is not set: `$HOLOFACE_REFINE_MODEL`, else `refiner.bin` in the
+/// data folder.
+pub fn default_refine_model() -> PathBuf {
+    holoface_inference::home::REFINER.default_path()
+}
 
 /// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).
 pub const MIN_IDLE_TIMEOUT_MS: u64 = 100;
@@ -204,10 +210,10 @@ pub struct BatchConfig {
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EngineConfig {
-    /// The DAN ONNX model [default: models/assets/dan.onnx].
-    #[arg(long, env = "HOLOFACE_MODEL")]
+    /// The DAN ONNX model [default: dan.onnx in the holoface data folder].
+    #[arg(long, env = "HOLOFACE_DAN_MODEL")]
     pub model: Option<PathBuf>,
-    /// libonnxruntime.so [default: $ORT_DYLIB_PATH, else .cache/onnxruntime/libonnxruntime.so.1.31.1].
+    /// libonnxruntime.so [default: $ORT_DYLIB_PATH, else libonnxruntime.so.1.31.1 in the holoface data folder].
     #[arg(long)]
     pub ort_dylib: Option<PathBuf>,
     /// ONNX Runtime intra-op threads [default: available cores].
@@ -247,7 +253,7 @@ pub struct RefineConfig {
         env = "HOLOFACE_REFINE"
     )]
     pub enabled: Option<bool>,
-    /// The refinement cascade's model file [default: models/assets/refiner.bin].
+    /// The refinement cascade's model file [default: refiner.bin in the holoface data folder].
     #[arg(id = "refine_model", long = "refine-model", env = "HOLOFACE_REFINE_MODEL")]
     pub model: Option<PathBuf>,
 }
@@ -568,7 +574,7 @@ impl ServerConfig {
                 max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
             },
             engine: OnnxOptions {
-                model: self.engine.model.unwrap_or_else(|| PathBuf::from(DEFAULT_MODEL)),
+                model: self.engine.model.unwrap_or_else(default_model),
                 ort_dylib,
                 intra_threads,
                 max_batch,
@@ -577,7 +583,7 @@ impl ServerConfig {
             },
             engine_instances,
             refine_model: match (self.refine.enabled.unwrap_or(true), self.refine.model) {
-                (true, model) => Some(model.unwrap_or_else(|| PathBuf::from(DEFAULT_REFINE_MODEL))),
+                (true, model) => Some(model.unwrap_or_else(default_refine_model)),
                 (false, None) => None,
                 (false, Some(m)) => {
                     return Err(invalid(format!(
@@ -868,10 +874,10 @@ mod tests {
         assert_eq!(s.batch.per_client_queue, 1);
         assert_eq!(s.max_in_flight, 8);
         assert_eq!(s.reply_channel, ReplyChannel::Datagram);
-        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+        assert_eq!(s.engine.model, default_model());
         assert_eq!(
             s.refine_model,
-            Some(PathBuf::from(DEFAULT_REFINE_MODEL)),
+            Some(default_refine_model()),
             "refinement is on by default"
         );
         assert_eq!(s.metrics_listen, None);
@@ -1031,7 +1037,7 @@ mod tests {
             "[refine]\nenabled = false\n",
         )
         .unwrap();
-        assert_eq!(on.refine_model, Some(PathBuf::from(DEFAULT_REFINE_MODEL)));
+        assert_eq!(on.refine_model, Some(default_refine_model()));
         let both = from(
             &["s", "--token", "t", "-c", "f"],
             "[refine]\nenabled = false\nmodel = \"/srv/r.bin\"\n",
@@ -1046,6 +1052,8 @@ mod tests {
         let text = include_str!("../../deploy/server.example.toml");
         let cfg = ServerConfig::from_toml(text, Path::new("deploy/server.example.toml")).unwrap();
         let s = cfg.resolve().unwrap();
-        assert_eq!(s.engine.model, PathBuf::from(DEFAULT_MODEL));
+        // Its asset paths are commented out: an installed server finds them in the data folder.
+        assert_eq!(s.engine.model, default_model());
+        assert_eq!(s.refine_model, Some(default_refine_model()));
     }
 }

@@ -1,39 +1,33 @@
-//! The command-line options naming the runtime assets (same defaults and environment variables as
-//! `holoface_client::assets`) and how the tools build engines from them.
+//! The command-line options naming the runtime assets (same environment variables and data-folder defaults
+//! as `holoface_client::assets`) and how the tools build engines from them.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use holoface_client::assets::{
-    CANDIDE_ENV, DAN_ENV, DEFAULT_CANDIDE, DEFAULT_DAN, DEFAULT_DETECTOR, DEFAULT_KRFWS, DETECTOR_ENV,
-    KRFWS_ENV,
-};
-use holoface_inference::{DEFAULT_ORT_DYLIB, ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
+use holoface_client::assets::{CANDIDE_ENV, DAN_ENV, DETECTOR_ENV, KRFWS_ENV, home};
+use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 
 use holoface_client::align::{DanAligner, KrfwsAligner};
 
-/// Paths and threads of the runtime assets; every path has an env override set by `make setup`.
+/// Paths and threads of the runtime assets: each path is the option, else its environment variable, else its
+/// file in the holoface data folder, which `holoface setup` fills (`holoface_client::assets::home`).
 #[derive(Debug, Clone, Args)]
 pub struct RuntimeArgs {
-    /// ONNX Runtime shared library (`make setup` fetches it from the pinned PyPI wheel).
-    #[arg(long, env = ORT_DYLIB_ENV, default_value = DEFAULT_ORT_DYLIB)]
+    /// ONNX Runtime shared library (`holoface setup` fetches it from the pinned PyPI wheel).
+    #[arg(long, env = ORT_DYLIB_ENV, default_value_os_t = home::ORT_LIBRARY.default_path())]
     pub ort_dylib: PathBuf,
     /// DAN model (ONNX).
-    #[arg(long, env = DAN_ENV, default_value = DEFAULT_DAN)]
+    #[arg(long, env = DAN_ENV, default_value_os_t = home::DAN.default_path())]
     pub dan_model: PathBuf,
     /// Face detector model (BlazeFace short range, ONNX).
-    #[arg(long, env = DETECTOR_ENV, default_value = DEFAULT_DETECTOR)]
+    #[arg(long, env = DETECTOR_ENV, default_value_os_t = home::DETECTOR.default_path())]
     pub detector: PathBuf,
     /// The server's refinement cascade (run after DAN by the server and by `--aligner remote`).
-    #[arg(
-        long,
-        env = "HOLOFACE_REFINE_MODEL",
-        default_value = "models/assets/refiner.bin"
-    )]
+    #[arg(long, env = home::REFINER.env, default_value_os_t = home::REFINER.default_path())]
     pub refine_model: PathBuf,
     /// KRFWS model (the local aligner).
-    #[arg(long, env = KRFWS_ENV, default_value = DEFAULT_KRFWS)]
+    #[arg(long, env = KRFWS_ENV, default_value_os_t = home::KRFWS.default_path())]
     pub krfws_model: PathBuf,
     /// ONNX Runtime intra-op threads for DAN.
     #[arg(long, default_value_t = 1)]
@@ -99,8 +93,8 @@ impl RuntimeArgs {
 /// The CANDIDE-3 model option shared by the commands that fit a face (`--candide`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct CandideArg {
-    /// CANDIDE-3 model (`.wfm`), resolved by the set-up command.
-    #[arg(long, env = CANDIDE_ENV, default_value = DEFAULT_CANDIDE)]
+    /// CANDIDE-3 model (`.wfm`; `holoface setup --candide FILE` installs it in the data folder).
+    #[arg(long, env = CANDIDE_ENV, default_value_os_t = home::CANDIDE.default_path())]
     pub candide: PathBuf,
 }
 

@@ -184,7 +184,7 @@ fn eval_with_a_model_of_the_wrong_shape_says_so() {
     std::fs::write(d.join("c.pts"), pts68()).unwrap();
     // A real ONNX model with another contract: the face detector.
     let detector = std::env::var("HOLOFACE_DETECTOR_MODEL")
-        .unwrap_or_else(|_| ".cache/blazeface/face_detection_front_128x128.onnx".into());
+        .unwrap_or_else(|_| ".cache/holoface/face_detection_front_128x128.onnx".into());
     let (ok, text) = holoface(&[
         "eval",
         "--data",

@@ -10,8 +10,10 @@ fn workspace() -> PathBuf {
 
 #[test]
 fn demo_answers_every_frame_and_never_answers_remotely_through_a_cut_link() {
-    let sample = std::env::var_os("HOLOFACE_SAMPLE")
-        .map_or_else(|| workspace().join(".cache/samples/astronaut.png"), PathBuf::from);
+    let sample = std::env::var_os("HOLOFACE_SAMPLE").map_or_else(
+        || workspace().join(".cache/holoface/astronaut.png"),
+        PathBuf::from,
+    );
     assert!(
         sample.is_file(),
         "demo sample missing at {} (run `make setup`)",

@@ -155,7 +155,7 @@ fn bad_videos_and_sidecars_fail_with_clear_errors() {
 /// video drops a column and a row).
 fn sample_clip(frames: usize) -> Vec<GrayImage> {
     let sample = std::env::var_os("HOLOFACE_SAMPLE").map_or_else(
-        || common::workspace().join(".cache/samples/astronaut.png"),
+        || common::workspace().join(".cache/holoface/astronaut.png"),
         Into::into,
     );
     let gray = holoface_sources::images::read_gray(&sample).unwrap();

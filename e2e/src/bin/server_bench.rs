@@ -37,7 +37,7 @@ struct Cli {
     /// ONNX model [default: $HOLOFACE_DAN_MODEL or models/assets/dan.onnx].
     #[arg(long, global = true)]
     model: Option<PathBuf>,
-    /// libonnxruntime [default: $ORT_DYLIB_PATH, .cache/onnxruntime/…, .venv].
+    /// libonnxruntime [default: $ORT_DYLIB_PATH, .cache/holoface/…, .venv].
     #[arg(long, global = true)]
     ort_dylib: Option<PathBuf>,
     /// The server binary.

@@ -14,8 +14,10 @@ pub(crate) fn workspace() -> PathBuf {
 
 /// A one-second stream of 30 JPEG crops cut from the demo sample (a real face photo).
 pub(crate) fn recording(dir: &Path) -> PathBuf {
-    let sample = std::env::var_os("HOLOFACE_SAMPLE")
-        .map_or_else(|| workspace().join(".cache/samples/astronaut.png"), PathBuf::from);
+    let sample = std::env::var_os("HOLOFACE_SAMPLE").map_or_else(
+        || workspace().join(".cache/holoface/astronaut.png"),
+        PathBuf::from,
+    );
     let photo = image::open(&sample)
         .unwrap_or_else(|e| panic!("demo sample {} ({e}); run `make setup`", sample.display()))
         .into_luma8();

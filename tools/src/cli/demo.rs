@@ -28,6 +28,7 @@ use crate::plot::Canvas;
 use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
 use holoface_client::align::{Aligner, AnsweredBy};
+use holoface_client::assets::home;
 use holoface_client::detect::{FaceDetector, shape_from_detection};
 use holoface_client::frame::Frame;
 use holoface_client::link::{CropCodec, RemoteOptions};
@@ -36,9 +37,9 @@ use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// The sample photograph (`make setup` extracts NASA's public-domain astronaut photo from the pinned
-    /// scikit-image wheel).
-    #[arg(long, env = "HOLOFACE_SAMPLE", default_value = ".cache/samples/astronaut.png")]
+    /// The sample photograph (`holoface setup` extracts NASA's public-domain astronaut photo from the pinned
+    /// scikit-image wheel into the data folder).
+    #[arg(long, env = home::SAMPLE.env, default_value_os_t = home::SAMPLE.default_path())]
     pub sample: PathBuf,
     /// Frames to run.
     #[arg(long, default_value_t = 360)]
@@ -124,8 +125,11 @@ fn reference_landmarks(args: &Args, photo: &GrayImage) -> anyhow::Result<[Point2
 }
 
 fn load_scene(args: &Args) -> anyhow::Result<PlanarScene> {
+    if !args.sample.exists() {
+        bail!("{}", home::SAMPLE.not_found(&args.sample));
+    }
     let photo = holoface_sources::images::read_gray(&args.sample)
-        .with_context(|| format!("reading the sample {} (run `make setup`)", args.sample.display()))?;
+        .with_context(|| format!("reading the sample {}", args.sample.display()))?;
     let reference = reference_landmarks(args, &photo)?;
     PlanarScene::life_size(photo, reference)
 }

@@ -6,6 +6,7 @@ pub mod demo;
 pub mod eval;
 pub mod multi_face;
 pub mod record;
+pub mod setup;
 pub mod simulate;
 pub mod track;
 pub mod tracking_losses;
@@ -27,6 +28,9 @@ pub struct Cli {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Fill the holoface data folder ($HOLOFACE_HOME, else ~/.local/share/holoface): ONNX Runtime, the face
+    /// detector and the sample from their pinned registry files, our models; `--candide FILE` adds CANDIDE-3.
+    Setup(setup::Args),
     /// The main job: server + client on loopback over the bundled sample, link cut part-way.
     Demo(demo::Args),
     /// Evaluate aligners on an annotated folder (detect or GT box, align, NME/AUC/failures, CED plot).
@@ -52,6 +56,7 @@ pub enum Command {
 /// Runs the parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Setup(args) => setup::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::MultiFace(args) => multi_face::run(args),

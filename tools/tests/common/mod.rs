@@ -21,7 +21,11 @@ pub(crate) fn holoface_with_stdin(args: &[&str], stdin: Option<&Path>) -> (bool,
     if let Some(path) = stdin {
         cmd.stdin(std::fs::File::open(path).unwrap());
     }
-    let out = cmd.output().unwrap();
+    finished(&cmd.output().unwrap())
+}
+
+/// A finished command's success and stdout + stderr. Fails the test on a panic.
+pub(crate) fn finished(out: &std::process::Output) -> (bool, String) {
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),

@@ -1,0 +1,253 @@
+//! The holoface data folder and the assets found in it: the one rule every installed binary (`cargo
+//! install`ed `holoface` and `holoface-server`), the C ABI and the runtime follow.
+//!
+//! An asset's path is, in order: the path given explicitly (an option, a config key, a function argument;
+//! the server ranks its environment variables above its config file, as for all its keys), else its
+//! environment variable ([`Asset::env`]), else its file in the data folder ([`data_dir`]: `$HOLOFACE_HOME`,
+//! else `$XDG_DATA_HOME/holoface`, else `~/.local/share/holoface`), which `holoface setup` fills. Nothing is relative to the working directory or to a checkout; in a checkout the Makefile
+//! points `HOLOFACE_HOME` at `.cache/holoface`. A missing asset's message ([`Asset::not_found`]) names the
+//! asset, the path, why that path was chosen and the command that fixes it.
+
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+
+/// Environment variable naming the data folder.
+pub const HOME_ENV: &str = "HOLOFACE_HOME";
+
+/// The data folder: `$HOLOFACE_HOME` (made absolute against the working directory if it is relative), else
+/// `$XDG_DATA_HOME/holoface` (ignored unless absolute, as the XDG spec says), else
+/// `~/.local/share/holoface` (it need not exist yet); `None` only when no home folder is known either.
+pub fn data_dir() -> Option<PathBuf> {
+    data_dir_from(&|v| std::env::var_os(v), std::env::home_dir)
+}
+
+/// [`data_dir`] over an environment lookup and a home-folder lookup (tests give their own).
+fn data_dir_from(
+    var: &dyn Fn(&str) -> Option<OsString>,
+    home: impl FnOnce() -> Option<PathBuf>,
+) -> Option<PathBuf> {
+    let var = |v: &str| var(v).filter(|s| !s.is_empty()).map(PathBuf::from);
+    if let Some(dir) = var(HOME_ENV) {
+        return Some(std::path::absolute(&dir).unwrap_or(dir));
+    }
+    if let Some(xdg) = var("XDG_DATA_HOME").filter(|x| x.is_absolute()) {
+        return Some(xdg.join("holoface"));
+    }
+    var("HOME")
+        .filter(|h| h.is_absolute())
+        .or_else(home)
+        .map(|h| h.join(".local/share/holoface"))
+}
+
+/// One asset: what it is, its environment variable, its file name in the data folder and how it gets there.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Asset {
+    /// What it is, for messages ("KRFWS model").
+    pub name: &'static str,
+    /// The environment variable that names it.
+    pub env: &'static str,
+    /// Its file name in the data folder.
+    pub file: &'static str,
+    /// Where it can be given explicitly, for messages: the CLI option, the server's config key, the
+    /// `HfOptions` / `TrackerOptions` field.
+    pub option: &'static str,
+    /// The command that puts it into the data folder.
+    pub setup: &'static str,
+}
+
+/// The command that fills the data folder (the `holoface` CLI, `cargo install --path tools`).
+pub const SETUP: &str = "holoface setup";
+
+/// The ONNX Runtime shared library (from the pinned `onnxruntime` PyPI wheel).
+pub const ORT_LIBRARY: Asset = Asset {
+    name: "ONNX Runtime library",
+    env: "ORT_DYLIB_PATH",
+    file: "libonnxruntime.so.1.31.1",
+    option: "--ort-dylib / engine.ort_dylib / ort_dylib",
+    setup: SETUP,
+};
+/// The BlazeFace short-range face detector (ONNX).
+pub const DETECTOR: Asset = Asset {
+    name: "face detector model",
+    env: "HOLOFACE_DETECTOR_MODEL",
+    file: "face_detection_front_128x128.onnx",
+    option: "--detector / detector_model",
+    setup: SETUP,
+};
+/// The KRFWS model (the headset's local aligner).
+pub const KRFWS: Asset = Asset {
+    name: "KRFWS model",
+    env: "HOLOFACE_KRFWS_MODEL",
+    file: "krfws.bin",
+    option: "--krfws-model / krfws_model",
+    setup: SETUP,
+};
+/// The DAN model (ONNX; the server's aligner).
+pub const DAN: Asset = Asset {
+    name: "DAN model",
+    env: "HOLOFACE_DAN_MODEL",
+    file: "dan.onnx",
+    option: "--dan-model / --model / engine.model",
+    setup: SETUP,
+};
+/// The server's refinement cascade.
+pub const REFINER: Asset = Asset {
+    name: "refinement cascade model",
+    env: "HOLOFACE_REFINE_MODEL",
+    file: "refiner.bin",
+    option: "--refine-model / refine.model",
+    setup: SETUP,
+};
+/// The CANDIDE-3 face model (third-party, free for research use, not redistributed: the user installs it).
+pub const CANDIDE: Asset = Asset {
+    name: "CANDIDE-3 model",
+    env: "HOLOFACE_CANDIDE",
+    file: "candide3.wfm",
+    option: "--candide / candide",
+    setup: "holoface setup --candide /path/to/candide3.wfm",
+};
+/// The demo's sample photograph.
+pub const SAMPLE: Asset = Asset {
+    name: "demo sample image",
+    env: "HOLOFACE_SAMPLE",
+    file: "astronaut.png",
+    option: "--sample",
+    setup: SETUP,
+};
+
+impl Asset {
+    /// `$env` when set and not empty, else the file in the data folder (a `$HOLOFACE_HOME/...` placeholder,
+    /// which does not exist, when no data folder can be named).
+    pub fn default_path(&self) -> PathBuf {
+        std::env::var_os(self.env)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+            .or_else(|| data_dir().map(|d| d.join(self.file)))
+            .unwrap_or_else(|| self.placeholder())
+    }
+
+    /// Where the asset would be if there were a data folder: a path that names `$HOLOFACE_HOME`.
+    fn placeholder(&self) -> PathBuf {
+        Path::new("$HOLOFACE_HOME").join(self.file)
+    }
+
+    /// The message for a missing `path`: the asset, the path, why it was looked for there (the environment
+    /// variable, the data folder, or given explicitly) and the command that fixes it.
+    pub fn not_found(&self, path: &Path) -> String {
+        self.not_found_in(path, std::env::var_os(self.env), data_dir())
+    }
+
+    /// [`Asset::not_found`] with the variable's value and the data folder given.
+    fn not_found_in(&self, path: &Path, from_env: Option<OsString>, data: Option<PathBuf>) -> String {
+        let Self {
+            name,
+            env,
+            file,
+            option,
+            setup,
+        } = *self;
+        let shown = path.display();
+        let from_env = from_env.filter(|v| !v.is_empty());
+        if from_env.as_deref() == Some(path.as_os_str()) {
+            return format!(
+                "{name} not found at {shown} (named by ${env}); point ${env} at the file, or unset it and run \
+                 `{setup}`"
+            );
+        }
+        let folder = "$HOLOFACE_HOME, else $XDG_DATA_HOME/holoface, else ~/.local/share/holoface";
+        match data {
+            Some(dir) if dir.join(file) == path => format!(
+                "{name} not found at {shown}: neither {option} nor ${env} names it, so it is looked for in the \
+                 holoface data folder {} ({folder}); run `{setup}` to put it there, or set ${env}",
+                dir.display()
+            ),
+            None if from_env.is_none() && path.starts_with("$HOLOFACE_HOME") => format!(
+                "{name} not found: neither {option} nor ${env} names it and there is no data folder \
+                 ({HOME_ENV}, XDG_DATA_HOME and HOME are unset); set {HOME_ENV} and run `{setup}`, or set ${env}"
+            ),
+            _ => format!(
+                "{name} not found at {shown} (the path given with {option}); give the right path, or leave it \
+                 out to use ${env} or else the data folder's copy ({folder}), which `{setup}` installs"
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(pairs: &'static [(&'static str, &'static str)]) -> impl Fn(&str) -> Option<OsString> {
+        move |v| {
+            pairs
+                .iter()
+                .find(|(k, _)| *k == v)
+                .map(|(_, x)| OsString::from(x))
+        }
+    }
+
+    #[test]
+    fn the_data_folder_follows_holoface_home_then_xdg_then_home() {
+        let none = || None;
+        let dir = |pairs| data_dir_from(&env(pairs), none);
+        assert_eq!(
+            dir(&[
+                ("HOLOFACE_HOME", "/srv/hf"),
+                ("XDG_DATA_HOME", "/x"),
+                ("HOME", "/h")
+            ]),
+            Some("/srv/hf".into())
+        );
+        assert_eq!(
+            dir(&[("HOLOFACE_HOME", ""), ("XDG_DATA_HOME", "/x"), ("HOME", "/h")]),
+            Some("/x/holoface".into())
+        );
+        // A relative XDG_DATA_HOME is ignored (XDG spec); a relative HOLOFACE_HOME is made absolute.
+        assert_eq!(
+            dir(&[("XDG_DATA_HOME", "rel"), ("HOME", "/h")]),
+            Some("/h/.local/share/holoface".into())
+        );
+        let rel = dir(&[("HOLOFACE_HOME", "rel/hf")]).unwrap();
+        assert!(rel.is_absolute() && rel.ends_with("rel/hf"), "{}", rel.display());
+        // No HOME variable: the account's home folder; none at all: no data folder.
+        assert_eq!(
+            data_dir_from(&env(&[]), || Some("/home/u".into())),
+            Some("/home/u/.local/share/holoface".into())
+        );
+        assert_eq!(dir(&[]), None);
+    }
+
+    #[test]
+    fn a_missing_asset_says_why_that_path_and_what_fixes_it() {
+        let data = Some(PathBuf::from("/d"));
+        // Named by the variable.
+        let m = KRFWS.not_found_in(Path::new("/e/k.bin"), Some("/e/k.bin".into()), data.clone());
+        assert!(
+            m.starts_with("KRFWS model not found at /e/k.bin (named by $HOLOFACE_KRFWS_MODEL)"),
+            "{m}"
+        );
+        assert!(m.contains("unset it and run `holoface setup`"), "{m}");
+        // The data folder's default.
+        let m = KRFWS.not_found_in(Path::new("/d/krfws.bin"), None, data.clone());
+        assert!(m.contains("looked for in the holoface data folder /d"), "{m}");
+        assert!(m.contains("run `holoface setup` to put it there"), "{m}");
+        // Given explicitly.
+        let m = DAN.not_found_in(Path::new("/x/dan.onnx"), Some("/other".into()), data.clone());
+        assert!(
+            m.contains("(the path given with --dan-model / --model / engine.model)"),
+            "{m}"
+        );
+        // CANDIDE-3 is the user's to install.
+        let m = CANDIDE.not_found_in(Path::new("/d/candide3.wfm"), None, data);
+        assert!(
+            m.contains("holoface setup --candide /path/to/candide3.wfm"),
+            "{m}"
+        );
+        // No data folder at all.
+        let m = SAMPLE.not_found_in(&SAMPLE.placeholder(), None, None);
+        assert!(
+            m.contains("there is no data folder") && m.contains("set HOLOFACE_HOME"),
+            "{m}"
+        );
+    }
+}
