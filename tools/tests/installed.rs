@@ -234,5 +234,25 @@ fn installed_binaries_find_their_assets_in_the_data_folder_after_setup() {
         })
         .count();
     assert!(remote > 0, "the installed server answered no frame: {text}");
+
+    // Without CANDIDE-3 in the data folder, `setup` asks for it, unless $HOLOFACE_CANDIDE already names a copy
+    // (the checkout's Makefile does): then it says which one the runtime reads.
+    std::fs::remove_file(data.join("candide3.wfm")).unwrap();
+    let (ok, text) = output(installed(&cli, &home, &work).arg("setup"));
+    assert!(
+        ok && text.contains(holoface_inference::home::CANDIDE.setup),
+        "{text}"
+    );
+    let (ok, text) = output(
+        installed(&cli, &home, &work)
+            .arg("setup")
+            .env("HOLOFACE_CANDIDE", &candide),
+    );
+    assert!(
+        ok && text.contains("$HOLOFACE_CANDIDE")
+            && text.contains(candide.to_str().unwrap())
+            && !text.contains(holoface_inference::home::CANDIDE.setup),
+        "{text}"
+    );
     let _ = std::fs::remove_dir_all(&root);
 }
