@@ -335,15 +335,15 @@ fn install_candide(from: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
     let dest = dir.join(home::CANDIDE.file);
     let Some(from) = from else {
         let overridden = home::CANDIDE.default_path();
-        if dest.is_file() {
-            report(home::CANDIDE.file, "present", &dest);
-        } else if overridden != dest && overridden.is_file() {
+        if overridden != dest && overridden.is_file() {
             // The runtime reads the environment's copy first: nothing to install, nothing to ask for.
             report(
                 home::CANDIDE.file,
                 &format!("${}", home::CANDIDE.env),
                 &overridden,
             );
+        } else if dest.is_file() {
+            report(home::CANDIDE.file, "present", &dest);
         } else {
             report(home::CANDIDE.file, "missing", &dest);
             println!(
