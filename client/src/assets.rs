@@ -79,17 +79,22 @@ pub enum AssetError {
 }
 
 fn read_asset(asset: Asset, path: &Path) -> Result<Vec<u8>, AssetError> {
-    std::fs::read(path).map_err(|source| match source.kind() {
-        std::io::ErrorKind::NotFound => AssetError::Missing {
+    use holoface_inference::files::{FileError, read_bounded};
+    let bytes = read_bounded(path, asset.max_bytes, asset.name).map_err(|e| match e {
+        FileError::Missing { .. } => AssetError::Missing {
             asset,
             path: path.to_owned(),
         },
-        _ => AssetError::Read {
+        FileError::Io { source, .. } => AssetError::Read {
             asset: asset.name,
             path: path.to_owned(),
             source,
         },
-    })
+        other => invalid(asset.name, path, other),
+    })?;
+    // The checksum `holoface setup` recorded beside the file, when there is one.
+    holoface_inference::integrity::verify_sidecar(path, &bytes).map_err(|e| invalid(asset.name, path, e))?;
+    Ok(bytes)
 }
 
 fn invalid(asset: &'static str, path: &Path, reason: impl std::fmt::Display) -> AssetError {

@@ -106,6 +106,9 @@ pub struct BlazeFace {
     pub tiles: usize,
 }
 
+/// The largest face-detector file read (BlazeFace is about 0.4 MB).
+const MAX_DETECTOR_BYTES: u64 = 64 << 20;
+
 impl BlazeFace {
     /// Loads the 128×128 front model with the ONNX Runtime library at `ort_dylib`. `threads` is ONNX
     /// Runtime's intra-op thread count.
@@ -123,10 +126,19 @@ impl BlazeFace {
             path: model.to_path_buf(),
             detail,
         };
+        // Read once, checked against the checksum `holoface setup` recorded beside it, loaded from those bytes.
+        let len = std::fs::metadata(model).map_err(|e| bad(e.to_string()))?.len();
+        if len > MAX_DETECTOR_BYTES {
+            return Err(bad(format!(
+                "{len} bytes, more than a face detector ({MAX_DETECTOR_BYTES})"
+            )));
+        }
+        let bytes = std::fs::read(model).map_err(|e| bad(e.to_string()))?;
+        holoface_inference::integrity::verify_sidecar(model, &bytes).map_err(|e| bad(e.to_string()))?;
         let session = ort::session::Session::builder(&env)?
             .with_intra_threads(threads.max(1))
             .map_err(ort::Error::from)?
-            .commit_from_file(model)
+            .commit_from_memory(&bytes)
             .map_err(|e| bad(e.to_string()))?;
         if session.inputs().len() != 1 || session.outputs().len() != 4 {
             return Err(bad(format!(

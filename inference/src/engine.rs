@@ -510,10 +510,13 @@ impl OnnxEngine {
                 path: opts.model.clone(),
             });
         }
+        // The file is read once, checked, and the session made from those very bytes.
+        let bytes = read_model(&opts.model)?;
+        crate::integrity::verify_sidecar(&opts.model, &bytes)?;
         let env = load_runtime(&opts.ort_dylib)?;
         let (session, execution) = match opts.provider {
-            Provider::Cpu => (cpu_session(&env, opts)?, Execution::cpu()),
-            Provider::Cuda { device, required } => match cuda_session(&env, opts, device) {
+            Provider::Cpu => (cpu_session(&env, opts, &bytes)?, Execution::cpu()),
+            Provider::Cuda { device, required } => match cuda_session(&env, opts, device, &bytes) {
                 Ok(session) => (
                     session,
                     Execution {
@@ -529,7 +532,7 @@ impl OnnxEngine {
                     });
                 }
                 Err(why) => (
-                    cpu_session(&env, opts)?,
+                    cpu_session(&env, opts, &bytes)?,
                     Execution {
                         fallback: Some(why),
                         ..Execution::cpu()
@@ -544,14 +547,33 @@ impl OnnxEngine {
         let inputs: Vec<TensorSpec> = session.inputs().iter().map(spec_of).collect();
         let outputs: Vec<TensorSpec> = session.outputs().iter().map(spec_of).collect();
         validate_io(&inputs, &outputs, &info)?;
-        Ok(Self {
+        let known = crate::integrity::known(&info.name, &info.version, &info.precision);
+        if let Some(k) = known {
+            crate::integrity::verify_known(&opts.model, k, &bytes)?;
+        }
+        let mut engine = Self {
             session,
             info,
             max_batch: opts.max_batch.max(1),
             execution,
             _env: env,
-        })
+        };
+        crate::integrity::self_test(&mut engine, &opts.model, known)?;
+        Ok(engine)
     }
+}
+
+/// Reads a model file whole, refusing one too large to be a model (or not a file at all) before reading it.
+fn read_model(path: &std::path::Path) -> Result<Vec<u8>, EngineError> {
+    crate::files::read_bounded(path, crate::home::DAN.max_bytes, crate::home::DAN.name).map_err(|e| match e {
+        crate::files::FileError::Missing { .. } => EngineError::ModelMissing {
+            path: path.to_path_buf(),
+        },
+        other => EngineError::Damaged {
+            path: path.to_path_buf(),
+            detail: other.to_string(),
+        },
+    })
 }
 
 /// A session builder with the options every provider shares.
@@ -571,8 +593,9 @@ fn session_builder(
 fn cpu_session(
     env: &ort::environment::Environment,
     opts: &OnnxOptions,
+    model: &[u8],
 ) -> Result<ort::session::Session, EngineError> {
-    Ok(session_builder(env, opts)?.commit_from_file(&opts.model)?)
+    Ok(session_builder(env, opts)?.commit_from_memory(model)?)
 }
 
 /// A CUDA session, or why there is none: the library is the CPU build, the provider or the CUDA/cuDNN
@@ -582,6 +605,7 @@ fn cuda_session(
     env: &ort::environment::Environment,
     opts: &OnnxOptions,
     device: i32,
+    model: &[u8],
 ) -> Result<ort::session::Session, String> {
     use ort::ep::ExecutionProvider as _;
     match ort::ep::CUDA::is_available() {
@@ -607,7 +631,7 @@ fn cuda_session(
                 e.to_string().trim_end()
             )
         })?;
-    builder.commit_from_file(&opts.model).map_err(|e| {
+    builder.commit_from_memory(model).map_err(|e| {
         format!(
             "creating a CUDA session on device {device}: {}",
             e.to_string().trim_end()
@@ -620,6 +644,7 @@ fn cuda_session(
     _env: &ort::environment::Environment,
     _opts: &OnnxOptions,
     _device: i32,
+    _model: &[u8],
 ) -> Result<ort::session::Session, String> {
     Err("this build of holoface has no `cuda` feature".into())
 }

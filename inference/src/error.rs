@@ -38,6 +38,26 @@ pub enum EngineError {
         /// The path that was tried.
         path: PathBuf,
     },
+    /// A model file is not the file it should be (its checksum or its recorded release disagree).
+    #[error(
+        "{path} is damaged: {detail}; restore it (`holoface setup` reinstalls the shipped models, or copy the file again)"
+    )]
+    Damaged {
+        /// The file.
+        path: PathBuf,
+        /// What disagrees.
+        detail: String,
+    },
+    /// The engine's start-up self-test on a fixed crop failed: the model answers garbage.
+    #[error(
+        "{path} failed its start-up self-test: {detail}; the model file is damaged or not a face-alignment model (`holoface setup` restores the shipped one)"
+    )]
+    SelfTest {
+        /// The model file.
+        path: PathBuf,
+        /// What the engine answered.
+        detail: String,
+    },
     /// The model's inputs or outputs break the contract.
     #[error("model {tensor}: {problem}")]
     BadModelIo {

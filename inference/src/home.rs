@@ -53,6 +53,9 @@ pub struct Asset {
     pub option: &'static str,
     /// The command that puts it into the data folder.
     pub setup: &'static str,
+    /// The largest file of its kind that is read (checked before reading: `/dev/zero` or a huge file named
+    /// by mistake is refused at once).
+    pub max_bytes: u64,
 }
 
 /// The command that fills the data folder (the `holoface` CLI, `cargo install --path tools`).
@@ -65,6 +68,7 @@ pub const ORT_LIBRARY: Asset = Asset {
     file: "libonnxruntime.so.1.31.1",
     option: "--ort-dylib / engine.ort_dylib / ort_dylib",
     setup: SETUP,
+    max_bytes: 256 << 20,
 };
 /// The BlazeFace short-range face detector (ONNX).
 pub const DETECTOR: Asset = Asset {
@@ -73,6 +77,7 @@ pub const DETECTOR: Asset = Asset {
     file: "face_detection_front_128x128.onnx",
     option: "--detector / detector_model",
     setup: SETUP,
+    max_bytes: 64 << 20,
 };
 /// The KRFWS model (the headset's local aligner).
 pub const KRFWS: Asset = Asset {
@@ -81,6 +86,7 @@ pub const KRFWS: Asset = Asset {
     file: "krfws.bin",
     option: "--krfws-model / krfws_model",
     setup: SETUP,
+    max_bytes: 256 << 20,
 };
 /// The DAN model (ONNX; the server's aligner).
 pub const DAN: Asset = Asset {
@@ -89,6 +95,7 @@ pub const DAN: Asset = Asset {
     file: "dan.onnx",
     option: "--dan-model / --model / engine.model",
     setup: SETUP,
+    max_bytes: 1 << 30,
 };
 /// The server's refinement cascade.
 pub const REFINER: Asset = Asset {
@@ -97,6 +104,7 @@ pub const REFINER: Asset = Asset {
     file: "refiner.bin",
     option: "--refine-model / refine.model",
     setup: SETUP,
+    max_bytes: 512 << 20,
 };
 /// The CANDIDE-3 face model (third-party, free for research use, not redistributed: the user installs it).
 pub const CANDIDE: Asset = Asset {
@@ -105,6 +113,7 @@ pub const CANDIDE: Asset = Asset {
     file: "candide3.wfm",
     option: "--candide / candide",
     setup: "holoface setup --candide /path/to/candide3.wfm",
+    max_bytes: 16 << 20,
 };
 /// The demo's sample photograph.
 pub const SAMPLE: Asset = Asset {
@@ -113,6 +122,7 @@ pub const SAMPLE: Asset = Asset {
     file: "astronaut.png",
     option: "--sample",
     setup: SETUP,
+    max_bytes: 256 << 20,
 };
 
 impl Asset {
@@ -145,6 +155,7 @@ impl Asset {
             file,
             option,
             setup,
+            max_bytes: _,
         } = *self;
         let shown = path.display();
         let from_env = from_env.filter(|v| !v.is_empty());

@@ -32,12 +32,15 @@ impl RefinerModel {
         if path.is_dir() {
             return Err(err("is a directory, not a refiner model file".into()));
         }
-        let bytes = std::fs::read(path).map_err(|e| match e.kind() {
-            std::io::ErrorKind::NotFound => EngineError::RefinerMissing {
-                path: path.to_path_buf(),
-            },
-            _ => err(e.to_string()),
-        })?;
+        let bytes =
+            crate::files::read_bounded(path, crate::home::REFINER.max_bytes, crate::home::REFINER.name)
+                .map_err(|e| match e {
+                    crate::files::FileError::Missing { .. } => EngineError::RefinerMissing {
+                        path: path.to_path_buf(),
+                    },
+                    other => err(other.to_string()),
+                })?;
+        crate::integrity::verify_sidecar(path, &bytes)?;
         Self::from_bytes(&bytes).map_err(|e| match e {
             EngineError::Refine(detail) => err(detail),
             other => other,

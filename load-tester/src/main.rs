@@ -93,8 +93,9 @@ struct Args {
     /// SLO: fail when the measured p99 latency exceeds this, ms.
     #[arg(long)]
     max_p99_ms: Option<f64>,
-    /// SLO: fail when fewer than this fraction of the frames that fell due got an answer (landmarks or an
-    /// explicit drop): frames lost, or never sent because the server was unreachable, break it. 0 = off.
+    /// SLO: fail when fewer than this fraction of the frames that fell due got landmarks: frames the server
+    /// dropped, frames lost, or never sent because the server was unreachable, break it. 0 = off (a run in
+    /// which no frame was answered fails whatever this is).
     #[arg(long, default_value_t = 0.9)]
     min_answered: f64,
     /// SLO: fail when more than this fraction of frames is dropped or unanswered.

@@ -29,6 +29,17 @@ pub(crate) struct Counts {
     pub(crate) unsent: u64,
 }
 
+/// The share of the frames that fell due (sent, or unsendable while the server was unreachable) that got
+/// landmarks. A frame the server dropped was not answered: a server that drops everything answers 0.
+/// (Replies to frames sent in the warm-up can land in the totals: at most everything was answered.)
+pub(crate) fn answered_fraction(answered: u64, sent: u64, unsent: u64) -> f64 {
+    let due = sent + unsent;
+    if due == 0 {
+        return 0.0;
+    }
+    (answered as f64 / due as f64).min(1.0)
+}
+
 /// A time a headset had no connection to the server.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Outage {
@@ -215,11 +226,7 @@ pub(crate) fn finish(
     let p = |q: f64| s.total.value_at_quantile(q) as f64 / 1e3;
     let throughput = s.totals.answered as f64 / secs;
     let drop_rate = (dropped + lost) as f64 / s.totals.sent.max(1) as f64;
-    // Frames that got any answer (landmarks or an explicit drop) out of all that fell due, the ones that
-    // could not be sent while the server was unreachable included.
-    let due = s.totals.sent + s.totals.unsent;
-    // (Replies to frames sent in the warm-up can land in the totals: at most everything was answered.)
-    let answered_fraction = ((s.totals.answered + dropped) as f64 / due.max(1) as f64).min(1.0);
+    let answered_fraction = answered_fraction(s.totals.answered, s.totals.sent, s.totals.unsent);
     let outages: Vec<serde_json::Value> = s
         .outages
         .iter()
@@ -242,9 +249,15 @@ pub(crate) fn finish(
     }
     if args.min_answered > 0.0 && answered_fraction < args.min_answered {
         broken.push(format!(
-            "answered {answered_fraction:.3} of the frames < {} ({lost} sent frames got no answer, {} could not \
-             be sent while the server was unreachable)",
+            "answered {answered_fraction:.3} of the frames < {} ({dropped} dropped by the server, {lost} sent frames \
+             got no answer, {} could not be sent while the server was unreachable)",
             args.min_answered, s.totals.unsent
+        ));
+    }
+    if s.totals.answered == 0 && s.totals.sent + s.totals.unsent > 0 {
+        broken.push(format!(
+            "no frame was answered ({} sent, {dropped} dropped by the server, {} unsent)",
+            s.totals.sent, s.totals.unsent
         ));
     }
     if let Some(m) = args.max_drop_rate.filter(|&m| drop_rate > m) {
@@ -341,4 +354,20 @@ pub(crate) fn finish(
         eprintln!("SLO broken: {b}");
     }
     Ok(broken.is_empty())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::answered_fraction;
+
+    #[test]
+    fn dropped_frames_are_not_answers() {
+        // 100 frames due, the server dropped every one: nothing was answered.
+        assert_eq!(answered_fraction(0, 100, 0), 0.0);
+        // Unsent frames (server unreachable) count as due.
+        assert!((answered_fraction(45, 80, 20) - 0.45).abs() < 1e-12);
+        // Warm-up replies cannot push it past 1; nothing due is nothing answered.
+        assert_eq!(answered_fraction(12, 10, 0), 1.0);
+        assert_eq!(answered_fraction(0, 0, 0), 0.0);
+    }
 }

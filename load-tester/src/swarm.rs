@@ -42,8 +42,9 @@ enum SessionEnd {
     Done,
     /// The server said Goaway: the headset leaves, as a real one does.
     Goaway,
-    /// The connection broke (the server died, the network dropped it): reconnect.
-    Lost(String),
+    /// The connection broke (the server died, the network dropped it): reconnect. The outage started at
+    /// the last answer of the session (or at its start when nothing was answered), not when QUIC noticed.
+    Lost(String, Instant),
 }
 
 /// Connects like the real client, replays `plan.frames` in a loop from `plan.start` to `plan.end` (or the
@@ -113,12 +114,14 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
                 }
                 match run_session(&plan, session, &mut next_frame, &stats).await {
                     SessionEnd::Done | SessionEnd::Goaway => break,
-                    SessionEnd::Lost(why) => {
+                    SessionEnd::Lost(why, since) => {
                         eprintln!(
-                            "headset {}: connection to {} lost ({why}); reconnecting",
-                            plan.id, plan.cfg.server
+                            "headset {}: connection to {} lost ({why}), {:.2} s after its last answer; reconnecting",
+                            plan.id,
+                            plan.cfg.server,
+                            since.elapsed().as_secs_f64()
                         );
-                        outage = Some(Instant::now());
+                        outage = Some(since);
                     }
                 }
             }
@@ -183,10 +186,13 @@ async fn run_session(
         })
     };
     let sent_at: Arc<Mutex<HashMap<u64, Instant>>> = Arc::default();
+    // When the server last answered (landmarks or an explicit drop): where an outage starts.
+    let last_answer = Arc::new(Mutex::new(Instant::now()));
     let reader = {
-        let (sent_at, stats) = (Arc::clone(&sent_at), Arc::clone(stats));
+        let (sent_at, stats, last) = (Arc::clone(&sent_at), Arc::clone(stats), Arc::clone(&last_answer));
         tokio::spawn(async move {
             while let Ok(r) = replies.next().await {
+                *last.lock().unwrap_or_else(PoisonError::into_inner) = Instant::now();
                 let Some(t) = sent_at
                     .lock()
                     .unwrap_or_else(PoisonError::into_inner)
@@ -225,10 +231,16 @@ async fn run_session(
         if *goaway.borrow() {
             break SessionEnd::Goaway;
         }
+        // Only a Goaway the watcher saw ends the session as one: when the connection dies the watcher
+        // stops and drops its sender, `changed()` fails, and that branch is disabled, so a lost connection
+        // is always a loss (it used to race `closed()` and be taken for a Goaway half the time).
         tokio::select! {
             () = tokio::time::sleep_until(due.into()) => {}
-            _ = goaway.changed() => break SessionEnd::Goaway,
-            e = conn.closed() => break SessionEnd::Lost(e.to_string()),
+            Ok(()) = goaway.changed() => break SessionEnd::Goaway,
+            e = conn.closed() => {
+                let since = *last_answer.lock().unwrap_or_else(PoisonError::into_inner);
+                break SessionEnd::Lost(e.to_string(), since);
+            }
         }
         *next_frame += 1;
         let f = &plan.frames[((k - 1) % plan.frames.len() as u64) as usize];
@@ -255,7 +267,7 @@ async fn run_session(
             .unwrap_or_else(PoisonError::into_inner)
             .retain(|_, t| *t > stale);
     };
-    if !matches!(end, SessionEnd::Lost(_)) {
+    if !matches!(end, SessionEnd::Lost(..)) {
         // Let the last replies arrive.
         tokio::time::sleep(deadline + Duration::from_millis(200)).await;
     }

@@ -131,6 +131,12 @@ fn a_server_killed_for_good_breaks_the_slo_and_the_outage_is_reported() {
     let outages = report["outages"].as_array().unwrap();
     assert!(!outages.is_empty(), "{report}");
     assert!(outages.iter().all(|o| o["recovered"] == false), "{report}");
+    // Both headsets noticed the loss (none took it for a Goaway and quietly left).
+    assert_eq!(
+        stderr.matches("still unreachable at the end of the run").count(),
+        2,
+        "{stderr}"
+    );
     assert!(report["totals"]["unsent"].as_u64().unwrap() > 0, "{report}");
     assert!(report["totals"]["answered"].as_u64().unwrap() > 0, "{report}");
     let _ = std::fs::remove_dir_all(&dir);
@@ -159,6 +165,13 @@ fn a_server_killed_and_restarted_is_reconnected_to() {
     let outages = report["outages"].as_array().unwrap();
     assert!(!outages.is_empty(), "{report}");
     assert!(outages.iter().all(|o| o["recovered"] == true), "{report}");
+    // Timed from the last answer, not from when QUIC noticed: at least the 0.5 s the server was down.
+    assert!(
+        outages.iter().all(|o| o["length_s"].as_f64().unwrap() >= 0.5),
+        "{report}"
+    );
+    // Every headset lost its connection and came back (none mistook the loss for a Goaway).
+    assert_eq!(stderr.matches("reconnected").count(), 2, "{stderr}");
     // Answers came again after the restart: the last report interval has some.
     let last = report["timeline"].as_array().unwrap().last().unwrap().clone();
     assert!(last["answered_per_s"].as_f64().unwrap() > 0.0, "{report}");

@@ -41,6 +41,46 @@ pub fn default_refine_model() -> PathBuf {
 /// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).
 pub const MIN_IDLE_TIMEOUT_MS: u64 = 100;
 
+/// The most clients (and pending handshakes) one server admits: far beyond what one engine answers, far
+/// below what its admission semaphore can count (tokio's limit is `usize::MAX >> 3`, a panic beyond).
+pub const MAX_CLIENTS: usize = 1_000_000;
+
+/// The largest config file read.
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// The largest tokens file read (a token per line: tens of thousands of headsets).
+pub const MAX_TOKENS_FILE_BYTES: u64 = 4 << 20;
+
+/// A file read whole, refused before reading when it is not a regular file or larger than `max` (a device,
+/// a pipe or a huge file named by mistake must not hang the start or fill the memory).
+fn bounded_text(path: &Path, max: u64) -> std::io::Result<String> {
+    use holoface_inference::files::{FileError, read_text_bounded};
+    read_text_bounded(path, max, "file").map_err(|e| match e {
+        FileError::Io { source, .. } => source,
+        FileError::Missing { .. } => std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+        FileError::NotAFile { kind, .. } => {
+            std::io::Error::other(format!("it is {kind}, not a regular file"))
+        }
+        FileError::Loop { .. } => std::io::Error::other("it is a loop of symbolic links"),
+        FileError::TooLarge { len, max, .. } => {
+            std::io::Error::other(format!("{len} bytes, more than such a file can be ({max} bytes)"))
+        }
+        other => std::io::Error::other(other.to_string()),
+    })
+}
+
+/// The longest idle, hello and shutdown timeout accepted, ms (an hour).
+pub const MAX_TIMEOUT_MS: u64 = 3_600_000;
+
+/// The oldest a frame may be allowed to get, ms.
+pub const MAX_FRAME_AGE_MS: u64 = 60_000;
+
+/// The most ONNX Runtime threads per engine instance.
+pub const MAX_INTRA_THREADS: usize = 1024;
+
+/// The longest per-client queue of crops.
+pub const MAX_PER_CLIENT_QUEUE: usize = 256;
+
 /// Configuration errors.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -457,7 +497,7 @@ impl ServerConfig {
     /// The binary's entry point: process arguments, the config file, then
     /// [`Self::resolve`].
     pub fn load() -> Result<(Settings, LogConfig), ConfigError> {
-        let cfg = Self::parse_and_merge(std::env::args_os(), |p| std::fs::read_to_string(p))?;
+        let cfg = Self::parse_and_merge(std::env::args_os(), |p| bounded_text(p, MAX_CONFIG_BYTES))?;
         let log = cfg.log.clone();
         Ok((cfg.resolve()?, log))
     }
@@ -491,15 +531,42 @@ impl ServerConfig {
                  timeout closes healthy connections between keep-alives)"
             )));
         }
+        if idle_timeout_ms > MAX_TIMEOUT_MS {
+            return Err(invalid(format!(
+                "quic.idle_timeout_ms = {idle_timeout_ms}: at most {MAX_TIMEOUT_MS} (an hour; a dead headset \
+                 would hold its place that long)"
+            )));
+        }
         let hello_timeout_ms = q.hello_timeout_ms.unwrap_or(5_000);
-        if hello_timeout_ms == 0 {
-            return Err(invalid("quic.hello_timeout_ms = 0: must be at least 1".into()));
+        if !(1..=MAX_TIMEOUT_MS).contains(&hello_timeout_ms) {
+            return Err(invalid(format!(
+                "quic.hello_timeout_ms = {hello_timeout_ms}: allowed 1..={MAX_TIMEOUT_MS}"
+            )));
         }
         let max_frame_age_ms = self.limits.max_frame_age_ms.unwrap_or(100);
         if max_frame_age_ms == 0 {
             return Err(invalid(
                 "limits.max_frame_age_ms = 0: must be at least 1 (0 would expire every frame)".into(),
             ));
+        }
+        if u64::from(max_frame_age_ms) > MAX_FRAME_AGE_MS {
+            return Err(invalid(format!(
+                "limits.max_frame_age_ms = {max_frame_age_ms}: at most {MAX_FRAME_AGE_MS} (an answer that late \
+                 is of no use to a headset)"
+            )));
+        }
+        let shutdown_timeout_ms = self.limits.shutdown_timeout_ms.unwrap_or(5_000);
+        if shutdown_timeout_ms > MAX_TIMEOUT_MS {
+            return Err(invalid(format!(
+                "limits.shutdown_timeout_ms = {shutdown_timeout_ms}: at most {MAX_TIMEOUT_MS}"
+            )));
+        }
+        let per_client_queue = self.batch.per_client_queue.unwrap_or(1).max(1);
+        if per_client_queue > MAX_PER_CLIENT_QUEUE {
+            return Err(invalid(format!(
+                "batch.per_client_queue = {per_client_queue}: at most {MAX_PER_CLIENT_QUEUE} (a newer crop \
+                 supersedes an older one; a long queue only holds stale frames)"
+            )));
         }
         let max_batch = self.batch.max_batch.unwrap_or(8);
         if !(1..=256).contains(&max_batch) {
@@ -517,12 +584,32 @@ impl ServerConfig {
                 )));
             }
             (BatchPolicyName::MaxWait, us) => {
-                BatchPolicy::MaxWait(Duration::from_micros(us.unwrap_or(2_000)))
+                let us = us.unwrap_or(2_000);
+                // A batch that waits as long as a frame may live answers nothing: every frame expires first.
+                if us >= u64::from(max_frame_age_ms) * 1_000 {
+                    return Err(invalid(format!(
+                        "batch.max_wait_us = {us} is not shorter than limits.max_frame_age_ms = {max_frame_age_ms} \
+                         ({} us): every frame would expire waiting for its batch and none would be answered; \
+                         choose a max_wait_us well under the frame age",
+                        u64::from(max_frame_age_ms) * 1_000
+                    )));
+                }
+                BatchPolicy::MaxWait(Duration::from_micros(us))
             }
         };
         let max_clients = self.limits.max_clients.unwrap_or(64);
-        if max_clients == 0 {
-            return Err(invalid("limits.max_clients must be at least 1".into()));
+        if !(1..=MAX_CLIENTS).contains(&max_clients) {
+            return Err(invalid(format!(
+                "limits.max_clients = {max_clients}: allowed 1..={MAX_CLIENTS} (one server answers far fewer \
+                 headsets; each holds a QUIC connection and a share of the engine)"
+            )));
+        }
+        if let Some(p) = self.limits.max_pending
+            && !(1..=MAX_CLIENTS).contains(&p)
+        {
+            return Err(invalid(format!(
+                "limits.max_pending = {p}: allowed 1..={MAX_CLIENTS}"
+            )));
         }
         let max_in_flight = self.limits.max_in_flight.unwrap_or(8).max(1);
         if let Some(addr) = self.internal.metrics_listen
@@ -548,6 +635,11 @@ impl ServerConfig {
             .intra_threads
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from))
             .max(1);
+        if intra_threads > MAX_INTRA_THREADS {
+            return Err(invalid(format!(
+                "engine.intra_threads = {intra_threads}: at most {MAX_INTRA_THREADS}"
+            )));
+        }
         Ok(Settings {
             listen,
             tls,
@@ -558,10 +650,10 @@ impl ServerConfig {
             tokens,
             allow_anonymous,
             max_clients,
-            max_pending: self.limits.max_pending.unwrap_or(max_clients.max(16)).max(1),
+            max_pending: self.limits.max_pending.unwrap_or(max_clients.max(16)),
             max_in_flight,
             max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
-            shutdown_timeout: Duration::from_millis(self.limits.shutdown_timeout_ms.unwrap_or(5_000)),
+            shutdown_timeout: Duration::from_millis(shutdown_timeout_ms),
             // What one headset needs at most: every face it may have in flight, at 30 fps.
             max_frame_rate: self
                 .limits
@@ -570,7 +662,7 @@ impl ServerConfig {
             batch: BatcherConfig {
                 max_batch,
                 policy,
-                per_client_queue: self.batch.per_client_queue.unwrap_or(1).max(1),
+                per_client_queue,
                 max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
             },
             engine: OnnxOptions {
@@ -602,7 +694,7 @@ fn resolve_tokens(auth: AuthConfig) -> Result<(Vec<String>, bool), ConfigError> 
     let invalid = |m: String| ConfigError::Invalid(m);
     let mut tokens = auth.tokens.unwrap_or_default();
     if let Some(path) = &auth.tokens_file {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::TokensFile {
+        let text = bounded_text(path, MAX_TOKENS_FILE_BYTES).map_err(|source| ConfigError::TokensFile {
             path: path.clone(),
             source,
         })?;
@@ -760,6 +852,113 @@ impl Settings {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    fn resolve_toml(text: &str) -> Result<Settings, ConfigError> {
+        ServerConfig::from_toml(text, Path::new("server.toml"))?.resolve()
+    }
+
+    #[test]
+    fn a_batch_wait_as_long_as_the_frame_age_is_refused() {
+        let err = resolve_toml("[auth]\ntokens=[\"t\"]\n[batch]\npolicy=\"max-wait\"\nmax_wait_us=150000\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("max_wait_us = 150000") && err.contains("max_frame_age_ms = 100"),
+            "{err}"
+        );
+        // Shorter than the frame age: accepted.
+        let toml = "[auth]\ntokens=[\"t\"]\n[batch]\npolicy=\"max-wait\"\nmax_wait_us=5000\n";
+        assert!(resolve_toml(toml).is_ok());
+    }
+
+    #[test]
+    fn absurd_limits_are_refused_naming_the_setting() {
+        // As an operator types them: the largest value each flag's type takes.
+        for (flag, setting) in [
+            ("--max-clients", "max_clients"),
+            ("--max-pending", "max_pending"),
+            ("--shutdown-timeout-ms", "shutdown_timeout_ms"),
+            ("--idle-timeout-ms", "idle_timeout_ms"),
+            ("--per-client-queue", "per_client_queue"),
+            ("--intra-threads", "intra_threads"),
+        ] {
+            let argv = ["holoface-server", "--token", "t", flag, "18446744073709551615"];
+            let cfg = ServerConfig::parse_and_merge(argv, |_| Ok(String::new())).unwrap();
+            let err = cfg.resolve().unwrap_err().to_string();
+            assert!(err.contains(setting), "{flag}: {err}");
+        }
+        let argv = [
+            "holoface-server",
+            "--token",
+            "t",
+            "--max-frame-age-ms",
+            "4294967295",
+        ];
+        let err = ServerConfig::parse_and_merge(argv, |_| Ok(String::new()))
+            .unwrap()
+            .resolve()
+            .unwrap_err();
+        assert!(err.to_string().contains("max_frame_age_ms"), "{err}");
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        /// No value of any numeric option panics; whatever is accepted can answer frames (a batch wait
+        /// shorter than the frame age) and fits the admission semaphore.
+        #[test]
+        fn no_value_of_any_limit_panics(
+            max_clients in prop::option::of(any::<u64>()),
+            max_pending in prop::option::of(any::<u64>()),
+            max_in_flight in prop::option::of(any::<u16>()),
+            max_frame_age_ms in prop::option::of(any::<u32>()),
+            shutdown_timeout_ms in prop::option::of(any::<u64>()),
+            max_frame_rate in prop::option::of(any::<u32>()),
+            max_batch in prop::option::of(any::<u64>()),
+            max_wait_us in prop::option::of(any::<u64>()),
+            per_client_queue in prop::option::of(any::<u64>()),
+            idle_timeout_ms in prop::option::of(any::<u64>()),
+            hello_timeout_ms in prop::option::of(any::<u64>()),
+            instances in prop::option::of(any::<u64>()),
+            intra_threads in prop::option::of(any::<u64>()),
+        ) {
+            // TOML integers are i64: larger values are a parse error, which is fine too.
+            let line = |k: &str, v: Option<String>| v.map(|v| format!("{k} = {v}\n")).unwrap_or_default();
+            let s = |v: Option<u64>| v.map(|v| v.to_string());
+            let mut toml = String::from("[auth]\ntokens = [\"t\"]\n[quic]\n");
+            toml += &line("idle_timeout_ms", s(idle_timeout_ms));
+            toml += &line("hello_timeout_ms", s(hello_timeout_ms));
+            toml += "[limits]\n";
+            toml += &line("max_clients", s(max_clients));
+            toml += &line("max_pending", s(max_pending));
+            toml += &line("max_in_flight", max_in_flight.map(|v| v.to_string()));
+            toml += &line("max_frame_age_ms", max_frame_age_ms.map(|v| v.to_string()));
+            toml += &line("shutdown_timeout_ms", s(shutdown_timeout_ms));
+            toml += &line("max_frame_rate", max_frame_rate.map(|v| v.to_string()));
+            toml += "[batch]\n";
+            toml += &line("max_batch", s(max_batch));
+            if max_wait_us.is_some() {
+                toml += "policy = \"max-wait\"\n";
+            }
+            toml += &line("max_wait_us", s(max_wait_us));
+            toml += &line("per_client_queue", s(per_client_queue));
+            toml += "[engine]\n";
+            toml += &line("instances", s(instances));
+            toml += &line("intra_threads", s(intra_threads));
+            if let Ok(settings) = resolve_toml(&toml) {
+                prop_assert!((1..=MAX_CLIENTS).contains(&settings.max_clients));
+                prop_assert!((1..=MAX_CLIENTS).contains(&settings.max_pending));
+                prop_assert!(!settings.max_frame_age.is_zero());
+                if let BatchPolicy::MaxWait(w) = settings.batch.policy {
+                    prop_assert!(w < settings.max_frame_age);
+                }
+                // What the server builds from them without IO must not panic either.
+                let _ = tokio::sync::Semaphore::new(settings.max_clients);
+                let _ = crate::batcher::DynamicBatcher::<u8>::new(settings.batch);
+                let _ = std::time::Instant::now().checked_add(settings.shutdown_timeout).is_some();
+            }
+        }
+    }
 
     const TOML: &str = r#"
         [quic]

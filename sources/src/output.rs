@@ -3,12 +3,82 @@
 //! part-way, a panic), it removes the temporary file. So a failed command leaves no half-written `.jsonl`,
 //! `.hfrec`, `.mp4` or model behind that a later `[ -s file ]` check would take for a result, and a reader
 //! never sees a file being written. [`write_atomic`] does the same for bytes already in memory.
+//!
+//! Interrupted commands leave nothing behind either: every temporary file is registered while it exists,
+//! and [`remove_temporaries`] (called by the binaries' Ctrl-C / SIGTERM handling) removes them; a temporary
+//! file left by a process that was killed outright (`.NAME.tmp-PID` whose process is gone) is removed the
+//! next time the same destination is written.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+
+/// The temporary files of every [`Output`] alive in this process.
+static TEMPORARIES: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+fn temporaries() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    TEMPORARIES
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn forget(tmp: &Path) {
+    temporaries().retain(|p| p != tmp);
+}
+
+/// Removes the temporary files of every [`Output`] not yet committed (an interrupted command's); returns how
+/// many there were.
+pub fn remove_temporaries() -> usize {
+    let mut list = temporaries();
+    for p in list.iter() {
+        let _ = std::fs::remove_file(p);
+    }
+    let n = list.len();
+    list.clear();
+    n
+}
+
+/// The temporary-file name of `name` written by process `pid`.
+fn tmp_name(name: &std::ffi::OsStr, pid: u32) -> std::ffi::OsString {
+    let mut tmp = std::ffi::OsString::from(".");
+    tmp.push(name);
+    tmp.push(format!(".tmp-{pid}"));
+    tmp
+}
+
+/// Removes the temporary files that processes no longer running left for `path` (killed outright, they could
+/// not remove them). Returns how many were removed.
+pub fn remove_stale_temporaries(path: &Path) -> usize {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+        return 0;
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let prefix = tmp_name(name, 0);
+    let prefix = prefix.to_string_lossy();
+    let prefix = prefix.trim_end_matches('0');
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for e in entries.flatten() {
+        let file = e.file_name();
+        let file = file.to_string_lossy();
+        let Some(pid) = file.strip_prefix(prefix).and_then(|p| p.parse::<u32>().ok()) else {
+            continue;
+        };
+        let alive = pid == std::process::id() || Path::new("/proc").join(pid.to_string()).exists();
+        if !alive && std::fs::remove_file(e.path()).is_ok() {
+            removed += 1;
+        }
+    }
+    removed
+}
 
 /// A file being written; see the module docs.
 #[derive(Debug)]
@@ -45,10 +115,9 @@ impl Output {
         let name = path
             .file_name()
             .with_context(|| format!("{} is not a file name", path.display()))?;
-        let mut tmp_name = std::ffi::OsString::from(".");
-        tmp_name.push(name);
-        tmp_name.push(format!(".tmp-{}", std::process::id()));
-        let tmp = path.with_file_name(tmp_name);
+        remove_stale_temporaries(path);
+        let tmp = path.with_file_name(tmp_name(name, std::process::id()));
+        temporaries().push(tmp.clone());
         let file = File::create(&tmp).with_context(|| {
             format!(
                 "writing {} (its temporary file {})",
@@ -72,10 +141,11 @@ impl Output {
     /// that cannot be replaced) the temporary file is removed and the destination is untouched.
     pub fn commit(mut self) -> anyhow::Result<()> {
         let result = self.finish();
-        if result.is_err()
-            && let Some(tmp) = &self.tmp
-        {
-            let _ = std::fs::remove_file(tmp);
+        if let Some(tmp) = &self.tmp {
+            if result.is_err() {
+                let _ = std::fs::remove_file(tmp);
+            }
+            forget(tmp);
         }
         result
     }
@@ -99,16 +169,24 @@ impl Output {
     }
 }
 
+/// The error with the file it happened on (a full disk must say which file could not be written).
+fn name_file(path: &Path, e: std::io::Error) -> std::io::Error {
+    std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display()))
+}
+
 impl Write for Output {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
         match &mut self.file {
-            Some(f) => f.write(buf),
+            Some(f) => f.write(buf).map_err(|e| name_file(&self.path, e)),
             None => Err(std::io::Error::other("output already committed")),
         }
     }
 
     fn flush(&mut self) -> std::io::Result<()> {
-        self.file.as_mut().map_or(Ok(()), Write::flush)
+        let path = &self.path;
+        self.file
+            .as_mut()
+            .map_or(Ok(()), |f| f.flush().map_err(|e| name_file(path, e)))
     }
 }
 
@@ -127,6 +205,7 @@ impl Drop for Output {
             && let Some(tmp) = &self.tmp
         {
             let _ = std::fs::remove_file(tmp);
+            forget(tmp);
         }
     }
 }
@@ -188,5 +267,44 @@ mod tests {
         write_atomic(Path::new("/dev/null"), b"gone").unwrap();
         assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
         std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn interrupted_runs_leave_nothing_behind() {
+        let d = dir("interrupted");
+        std::fs::create_dir_all(&d).unwrap();
+        let path = d.join("o.jsonl");
+        // A run killed outright left its temporary file (pid 999999999 runs nowhere); a live process's is kept.
+        let dead = d.join(".o.jsonl.tmp-999999999");
+        let live = d.join(format!(".o.jsonl.tmp-{}", std::process::id()));
+        std::fs::write(&dead, b"half").unwrap();
+        let mut out = Output::create(&path).unwrap();
+        assert!(
+            !dead.exists(),
+            "the stale temporary file is removed when the same file is written again"
+        );
+        assert!(live.exists(), "this process's own temporary file is not stale");
+        out.write_all(b"partial").unwrap();
+        // Ctrl-C: the handler removes every temporary file still open.
+        assert!(remove_temporaries() >= 1);
+        assert!(!live.exists());
+        drop(out);
+        // Another file's temporaries are not touched.
+        let other = d.join(".p.jsonl.tmp-999999999");
+        std::fs::write(&other, b"x").unwrap();
+        assert_eq!(remove_stale_temporaries(&path), 0);
+        assert!(other.exists());
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_write_error_names_the_file() {
+        // /dev/full: every write fails with "no space left on device", as on a full disk.
+        let mut out = Output::create(Path::new("/dev/full")).unwrap();
+        let err = out
+            .write_all(&[0u8; 1 << 16])
+            .and_then(|()| out.flush())
+            .unwrap_err();
+        assert!(err.to_string().contains("/dev/full"), "{err}");
     }
 }

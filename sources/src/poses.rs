@@ -73,6 +73,9 @@ pub struct PoseSidecar {
     entries: BTreeMap<usize, PoseEntry>,
 }
 
+/// The largest pose sidecar read: a line of about 200 bytes per frame, a day of 30-fps video.
+pub const MAX_SIDECAR_BYTES: u64 = 512 << 20;
+
 impl PoseSidecar {
     /// Parses sidecar text; `path` only names the file in errors.
     pub fn parse(text: &str, path: &Path) -> anyhow::Result<Self> {
@@ -125,8 +128,7 @@ impl PoseSidecar {
 
     /// Reads and parses a sidecar file.
     pub fn load(path: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading pose sidecar {}", path.display()))?;
+        let text = holoface_inference::files::read_text_bounded(path, MAX_SIDECAR_BYTES, "pose sidecar")?;
         Self::parse(&text, path)
     }
 

@@ -268,7 +268,19 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
             Box::new(RecordedStream::open(path)?)
         }
     } else {
-        bail!("frame source {} does not exist", path.display())
+        // Not a folder, not a file: say what it is (a pipe, a device, a link loop) rather than "missing".
+        match holoface_inference::files::regular_file(path, "frame source") {
+            Err(holoface_inference::files::FileError::NotAFile { kind, .. }) if kind.contains("pipe") => {
+                bail!(
+                    "frame source {} is a named pipe (FIFO): stream a y4m video through standard input instead \
+                 (`--source - < {}`, or `ffmpeg -i VIDEO -f yuv4mpegpipe - | holoface track --source -`)",
+                    path.display(),
+                    path.display()
+                )
+            }
+            Err(e) => bail!("{e}"),
+            Ok(_) => bail!("frame source {} cannot be read", path.display()),
+        }
     };
     Ok(match poses {
         Some(p) => Box::new(crate::poses::WithPoses::new(

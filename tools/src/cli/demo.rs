@@ -156,7 +156,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--frames and --fps must be positive");
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    println!(
+    crate::say!(
         "preparing: reference landmarks on the still {}",
         args.sample.display()
     );
@@ -166,7 +166,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
     let (server_addr, fingerprint, token) = (server.addr, server.fingerprint, server.token.clone());
     let relay = server.runtime().block_on(UdpRelay::start(server_addr))?;
-    println!(
+    crate::say!(
         "server on {server_addr} (certificate {fingerprint}), client via relay {}",
         relay.addr()
     );
@@ -302,7 +302,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
     let summary_path = args.out.join("summary.json");
     write_atomic(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
-    println!(
+    crate::say!(
         "wrote {}, {} and {}",
         log_path.display(),
         strip_path.display(),
@@ -376,8 +376,8 @@ fn summarise(
     remote_sent: u64,
     switches: u32,
 ) -> serde_json::Value {
-    println!();
-    println!(
+    crate::say!();
+    crate::say!(
         "HoloFace demo: {} frames at {} fps, DAN on a loopback QUIC server (crops {}), KRFWS fallback; link cut for frames {}..{}",
         records.len(),
         args.fps,
@@ -385,9 +385,17 @@ fn summarise(
         args.cut_at,
         args.cut_at + args.cut_frames
     );
-    println!(
+    crate::say!(
         "{:<14} {:>6} {:>7} {:>6} {:>8} {:>7} {:>7} {:>7} {:>12}",
-        "phase", "frames", "remote", "local", "no face", "p50 ms", "p99 ms", "max ms", "NME49 vs ref"
+        "phase",
+        "frames",
+        "remote",
+        "local",
+        "no face",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "NME49 vs ref"
     );
     let mut phases = Vec::new();
     let groups: [(&str, Option<Phase>); 4] = [
@@ -421,7 +429,7 @@ fn summarise(
         );
         let errs: Vec<f64> = sel.iter().filter_map(|r| r.nme49).collect();
         let nme = errs.iter().sum::<f64>() / errs.len().max(1) as f64;
-        println!(
+        crate::say!(
             "{name:<14} {:>6} {:>7} {:>6} {:>8} {p50:>7.1} {p99:>7.1} {max:>7.1} {:>11.2}%",
             sel.len(),
             remote,
@@ -444,18 +452,18 @@ fn summarise(
         .iter()
         .position(|r| r.phase == Phase::AfterRestore && r.answered_by == Some(AnsweredBy::RemoteDan));
     let cut_end = args.cut_at + args.cut_frames;
-    println!(
+    crate::say!(
         "wire: {payload:.0} B per crop message; before the cut {udp_per_frame:.0} UDP B per frame sent incl. QUIC, TLS and handshake ({remote_sent} frames); \
          {:.1} fps achieved; {switches} switches remote<->local",
         records.len() as f64 / wall_s
     );
     match (first_local, back) {
-        (Some(f), Some(b)) => println!(
+        (Some(f), Some(b)) => crate::say!(
             "fallback: local answers from frame {f} ({} after the cut); back to remote at frame {b} ({:.2} s after the restore)",
             f - args.cut_at,
             (b - cut_end) as f64 / args.fps
         ),
-        _ => println!("fallback: first local frame {first_local:?}, back to remote at {back:?}"),
+        _ => crate::say!("fallback: first local frame {first_local:?}, back to remote at {back:?}"),
     }
     json!({
         "frames": records.len(), "fps": args.fps, "achieved_fps": records.len() as f64 / wall_s,

@@ -295,7 +295,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let ms = align_time.as_secs_f64() * 1e3 / (aligned * args.repeat.max(1)).max(1) as f64;
         let has68 = per_image.iter().any(|p| p.nme68.is_some());
         let s49 = summarise(&e49);
-        println!(
+        crate::say!(
             "{:<6} init={:?} images={} detected={} NME49={:.2}% AUC49={:.2} fail49={:.2}%{}",
             which.label(),
             args.init,
@@ -319,7 +319,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let names: Vec<&str> = samples.iter().map(|s| s.name.as_str()).collect();
         let subsets = by_subset(&names, &e68, &e49, has68);
         for (sub, r) in &subsets {
-            println!(
+            crate::say!(
                 "{:<6}   {sub:<6} images={} NME49={:.2}%{}",
                 which.label(),
                 r.images,
@@ -335,7 +335,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             nme68: has68.then(|| summarise(&pick(&e68)).into()),
             nme49: summarise(&pick(&e49)).into(),
         };
-        println!(
+        crate::say!(
             "{:<6}   hardest fifth (largest yaw) images={} NME49={:.2}% fail49={:.2}%{}",
             which.label(),
             hard.images,
@@ -385,7 +385,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     holoface_sources::output::write_atomic(&args.out, &json)?;
     let png = ced_plot_png(&curves, 0.08);
     holoface_sources::output::write_atomic(&args.plot, &png)?;
-    println!("wrote {} and {}", args.out.display(), args.plot.display());
+    crate::say!("wrote {} and {}", args.out.display(), args.plot.display());
     Ok(())
 }
 

@@ -56,7 +56,11 @@ pub enum Command {
 /// Runs the parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Setup(args) => setup::run(args),
+        Command::Setup(args) => {
+            // Setup's product is the files it installs: a closed stdout must not stop it half-way.
+            STOP_ON_CLOSED_STDOUT.store(false, std::sync::atomic::Ordering::Relaxed);
+            setup::run(args)
+        }
         Command::Demo(args) => demo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::MultiFace(args) => multi_face::run(args),
@@ -67,6 +71,71 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::TrainKrfws(args) => train_krfws::run(args),
         Command::TrainRefiner(args) => train_refiner::run(args),
     }
+}
+
+/// Ctrl-C and SIGTERM end a command without leaving its temporary files behind: a thread waits for either,
+/// removes the temporary files of every output not yet committed, and exits with the shell's code for the
+/// signal (130 / 143). Binaries only.
+pub fn clean_up_on_interrupt() {
+    let spawned = std::thread::Builder::new().name("interrupt".into()).spawn(|| {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            return;
+        };
+        rt.block_on(async {
+            use tokio::signal::unix::{SignalKind, signal};
+            let (Ok(mut int), Ok(mut term)) =
+                (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
+            else {
+                return;
+            };
+            let code = tokio::select! {
+                _ = int.recv() => 130,
+                _ = term.recv() => 143,
+            };
+            let removed = holoface_sources::output::remove_temporaries();
+            eprintln!(
+                "interrupted{}",
+                if removed > 0 {
+                    format!("; removed {removed} unfinished output file(s)")
+                } else {
+                    String::new()
+                }
+            );
+            std::process::exit(code);
+        });
+    });
+    if let Err(e) = spawned {
+        tracing::warn!(error = %e, "no interrupt handler: an interrupted command may leave temporary files");
+    }
+}
+
+/// Whether a closed standard output ends the command (the default) or is ignored (`holoface setup`, whose
+/// work is the files it installs, not what it prints).
+static STOP_ON_CLOSED_STDOUT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+
+/// Writes one line to standard output. When the reader has gone (`holoface eval | head -1`), the command
+/// ends quietly (exit 0, its unfinished outputs removed) instead of panicking, unless it asked to carry on.
+pub fn say(args: std::fmt::Arguments<'_>) {
+    use std::io::Write as _;
+    let mut out = std::io::stdout().lock();
+    let result = out
+        .write_fmt(args)
+        .and_then(|()| out.write_all(b"\n"))
+        .and_then(|()| out.flush());
+    if let Err(e) = result
+        && e.kind() == std::io::ErrorKind::BrokenPipe
+        && STOP_ON_CLOSED_STDOUT.load(std::sync::atomic::Ordering::Relaxed)
+    {
+        holoface_sources::output::remove_temporaries();
+        std::process::exit(0);
+    }
+}
+
+/// `println!` for the commands: see [`say`].
+#[macro_export]
+macro_rules! say {
+    () => { $crate::cli::say(format_args!("")) };
+    ($($arg:tt)*) => { $crate::cli::say(format_args!($($arg)*)) };
 }
 
 /// Installs the tracing subscriber (binaries only; libraries never do).

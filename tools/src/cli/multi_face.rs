@@ -426,9 +426,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     };
     let mut scenes = Vec::new();
-    println!(
+    crate::say!(
         "{:>5} {:>9} {:>8} {:>11} {:>9} {:>6} {:>10}   per face: NME49 % together / alone (relative)",
-        "faces", "at once", "ids", "id switches", "detector", "losses", "reacquired"
+        "faces",
+        "at once",
+        "ids",
+        "id switches",
+        "detector",
+        "losses",
+        "reacquired"
     );
     for &n in &args.counts {
         let mut people = Vec::with_capacity(n);
@@ -460,7 +466,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let together = track(&args, &model, &mut *aligner, &people, &all, export.as_mut())?;
         if let (Some(e), Some(dir)) = (export, args.write_sequence.as_deref()) {
-            println!(
+            crate::say!(
                 "wrote {} frames of the {n}-face scene to {}",
                 e.finish()?,
                 dir.display()
@@ -509,15 +515,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             sum(|t| t.losses),
             sum(|t| t.reacquisitions),
         );
-        println!(
+        crate::say!(
             "{n:>5} {:>9} {:>8} {switches:>11} {:>9} {losses:>6} {reacquired:>10} {line}",
             together.most_at_once,
             together.ids.len(),
             together.detector_runs
         );
-        println!("      per face:{covered_line}");
+        crate::say!("      per face:{covered_line}");
         let timing = together.timing_json();
-        println!(
+        crate::say!(
             "      frames answered {}/{}, frame time p50 {:.1} ms, p99 {:.1} ms, faces answered by the server {:.1} %",
             together.frame_ms.len(),
             args.frames,
@@ -556,7 +562,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
-    println!("wrote {}", args.out.display());
+    crate::say!("wrote {}", args.out.display());
     Ok(())
 }
 

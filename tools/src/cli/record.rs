@@ -184,6 +184,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .finish()
         .with_context(|| format!("finishing {}", args.out.display()))?
         .commit()?;
-    println!("wrote {count} frames to {}", args.out.display());
+    crate::say!("wrote {count} frames to {}", args.out.display());
     Ok(())
 }

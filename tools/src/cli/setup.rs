@@ -21,6 +21,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
 use holoface_client::assets::home;
+use holoface_inference::integrity::{self, sha256_hex};
 use holoface_sources::output::write_atomic;
 
 /// Arguments of `holoface setup`.
@@ -159,7 +160,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )
     })?;
     std::fs::create_dir_all(&dir).with_context(|| format!("creating the data folder {}", dir.display()))?;
-    println!("holoface data folder: {}", dir.display());
+    crate::say!("holoface data folder: {}", dir.display());
     let mut fetcher = Fetcher {
         agent: None,
         downloads: args.downloads,
@@ -167,7 +168,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match onnxruntime() {
         Ok(ort) => install_from(&mut fetcher, &ort, &dir)?,
         // The rest is still useful with a library the user installs (and names) themselves.
-        Err(e) => println!("  {:<36} skipped: {e}", home::ORT_LIBRARY.file),
+        Err(e) => crate::say!("  {:<36} skipped: {e}", home::ORT_LIBRARY.file),
     }
     for archive in [BLAZEFACE, SAMPLE] {
         install_from(&mut fetcher, &archive, &dir)?;
@@ -175,6 +176,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for (file, bytes) in OURS {
         let path = dir.join(file);
         if std::fs::read(&path).is_ok_and(|have| have == bytes) {
+            record_checksum(&path, bytes)?;
             report(file, "up to date", &path);
         } else {
             install(&path, bytes)?;
@@ -186,15 +188,38 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// Writes a data-folder file atomically; a symbolic link there (say, to a checkout's model) is replaced,
 /// never written through.
+///
+/// Its SHA-256 is recorded beside it (`NAME.sha256`, `sha256sum`'s format), which every loader compares
+/// with the file before using it (`holoface_inference::integrity`); the old record goes first, so a new file
+/// never sits beside a stale checksum.
 fn install(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let side = integrity::sidecar_path(path);
+    if side.exists() {
+        std::fs::remove_file(&side).with_context(|| format!("replacing {}", side.display()))?;
+    }
     if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
         std::fs::remove_file(path).with_context(|| format!("replacing the link {}", path.display()))?;
     }
-    write_atomic(path, bytes)
+    write_atomic(path, bytes)?;
+    record_checksum(path, bytes)
+}
+
+/// Writes the checksum record of an installed file unless an equal one is there.
+fn record_checksum(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let text = integrity::sidecar_text(&name, bytes);
+    let side = integrity::sidecar_path(path);
+    if std::fs::read_to_string(&side).is_ok_and(|t| t == text) {
+        return Ok(());
+    }
+    write_atomic(&side, text)
 }
 
 fn report(file: &str, what: &str, path: &Path) {
-    println!("  {file:<36} {what:<22} {}", path.display());
+    crate::say!("  {file:<36} {what:<22} {}", path.display());
 }
 
 /// Extracts the archive's members into `dir` unless every one is already there with its checksum.
@@ -204,7 +229,10 @@ fn install_from(fetcher: &mut Fetcher, archive: &Archive, dir: &Path) -> anyhow:
     };
     if archive.members.iter().all(current) {
         for (_, file, _) in archive.members {
-            report(file, "up to date", &dir.join(file));
+            let path = dir.join(file);
+            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            record_checksum(&path, &bytes)?;
+            report(file, "up to date", &path);
         }
         return Ok(());
     }
@@ -248,6 +276,20 @@ fn extract(bytes: &[u8], name: &str, inside: &str) -> anyhow::Result<Vec<u8>> {
     Ok(data)
 }
 
+/// The longest one download may take (the largest archive is about 17 MB: 57 kB/s at least);
+/// `$HOLOFACE_DOWNLOAD_TIMEOUT_S` changes it (1..=3600 s).
+const DOWNLOAD_TIMEOUT_DEFAULT: Duration = Duration::from_secs(300);
+
+fn download_timeout() -> Duration {
+    std::env::var("HOLOFACE_DOWNLOAD_TIMEOUT_S")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|s| (1..=3600).contains(s))
+        .map_or(DOWNLOAD_TIMEOUT_DEFAULT, Duration::from_secs)
+}
+/// How often a slow download says what it is waiting for.
+const PROGRESS_EVERY: Duration = Duration::from_secs(10);
+
 /// Downloads archives (once per run) or takes them from the downloads folder; every byte is checked against
 /// the pin.
 struct Fetcher {
@@ -276,22 +318,62 @@ impl Fetcher {
     }
 
     fn download(&mut self, archive: &Archive) -> anyhow::Result<Vec<u8>> {
-        println!(
+        crate::say!(
             "  downloading {} ({:.1} MB)",
             archive.url,
             archive.size as f64 / 1e6
         );
         let agent = self.agent.get_or_insert_with(agent);
-        let fail = || format!("downloading {}", archive.url);
-        let mut response = agent.get(archive.url).call().with_context(fail)?;
-        let mut bytes = Vec::with_capacity(usize::try_from(archive.size).unwrap_or(0));
-        response
-            .body_mut()
-            .with_config()
-            .limit(archive.size + 1)
-            .reader()
-            .read_to_end(&mut bytes)
-            .with_context(fail)?;
+        let fail = || {
+            format!(
+                "downloading {} (gave up after at most {} s without a complete answer; check the network or \
+                 HTTPS_PROXY, or put the file in $HOLOFACE_DOWNLOADS by hand)",
+                archive.url,
+                download_timeout().as_secs()
+            )
+        };
+        // A watchdog says what is awaited while the transfer is slow; ureq's timeouts bound it.
+        let received = std::sync::atomic::AtomicU64::new(0);
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        std::thread::scope(|scope| {
+            let received = &received;
+            scope.spawn(move || {
+                let t0 = std::time::Instant::now();
+                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
+                    done_rx.recv_timeout(PROGRESS_EVERY)
+                {
+                    eprintln!(
+                        "  still waiting for {}: {:.1} of {:.1} MB after {:.0} s (gives up after {} s)",
+                        archive.url,
+                        received.load(std::sync::atomic::Ordering::Relaxed) as f64 / 1e6,
+                        archive.size as f64 / 1e6,
+                        t0.elapsed().as_secs_f64(),
+                        download_timeout().as_secs()
+                    );
+                }
+            });
+            let result = (|| -> anyhow::Result<Vec<u8>> {
+                let mut response = agent.get(archive.url).call().with_context(fail)?;
+                let mut bytes = Vec::with_capacity(usize::try_from(archive.size).unwrap_or(0));
+                let mut reader = response.body_mut().with_config().limit(archive.size + 1).reader();
+                let mut chunk = vec![0u8; 64 << 10];
+                loop {
+                    let n = reader.read(&mut chunk).with_context(fail)?;
+                    if n == 0 {
+                        break;
+                    }
+                    bytes.extend_from_slice(&chunk[..n]);
+                    received.store(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
+                }
+                Ok(bytes)
+            })();
+            let _ = done_tx.send(());
+            result
+        })
+        .map(|bytes| self.check(archive, bytes))?
+    }
+
+    fn check(&self, archive: &Archive, bytes: Vec<u8>) -> anyhow::Result<Vec<u8>> {
         let got = sha256_hex(&bytes);
         if bytes.len() as u64 != archive.size || got != archive.sha256 {
             bail!(
@@ -324,7 +406,8 @@ fn agent() -> ureq::Agent {
     ureq::Agent::config_builder()
         .tls_config(TlsConfig::builder().root_certs(roots).build())
         .timeout_connect(Some(Duration::from_secs(30)))
-        .timeout_global(Some(Duration::from_secs(600)))
+        .timeout_recv_response(Some(download_timeout().min(Duration::from_secs(60))))
+        .timeout_global(Some(download_timeout()))
         .user_agent(concat!("holoface/", env!("CARGO_PKG_VERSION")))
         .build()
         .into()
@@ -346,7 +429,7 @@ fn install_candide(from: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
             report(home::CANDIDE.file, "present", &dest);
         } else {
             report(home::CANDIDE.file, "missing", &dest);
-            println!(
+            crate::say!(
                 "CANDIDE-3 (free for research use, not redistributed with holoface) is needed for head pose and \
                  expressions: get it from its authors, then run `{}`",
                 home::CANDIDE.setup
@@ -354,22 +437,11 @@ fn install_candide(from: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
         }
         return Ok(());
     };
-    let bytes = std::fs::read(from).with_context(|| format!("reading {}", from.display()))?;
+    let bytes = holoface_inference::files::read_bounded(from, home::CANDIDE.max_bytes, home::CANDIDE.name)?;
     holoface_client::assets::parse_face_model(&bytes, from)?;
     install(&dest, &bytes)?;
     report(home::CANDIDE.file, "installed", &dest);
     Ok(())
-}
-
-fn sha256_hex(bytes: &[u8]) -> String {
-    use std::fmt::Write;
-    ring::digest::digest(&ring::digest::SHA256, bytes)
-        .as_ref()
-        .iter()
-        .fold(String::with_capacity(64), |mut s, b| {
-            let _ = write!(s, "{b:02x}");
-            s
-        })
 }
 
 #[cfg(test)]

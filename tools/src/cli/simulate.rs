@@ -287,7 +287,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                "compensated_over_0_25": over(&init_comp, 0.25)}),
     );
     for l in &lines {
-        println!("{l}");
+        crate::say!("{l}");
     }
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;

@@ -208,13 +208,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // The annotation first: when it fails, the lines are not committed either.
     let annotated = annotated.map(Annotated::finish).transpose()?;
     out.commit()?;
-    println!("{frames} frames, {faces} faces; wrote {}", args.out.display());
+    crate::say!("{frames} frames, {faces} faces; wrote {}", args.out.display());
     if let Some(a) = annotated {
-        println!("{a}");
+        crate::say!("{a}");
     }
     if let Some(status) = link.as_ref().map(holoface_client::link::LinkWatch::status) {
         if status.welcome().is_some() {
-            println!("{remote_frames} of {faces} faces aligned by the remote DAN");
+            crate::say!("{remote_frames} of {faces} faces aligned by the remote DAN");
         } else {
             let why = match (&status, status.failure()) {
                 (holoface_client::link::LinkStatus::Failed(f), _) => format!("gave up: {f}"),

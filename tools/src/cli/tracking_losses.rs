@@ -365,7 +365,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         {
             let written = e.finish()?;
             if let Some(dir) = &args.write_sequence {
-                println!("wrote {written} frames of {} to {}", sample.name, dir.display());
+                crate::say!("wrote {written} frames of {} to {}", sample.name, dir.display());
             }
         }
         let losses: Vec<usize> = runners
@@ -373,7 +373,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .zip(&before)
             .map(|(r, b)| r.tally.losses - b.losses)
             .collect();
-        println!(
+        crate::say!(
             "{:>3} {:<28} losses: compensated {:>3}, uncompensated {:>3}",
             n + 1,
             sample.name,
@@ -395,7 +395,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "uncompensated": runners[1].tally.summary(args.fps),
         "per_face": per_face,
     });
-    println!("\n{:<26} {:>10} {:>14}", "", "compensated", "uncompensated");
+    crate::say!("\n{:<26} {:>10} {:>14}", "", "compensated", "uncompensated");
     for key in [
         "losses",
         "losses_per_minute",
@@ -406,7 +406,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "mean_nme49_pct",
     ] {
         let f = |v: &serde_json::Value| v[key].as_f64().unwrap_or(f64::NAN);
-        println!(
+        crate::say!(
             "{key:<26} {:>10.2} {:>14.2}",
             f(&report["motion_compensated"]),
             f(&report["uncompensated"])
@@ -416,6 +416,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
-    println!("wrote {}", args.out.display());
+    crate::say!("wrote {}", args.out.display());
     Ok(())
 }
