@@ -28,7 +28,8 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-.PHONY: all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
+PHONY_TEACHER := unlabeled teacher-eval teacher-labels
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -301,7 +302,35 @@ train-refiner: setup-release
 	  --cache runs/refiner/dan-answers.bin
 
 train-krfws:
-	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1
+	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
+
+## ---- teacher labels (issue 36) ------------------------------------------------------------------
+# About 45,000 unannotated real face photographs from four public repositories (../shared/docs/data.md), fetched
+# into the git-ignored .data/unlabeled/NAME (never committed), labelled by two teachers: dlib's shipped 68-point
+# predictor on the image and its mirror (models/teacher/dlib_teacher.py) and our remote pipeline started from
+# dlib's answer (`holoface teacher-labels`); the faces they agree on are written to .data/labels/NAME.hflabels
+# with a manifest (NAME.json). `teacher-eval` measures every teacher and the combination on the validation
+# split first (runs/teacher/validation.json). The collections must be in place: `make unlabeled` prints how.
+UNLABELED := utkface lfw celeba nomask
+LABELS := $(UNLABELED:%=.data/labels/%.hflabels)
+unlabeled:
+	@for c in $(UNLABELED); do test -d .data/unlabeled/$$c || { echo ".data/unlabeled/$$c missing: fetch it as ../shared/docs/data.md says (fetch github:OWNER/NAME, then git archive COMMIT FOLDER | tar -x -C .data/unlabeled/$$c)" >&2; exit 1; }; done
+
+.data/labels/%.dlib.tsv: | venv-peer unlabeled
+	$(PY) models/teacher/dlib_teacher.py --images .data/unlabeled/$* --out $@ --scale 2 --workers 2
+
+.data/labels/%.hflabels: .data/labels/%.dlib.tsv | setup-release
+	$(CARGO) build --release -p holoface-tools
+	./target/release/holoface teacher-labels --dlib $< --images .data/unlabeled/$* --collection $* --out $@
+
+teacher-eval: setup-release venv-peer
+	$(CARGO) build --release -p holoface-tools
+	$(PY) models/teacher/dlib_teacher.py --images $(HOLOFACE_DATA)/faces68/train --names models/splits/val.txt \
+	  --out runs/teacher/validation.dlib.tsv --scale 2
+	./target/release/holoface teacher-labels --gt --dlib runs/teacher/validation.dlib.tsv \
+	  --images $(HOLOFACE_DATA)/faces68/train --report runs/teacher/validation.json
+
+teacher-labels: teacher-eval $(LABELS)
 
 clean-venv:
 	rm -rf $(VENV)

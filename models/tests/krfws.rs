@@ -68,6 +68,7 @@ fn synthetic_face(rng: &mut Rng) -> TrainFace {
     TrainFace {
         image: GrayImage::from_vec(img, w, h).unwrap(),
         landmarks: lm,
+        starts: None,
     }
 }
 

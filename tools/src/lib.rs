@@ -1,5 +1,5 @@
 //! The `holoface` command-line tools and what only tools need: annotated data folders and the validation
-//! split ([`data`]), the synthetic headset renderer ([`render`]), plots ([`plot`]), annotated output
+//! split ([`data`]), teacher-label files ([`labels`]), the synthetic headset renderer ([`render`]), plots ([`plot`]), annotated output
 //! ([`annotate`]), the fault-injecting UDP relay ([`relay`]), the in-process loopback server ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]).
 //!
 //! The headset runtime they drive is `holoface-client`; the demo's in-process alignment server is
@@ -10,6 +10,7 @@ pub mod annotate;
 pub mod args;
 pub mod cli;
 pub mod data;
+pub mod labels;
 pub mod loopback;
 pub mod plot;
 pub mod relay;

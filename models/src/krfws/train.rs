@@ -68,6 +68,11 @@ pub struct TrainFace {
     pub image: GrayImage,
     /// 68 ground-truth landmarks in image pixels.
     pub landmarks: [Point2; 68],
+    /// Stage-1 start shapes of this face (and of its mirror image); `None`: [`TrainConfig::perturbations`].
+    /// Fewer starts weigh a face less: the teacher-labelled faces get fewer than the annotated ones. Faces
+    /// with `Some` follow the annotated ones in [`train`]'s list; the failure detector learns from the
+    /// annotated faces only.
+    pub starts: Option<usize>,
 }
 
 /// Training hyper-parameters.
@@ -183,6 +188,7 @@ pub fn mirror_face(face: &TrainFace) -> TrainFace {
     TrainFace {
         image: face.image.mirrored(),
         landmarks: mirror68(&face.landmarks, face.image.width()),
+        starts: face.starts,
     }
 }
 
@@ -788,7 +794,7 @@ pub fn train_cascade(
     let mut samples = Vec::with_capacity(all.len() * cfg.perturbations);
     for (fi, f) in all.iter().enumerate() {
         let base = proto.init_from_box(&gt_box(&f.landmarks));
-        for k in 0..cfg.perturbations {
+        for k in 0..f.starts.unwrap_or(cfg.perturbations).max(1) {
             let mut rng = Rng::stream(cfg.seed, &[0, fi as u64, k as u64]);
             let r = k % cfg.full_period.max(2);
             let shape = if k == 0 {
@@ -1272,7 +1278,14 @@ pub fn train(
     progress: &dyn Progress,
 ) -> Result<(Krfws, TrainReport), TrainError> {
     let (mut model, mut report) = train_cascade(faces, cfg, progress)?;
-    report.failure_samples = train_failure(&mut model, faces, cfg, progress);
+    // The failure detector regresses the true error of a fit: it learns from annotated faces only (those
+    // with `starts: None`, which lead the list), never from teacher labels' own errors.
+    let annotated = faces
+        .iter()
+        .position(|f| f.starts.is_some())
+        .unwrap_or(faces.len())
+        .max(1);
+    report.failure_samples = train_failure(&mut model, &faces[..annotated.min(faces.len())], cfg, progress);
     Ok((model, report))
 }
 

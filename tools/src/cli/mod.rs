@@ -8,6 +8,7 @@ pub mod multi_face;
 pub mod record;
 pub mod setup;
 pub mod simulate;
+pub mod teacher_labels;
 pub mod track;
 pub mod tracking_losses;
 pub mod train_krfws;
@@ -44,6 +45,9 @@ pub enum Command {
     Simulate(simulate::Args),
     /// Track faces over an image folder, an MP4 video or a recorded stream; one JSON line per frame.
     Track(track::Args),
+    /// Label unannotated face photographs with dlib's predictor and our remote pipeline, keeping the faces
+    /// they agree on (`--gt`: measure the teachers on annotated faces instead).
+    TeacherLabels(teacher_labels::Args),
     /// Tracking losses with and without headset-motion compensation, on rendered sequences of the
     /// validation faces with a real aligner.
     TrackingLosses(tracking_losses::Args),
@@ -67,6 +71,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::TeacherLabels(args) => teacher_labels::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),
         Command::TrainRefiner(args) => train_refiner::run(args),

@@ -81,6 +81,16 @@ pub struct Args {
     /// Train on the first N training faces only (smoke runs).
     #[arg(long)]
     pub limit: Option<usize>,
+    /// Teacher-label files (`holoface teacher-labels`) whose faces are trained on beside the annotated ones.
+    #[arg(long, value_delimiter = ',')]
+    pub teacher_labels: Vec<PathBuf>,
+    /// Stage-1 start shapes per teacher-labelled face and mirror image (the annotated faces get
+    /// `--perturbations`: this ratio weighs the two kinds of label).
+    #[arg(long, default_value_t = 2)]
+    pub teacher_starts: usize,
+    /// At most this many faces from each teacher-label file (evenly spaced over it).
+    #[arg(long)]
+    pub teacher_limit: Option<usize>,
 }
 
 /// A plain stderr progress bar (redrawn at most 5 times a second).
@@ -214,6 +224,9 @@ struct ConfigJson {
     scales: Vec<f32>,
     failure_fits: usize,
     failure_ridge: f64,
+    teacher_labels: Vec<PathBuf>,
+    teacher_faces: usize,
+    teacher_starts: usize,
 }
 
 fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
@@ -224,6 +237,7 @@ fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
             s.landmarks.map(|landmarks| TrainFace {
                 image: s.image,
                 landmarks,
+                starts: None,
             })
         })
         .collect())
@@ -296,6 +310,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut train_faces = to_train_faces(&root, Split::Train)?;
     if let Some(n) = args.limit {
         train_faces.truncate(n);
+    }
+    for path in &args.teacher_labels {
+        let faces = crate::labels::load_samples(path, args.teacher_limit)?;
+        eprintln!("{} teacher-labelled faces from {}", faces.len(), path.display());
+        train_faces.extend(faces.into_iter().filter_map(|s| {
+            s.landmarks.map(|landmarks| TrainFace {
+                image: s.image,
+                landmarks,
+                starts: Some(args.teacher_starts),
+            })
+        }));
     }
     let val_faces = to_train_faces(&root, Split::Validation)?;
     if train_faces.is_empty() || val_faces.is_empty() {
@@ -395,6 +420,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             scales: cfg.scales.clone(),
             failure_fits: cfg.failure_fits,
             failure_ridge: cfg.failure_ridge,
+            teacher_labels: args.teacher_labels.clone(),
+            teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
+            teacher_starts: args.teacher_starts,
         },
         training_seconds,
         train_samples: report.samples,
@@ -420,34 +448,41 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &json_path,
         (serde_json::to_string_pretty(&rep)? + "\n").as_bytes(),
     )?;
-    println!(
+    crate::say!(
         "training time        {:.1} s ({} samples/stage)",
-        training_seconds, report.samples
+        training_seconds,
+        report.samples
     );
-    println!("train NME49 by stage {:?}", report.stage_nme);
-    println!(
+    crate::say!("train NME49 by stage {:?}", report.stage_nme);
+    crate::say!(
         "ridge chosen         {:?} (held-out MSE {:?})",
-        report.ridge, report.ridge_holdout_mse
+        report.ridge,
+        report.ridge_holdout_mse
     );
-    println!(
+    crate::say!(
         "val NME49 (GT box)   {:.4} mean, {:.4} median, AUC@0.08 {:.4}, failure rate {:.2} %",
         rep.val_box_init.nme49_mean,
         rep.val_box_init.nme49_median,
         rep.val_box_init.auc_0_08,
         100.0 * rep.val_box_init.failure_rate
     );
-    println!(
+    crate::say!(
         "val NME49 (jittered) {:.4} mean, {:.4} median, AUC@0.08 {:.4}, failure rate {:.2} %",
         rep.val_jittered_box_init.nme49_mean,
         rep.val_jittered_box_init.nme49_median,
         rep.val_jittered_box_init.auc_0_08,
         100.0 * rep.val_jittered_box_init.failure_rate
     );
-    println!(
+    crate::say!(
         "failure detector     AUC {:.4} (NME > 0.08, {} perturbed val fits, {} failures), threshold {:.4} (TPR {:.3}, FPR {:.3})",
-        auc, rep.detector_val_fits, rep.detector_val_failures, thr, tpr, fpr
+        auc,
+        rep.detector_val_fits,
+        rep.detector_val_failures,
+        thr,
+        tpr,
+        fpr
     );
-    println!(
+    crate::say!(
         "model                {} ({} bytes), report {}",
         args.out.display(),
         bytes.len(),

@@ -98,6 +98,16 @@ pub struct Args {
     /// Train on the first N training faces only (smoke runs).
     #[arg(long)]
     pub limit: Option<usize>,
+    /// Teacher-label files (`holoface teacher-labels`) whose faces are trained on beside the annotated ones.
+    #[arg(long, value_delimiter = ',')]
+    pub teacher_labels: Vec<PathBuf>,
+    /// Crops per teacher-labelled face and per mirror image (the annotated faces get `--crops`: this ratio
+    /// weighs the two kinds of label).
+    #[arg(long, default_value_t = 2)]
+    pub teacher_crops: usize,
+    /// At most this many faces from each teacher-label file (evenly spaced over it).
+    #[arg(long)]
+    pub teacher_limit: Option<usize>,
     /// Skip training: validate the model already at `--out` with 1 and with `--starts` starts.
     #[arg(long)]
     pub evaluate: bool,
@@ -323,6 +333,42 @@ fn cache_key(dan_model: &Path, args: &Args, faces: usize) -> anyhow::Result<Vec<
     Ok(key)
 }
 
+/// What the teacher-labelled crops' cache is valid for: which labels, how many faces, how many crops each.
+fn teacher_cache_key(args: &Args, teacher_faces: usize) -> anyhow::Result<Vec<u8>> {
+    let mut labels = crc32fast::Hasher::new();
+    for path in &args.teacher_labels {
+        labels.update(&std::fs::read(path).with_context(|| format!("reading {}", path.display()))?);
+    }
+    let mut key = Vec::new();
+    for v in [
+        u64::from(labels.finalize()),
+        teacher_faces as u64,
+        args.teacher_crops as u64,
+    ] {
+        key.extend_from_slice(&v.to_le_bytes());
+    }
+    Ok(key)
+}
+
+/// DAN's answers from the cache at `path` when its key matches, else from `make` (then cached).
+fn cached_answers(
+    path: &Path,
+    key: &[u8],
+    size: usize,
+    runner: &mut DanRunner,
+    make: impl FnOnce(&mut DanRunner) -> anyhow::Result<()>,
+) -> anyhow::Result<Vec<Answered>> {
+    if let Some(a) = read_cache(path, key, size)? {
+        tracing::info!(crops = a.len(), cache = %path.display(), "DAN's answers from the cache");
+        return Ok(a);
+    }
+    runner.answered.clear();
+    make(runner)?;
+    let a = std::mem::take(&mut runner.answered);
+    write_cache(path, key, size, &a)?;
+    Ok(a)
+}
+
 fn write_cache(path: &Path, key: &[u8], size: usize, data: &[Answered]) -> anyhow::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
@@ -377,15 +423,19 @@ fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec
     Ok(Some(out))
 }
 
-/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each).
+/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each); the
+/// random streams are numbered from `first` (the teacher-labelled faces follow the annotated ones).
 fn answer_training_crops(
     faces: &[Sample],
+    crops: usize,
+    first: usize,
     args: &Args,
     runner: &mut DanRunner,
     detector: &mut holoface_client::detect::BlazeFace,
 ) -> anyhow::Result<()> {
     let mean = dan_mean_shape();
     for (fi, face) in faces.iter().enumerate() {
+        let fi = first + fi;
         let gt0 = face.landmarks.context("annotation missing")?;
         let mirrored = face.image.mirrored();
         for (side, (img, gt)) in [
@@ -403,7 +453,7 @@ fn answer_training_crops(
                 out
             };
             let placed = detected.unwrap_or(boxed);
-            for k in 0..args.crops {
+            for k in 0..crops {
                 let mut rng = Rng::stream(args.seed, &[fi as u64, side as u64, k as u64]);
                 // Starts cycle through what a headset sends: the detector's placement, a tracker's
                 // previous landmarks (twice as often: most frames are tracked), a moved detection, a
@@ -427,10 +477,10 @@ fn answer_training_crops(
                 runner.push(job)?;
             }
         }
-        if (fi + 1) % 200 == 0 {
+        if (fi + 1).is_multiple_of(200) {
             tracing::info!(
                 faces = fi + 1,
-                of = faces.len(),
+                of = first + faces.len(),
                 crops = runner.answered.len(),
                 "DAN answered"
             );
@@ -469,6 +519,9 @@ struct Report {
     dan_model: String,
     data: String,
     training_faces: usize,
+    teacher_labels: Vec<PathBuf>,
+    teacher_faces: usize,
+    teacher_crops_per_face: usize,
     training_crops: usize,
     rejected_crops: usize,
     crop_size: usize,
@@ -603,6 +656,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         train_faces.truncate(n);
     }
     let val_faces = load_folder(&data, Split::Validation, true)?;
+    let mut teacher_faces = Vec::new();
+    for path in &args.teacher_labels {
+        let faces = crate::labels::load_samples(path, args.teacher_limit)?;
+        tracing::info!(faces = faces.len(), labels = %path.display(), "teacher-labelled faces");
+        teacher_faces.extend(faces);
+    }
     let engine = OnnxEngine::load(&OnnxOptions {
         model: args.runtime.dan_model.clone(),
         ort_dylib: args.runtime.ort_dylib(),
@@ -633,7 +692,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             refiner.starts = starts;
             refiner.mirror = mirror;
             let v = validate(&refiner, &val)?;
-            println!("{}", serde_json::to_string(&v)?);
+            crate::say!("{}", serde_json::to_string(&v)?);
         }
         return Ok(());
     }
@@ -645,25 +704,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--local-radius takes two positive radii: FIRST,LAST");
     }
     let size = 112 * args.crop_scale;
-    let key = cache_key(&args.runtime.dan_model, &args, train_faces.len())?;
     let t0 = Instant::now();
-    let answered = match read_cache(&args.cache, &key, size)? {
-        Some(a) => {
-            tracing::info!(crops = a.len(), cache = %args.cache.display(), "DAN's answers from the cache");
-            a
-        }
-        None => {
+    // The annotated faces' crops and the teacher-labelled ones are cached apart, so that the ablation (the
+    // same recipe without teacher labels) and retrains reuse both.
+    let key = cache_key(&args.runtime.dan_model, &args, train_faces.len())?;
+    let mut answered = cached_answers(&args.cache, &key, size, &mut runner, |runner| {
+        tracing::info!(
+            faces = train_faces.len(),
+            crops = args.crops,
+            "running DAN on the training crops"
+        );
+        answer_training_crops(&train_faces, args.crops, 0, &args, runner, &mut detector)
+    })?;
+    if !teacher_faces.is_empty() {
+        let mut key = teacher_cache_key(&args, teacher_faces.len())?;
+        key.extend_from_slice(&cache_key(&args.runtime.dan_model, &args, train_faces.len())?);
+        let path = args.cache.with_extension("teacher.bin");
+        answered.extend(cached_answers(&path, &key, size, &mut runner, |runner| {
             tracing::info!(
-                faces = train_faces.len(),
-                crops = args.crops,
-                "running DAN on the training crops"
+                faces = teacher_faces.len(),
+                crops = args.teacher_crops,
+                "running DAN on the teacher-labelled crops"
             );
-            answer_training_crops(&train_faces, &args, &mut runner, &mut detector)?;
-            let a = std::mem::take(&mut runner.answered);
-            write_cache(&args.cache, &key, size, &a)?;
-            a
-        }
-    };
+            let first = train_faces.len();
+            answer_training_crops(
+                &teacher_faces,
+                args.teacher_crops,
+                first,
+                &args,
+                runner,
+                &mut detector,
+            )
+        })?);
+    }
     let dan_seconds = t0.elapsed().as_secs_f64();
     let samples: Vec<RefineSample<'_>> = answered
         .iter()
@@ -726,7 +799,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut refiner = refiner;
     let mut val = validate(&refiner, &val_set)?;
     if args.starts > 1 || args.mirror {
-        println!(
+        crate::say!(
             "validation, 1 start, no mirror: NME68 {:.2} % NME49 {:.2} % ({:.0} us per crop)",
             100.0 * val.refined_nme68,
             100.0 * val.refined_nme49,
@@ -736,7 +809,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         refiner.mirror = args.mirror;
         val = validate(&refiner, &val_set)?;
     }
-    println!(
+    crate::say!(
         "validation (detector init, {} faces, {} detected): NME68 DAN {:.2} % -> refined {:.2} %; NME49 {:.2} % -> {:.2} %; failures68 {:.2} % -> {:.2} %; {:.0} us per crop",
         val.faces,
         val.detected,
@@ -757,6 +830,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dan_model: dan_name,
         data: data.display().to_string(),
         training_faces: train_faces.len(),
+        teacher_labels: args.teacher_labels.clone(),
+        teacher_faces: teacher_faces.len(),
+        teacher_crops_per_face: 2 * args.teacher_crops,
         training_crops: samples.len(),
         rejected_crops: runner.rejected,
         crop_size: size,
@@ -779,7 +855,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     holoface_sources::output::write_atomic(&args.out, &bytes)?;
     let json = args.out.with_extension("json");
     holoface_sources::output::write_atomic(&json, serde_json::to_string_pretty(&report)? + "\n")?;
-    println!(
+    crate::say!(
         "wrote {} ({} bytes) and {}",
         args.out.display(),
         bytes.len(),

@@ -1,0 +1,248 @@
+//! Teacher-label files (`.hflabels`): 68 landmarks per unannotated face photograph, made by `holoface
+//! teacher-labels` and read by the trainers (`train-refiner --teacher-labels`, `train-krfws
+//! --teacher-labels`).
+//!
+//! Layout (little-endian): magic `HFLABEL1`, `u32` header length + UTF-8 JSON header ([`LabelHeader`]: the
+//! collection, the folder its images are in, the teachers and thresholds), `u32` record count, then per record
+//! `u16` name length + UTF-8 name (the image's path relative to the folder), 136 `f32` (x, y of the 68 points
+//! in the image's pixels) and one `f32` (the teachers' disagreement, NME68); last the CRC-32 of everything
+//! before it. Every length is bounded and checked before anything is allocated for it.
+//!
+//! These files hold labels of other people's photographs: they live in the git-ignored `.data/` folder and
+//! are never committed (`../shared/docs/data.md`).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail, ensure};
+use holoface_models::geometry::Point2;
+use serde::{Deserialize, Serialize};
+
+use crate::data::Sample;
+
+const MAGIC: &[u8; 8] = b"HFLABEL1";
+/// Largest label file read (a 45,000-face collection is about 25 MB).
+pub const MAX_FILE_BYTES: u64 = 512 << 20;
+const MAX_HEADER: usize = 64 << 10;
+const MAX_NAME: usize = 4096;
+const RECORD_FLOATS: usize = 137;
+
+/// What a label file says about itself.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LabelHeader {
+    /// Collection name (`lfw`, `utkface`, ...).
+    pub collection: String,
+    /// The folder the record names are relative to.
+    pub images: PathBuf,
+    /// The teachers and how they were combined (free text for the model cards).
+    pub teachers: String,
+    /// Free-form settings (thresholds, weights) as JSON.
+    pub settings: serde_json::Value,
+}
+
+/// One labelled face.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelRecord {
+    /// Image path relative to [`LabelHeader::images`].
+    pub name: String,
+    /// The kept label, in the image's pixels.
+    pub landmarks: [Point2; 68],
+    /// How much the teachers disagreed (NME68, outer-eye-corner normalised).
+    pub disagreement: f32,
+}
+
+/// Serialises a label file.
+pub fn to_bytes(header: &LabelHeader, records: &[LabelRecord]) -> anyhow::Result<Vec<u8>> {
+    let head = serde_json::to_vec(header)?;
+    ensure!(head.len() <= MAX_HEADER, "label header too large");
+    let mut out = Vec::with_capacity(16 + head.len() + records.len() * (RECORD_FLOATS * 4 + 40));
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(head.len() as u32).to_le_bytes());
+    out.extend_from_slice(&head);
+    out.extend_from_slice(&u32::try_from(records.len())?.to_le_bytes());
+    for r in records {
+        ensure!(r.name.len() <= MAX_NAME, "image name too long: {}", r.name);
+        out.extend_from_slice(&(r.name.len() as u16).to_le_bytes());
+        out.extend_from_slice(r.name.as_bytes());
+        for p in &r.landmarks {
+            out.extend_from_slice(&p.x.to_le_bytes());
+            out.extend_from_slice(&p.y.to_le_bytes());
+        }
+        out.extend_from_slice(&r.disagreement.to_le_bytes());
+    }
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    Ok(out)
+}
+
+/// A bounds-checked reader over a byte slice.
+struct Cursor<'a>(&'a [u8]);
+
+impl<'a> Cursor<'a> {
+    fn take(&mut self, n: usize) -> anyhow::Result<&'a [u8]> {
+        ensure!(self.0.len() >= n, "truncated");
+        let (a, b) = self.0.split_at(n);
+        self.0 = b;
+        Ok(a)
+    }
+    fn u32(&mut self) -> anyhow::Result<u32> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into()?))
+    }
+    fn u16(&mut self) -> anyhow::Result<u16> {
+        Ok(u16::from_le_bytes(self.take(2)?.try_into()?))
+    }
+    fn f32(&mut self) -> anyhow::Result<f32> {
+        Ok(f32::from_le_bytes(self.take(4)?.try_into()?))
+    }
+}
+
+/// Parses a label file, checking its checksum, every length and every number.
+pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<(LabelHeader, Vec<LabelRecord>)> {
+    ensure!(
+        bytes.len() >= 20 && &bytes[..8] == MAGIC,
+        "not a holoface label file (magic HFLABEL1)"
+    );
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    ensure!(
+        crc32fast::hash(body) == u32::from_le_bytes(crc.try_into()?),
+        "checksum mismatch: the file is damaged; make it again with `make teacher-labels`"
+    );
+    let mut c = Cursor(&body[8..]);
+    let head_len = c.u32()? as usize;
+    ensure!(head_len <= MAX_HEADER, "header of {head_len} bytes");
+    let header: LabelHeader = serde_json::from_slice(c.take(head_len)?).context("label header")?;
+    let count = c.u32()? as usize;
+    // Each record takes at least its points: a count the file cannot hold is refused before allocating.
+    ensure!(
+        count <= c.0.len() / (RECORD_FLOATS * 4 + 2),
+        "record count {count} exceeds the file"
+    );
+    let mut records = Vec::with_capacity(count);
+    for i in 0..count {
+        let n = c.u16()? as usize;
+        ensure!(n <= MAX_NAME, "record {i}: name of {n} bytes");
+        let name = std::str::from_utf8(c.take(n)?)
+            .with_context(|| format!("record {i}: name is not UTF-8"))?
+            .to_owned();
+        ensure!(
+            !name.is_empty() && !Path::new(&name).is_absolute() && !name.split('/').any(|p| p == ".."),
+            "record {i}: image name {name:?} is not a path inside the collection"
+        );
+        let mut landmarks = [Point2::default(); 68];
+        for p in &mut landmarks {
+            *p = Point2::new(c.f32()?, c.f32()?);
+            ensure!(
+                p.x.is_finite() && p.y.is_finite(),
+                "record {i} ({name}): a landmark is not finite"
+            );
+        }
+        let disagreement = c.f32()?;
+        records.push(LabelRecord {
+            name,
+            landmarks,
+            disagreement,
+        });
+    }
+    ensure!(c.0.is_empty(), "{} bytes after the last record", c.0.len());
+    Ok((header, records))
+}
+
+/// Reads a label file (bounded by [`MAX_FILE_BYTES`]).
+pub fn read(path: &Path) -> anyhow::Result<(LabelHeader, Vec<LabelRecord>)> {
+    let len = std::fs::metadata(path)
+        .with_context(|| {
+            format!(
+                "reading teacher labels {} (make teacher-labels writes them)",
+                path.display()
+            )
+        })?
+        .len();
+    if len > MAX_FILE_BYTES {
+        bail!(
+            "{} is {len} bytes, more than a label file can be ({MAX_FILE_BYTES})",
+            path.display()
+        );
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    from_bytes(&bytes).with_context(|| format!("parsing teacher labels {}", path.display()))
+}
+
+/// The labelled faces of a label file as training samples (images decoded; an unreadable image is an error
+/// naming it). At most `limit` faces, taken evenly over the file when it holds more.
+pub fn load_samples(path: &Path, limit: Option<usize>) -> anyhow::Result<Vec<Sample>> {
+    let (header, records) = read(path)?;
+    let take = limit.unwrap_or(records.len()).min(records.len());
+    let mut out = Vec::with_capacity(take);
+    for k in 0..take {
+        // Evenly spaced, so a limit does not keep only the first folders of a collection.
+        let r = &records[k * records.len() / take.max(1)];
+        let image = holoface_sources::images::read_gray(&header.images.join(&r.name))
+            .with_context(|| format!("teacher labels {}: image {}", path.display(), r.name))?;
+        out.push(Sample {
+            name: format!("{}/{}", header.collection, r.name),
+            image,
+            landmarks: Some(r.landmarks),
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> (LabelHeader, Vec<LabelRecord>) {
+        let header = LabelHeader {
+            collection: "lfw".into(),
+            images: PathBuf::from("/data/lfw"),
+            teachers: "dlib + remote".into(),
+            settings: serde_json::json!({"max_disagreement": 0.05}),
+        };
+        let records = (0..3)
+            .map(|i| LabelRecord {
+                name: format!("a/img{i}.jpg"),
+                landmarks: std::array::from_fn(|k| Point2::new(k as f32 + i as f32, 2.0 * k as f32)),
+                disagreement: 0.01 * i as f32,
+            })
+            .collect();
+        (header, records)
+    }
+
+    #[test]
+    fn round_trips() {
+        let (h, r) = sample();
+        let bytes = to_bytes(&h, &r).unwrap();
+        assert_eq!(from_bytes(&bytes).unwrap(), (h, r));
+    }
+
+    #[test]
+    fn damage_is_refused_with_a_reason() {
+        let (h, r) = sample();
+        let bytes = to_bytes(&h, &r).unwrap();
+        // Any flipped byte: the checksum catches it.
+        for at in [0, 9, 40, bytes.len() / 2, bytes.len() - 5] {
+            let mut bad = bytes.clone();
+            bad[at] ^= 0x20;
+            assert!(from_bytes(&bad).is_err(), "byte {at}");
+        }
+        // Truncated anywhere.
+        for n in [0, 10, bytes.len() - 1] {
+            assert!(from_bytes(&bytes[..n]).is_err());
+        }
+        // A huge count with a valid checksum: refused before allocating.
+        let mut body = bytes[..bytes.len() - 4].to_vec();
+        let count_at = 12 + u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
+        body[count_at..count_at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let crc = crc32fast::hash(&body);
+        body.extend_from_slice(&crc.to_le_bytes());
+        let err = from_bytes(&body).unwrap_err().to_string();
+        assert!(err.contains("exceeds the file"), "{err}");
+    }
+
+    #[test]
+    fn names_outside_the_collection_are_refused() {
+        let (h, mut r) = sample();
+        r[1].name = "../../etc/passwd".into();
+        let err = from_bytes(&to_bytes(&h, &r).unwrap()).unwrap_err().to_string();
+        assert!(err.contains("not a path inside"), "{err}");
+    }
+}
