@@ -28,7 +28,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-PHONY_TEACHER := unlabeled teacher-eval teacher-labels
+PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher
 .PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
@@ -158,7 +158,7 @@ TEST_SEL := --workspace --features holoface-python/extension-module
 test-build:
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 
-unit: setup venv golden ort-gpu dan-fp16 group-photo test-build
+unit: setup venv golden ort-gpu dan-fp16 group-photo ffmpeg test-build
 	$(CARGO) nextest run --locked $(TEST_SEL) --profile ci
 	$(CARGO) test --locked $(TEST_SEL) --doc -q
 
@@ -203,6 +203,17 @@ mono:
 	  export DEBIAN_FRONTEND=noninteractive; \
 	  $(SUDO) apt-get install -y -qq --no-install-recommends $$pkgs >/dev/null || \
 	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $$pkgs >/dev/null; }; fi
+
+# Debian's ffmpeg (with libx264, libx265, libvpx): the video tests make their own clips with it (baseline, main and
+# high profile H.264 with B-frames, HEVC, VP9) and compare our decoder with ffmpeg's decode. Pinned; installed only
+# when ffmpeg is missing.
+FFMPEG_VERSION := 7:5.1.9-0+deb12u1
+ffmpeg:
+	@if command -v ffmpeg >/dev/null; then echo "ffmpeg: $$(ffmpeg -version | head -1)"; else \
+	  echo "ffmpeg missing: installing Debian's ffmpeg $(FFMPEG_VERSION)"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends ffmpeg=$(FFMPEG_VERSION) >/dev/null || \
+	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends ffmpeg=$(FFMPEG_VERSION) >/dev/null; }; fi
 
 # The Python package (python/): build the abi3 wheel with maturin, install it into the venv, run pytest (which
 # compares it with the Rust CLI on the bundled sample). The dev profile, with the ci-unify feature, reuses the

@@ -218,6 +218,21 @@ fn is_mp4(path: &Path) -> bool {
     }
 }
 
+/// Whether `path` is a WebM/Matroska file: by extension, else by its EBML magic.
+fn is_matroska(path: &Path) -> bool {
+    let by_ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["webm", "mkv"].contains(&e.to_ascii_lowercase().as_str()));
+    by_ext || {
+        use std::io::Read;
+        let mut head = [0u8; 4];
+        File::open(path)
+            .and_then(|mut f| f.read_exact(&mut head))
+            .is_ok_and(|()| head == [0x1a, 0x45, 0xdf, 0xa3])
+    }
+}
+
 /// Whether `path` is a PNG or JPEG image, by extension.
 fn is_image(path: &Path) -> bool {
     path.extension()
@@ -253,6 +268,13 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
     } else if path.is_file() {
         if is_image(path) {
             Box::new(ImageSequence::single(path, fps)?)
+        } else if is_matroska(path) {
+            bail!(
+                "{} is a WebM/Matroska video (VP8, VP9 or AV1): holoface decodes H.264 MP4 and y4m itself; pipe \
+                 other videos through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
+                path.display(),
+                path.display()
+            )
         } else if is_mp4(path) {
             Box::new(crate::video::Mp4Source::open(path, None)?)
         } else if is_y4m(path) {

@@ -5,9 +5,12 @@
 //! is stored in "limited range" (16–235) by almost every encoder; it is expanded to 0–255 so that video
 //! frames have the contrast the aligners were trained on (JPEG/PNG grey levels).
 //!
-//! OpenH264 decodes the constrained-baseline profile (what phones and headsets record for live streams;
-//! frames come out in decode order = display order). Streams with B-frames (main/high profile) are
-//! reported as decode errors by OpenH264 rather than silently mis-ordered.
+//! OpenH264 decodes H.264 of the constrained-baseline, main and high profiles, B-frames included: pictures
+//! are fed in decode order and come out in display order from its reorder buffer, which is emptied only at
+//! the end of the track (the `openh264` crate's default flushes a picture after every packet that returned
+//! none, which breaks the reorder buffer of a stream with B-frames: "Native:16384", openh264-rs issue 50).
+//! Presentation times are handed out smallest first, matching the display order. Other codecs (HEVC, VP8/VP9,
+//! AV1) are refused with the codec's name and the ffmpeg pipe that reads them (`-f yuv4mpegpipe`).
 //!
 //! The `mp4` crate can panic or allocate a sample's claimed size on a malformed file. The source checks
 //! every sample size against the file before reading, and parses inside `catch_unwind` so that a corrupt
@@ -59,8 +62,9 @@ pub struct Mp4Source {
     parameter_sets: Vec<u8>,
     decoder: openh264::decoder::Decoder,
     annexb: Vec<u8>,
-    /// Presentation times (µs) of samples fed to the decoder whose picture has not come out yet.
-    pending_times: VecDeque<u64>,
+    /// Presentation times (µs) of samples fed to the decoder whose picture has not come out yet; pictures
+    /// come out in display order, so each takes the smallest.
+    pending_times: std::collections::BinaryHeap<std::cmp::Reverse<u64>>,
     /// Pictures decoded but not yet returned.
     ready: VecDeque<GrayImage>,
     flushed: bool,
@@ -80,6 +84,24 @@ impl std::fmt::Debug for Mp4Source {
     }
 }
 
+/// What codec a track's sample description names, in words.
+fn codec_name(track: &mp4::Mp4Track) -> &'static str {
+    let stsd = &track.trak.mdia.minf.stbl.stsd;
+    if stsd.avc1.is_some() {
+        "H.264"
+    } else if stsd.hev1.is_some() {
+        "HEVC (H.265)"
+    } else if stsd.vp09.is_some() {
+        "VP9"
+    } else if stsd.mp4a.is_some() {
+        "AAC audio"
+    } else if stsd.tx3g.is_some() {
+        "timed text"
+    } else {
+        "an unsupported codec"
+    }
+}
+
 impl Mp4Source {
     /// Opens `path` and finds its H.264 track; `intrinsics` default to a 60° horizontal field of view.
     pub fn open(path: &Path, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
@@ -95,7 +117,16 @@ impl Mp4Source {
             .iter()
             .filter(|(_, t)| matches!(t.media_type(), Ok(mp4::MediaType::H264)))
             .min_by_key(|(id, _)| **id)
-            .ok_or_else(|| anyhow!("{} has no H.264 video track", path.display()))?;
+            .ok_or_else(|| {
+                let found: Vec<&str> = reader.tracks().values().map(codec_name).collect();
+                anyhow!(
+                    "{} has no H.264 video track (its tracks: {}); holoface decodes H.264 itself, other codecs \
+                     through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
+                    path.display(),
+                    if found.is_empty() { "none".to_owned() } else { found.join(", ") },
+                    path.display()
+                )
+            })?;
         let track_id = *track_id;
         let avc = track
             .trak
@@ -135,8 +166,12 @@ impl Mp4Source {
         if timescale == 0 {
             bail!("{}: the video track has a zero timescale", path.display());
         }
+        // No flush after a packet that returned no picture: the reorder buffer of B-frames must fill.
+        let config =
+            openh264::decoder::DecoderConfig::new().flush_after_decode(openh264::decoder::Flush::NoFlush);
         let decoder =
-            openh264::decoder::Decoder::new().map_err(|e| anyhow!("starting the H.264 decoder: {e}"))?;
+            openh264::decoder::Decoder::with_api_config(openh264::OpenH264API::from_source(), config)
+                .map_err(|e| anyhow!("starting the H.264 decoder: {e}"))?;
         Ok(Self {
             path: path.to_path_buf(),
             reader,
@@ -148,7 +183,7 @@ impl Mp4Source {
             parameter_sets,
             decoder,
             annexb: Vec::new(),
-            pending_times: VecDeque::new(),
+            pending_times: std::collections::BinaryHeap::new(),
             ready: VecDeque::new(),
             flushed: false,
             index: 0,
@@ -218,7 +253,7 @@ impl Mp4Source {
                 .start_time
                 .saturating_add_signed(i64::from(sample.rendering_offset));
             self.pending_times
-                .push_back(pts.saturating_mul(1_000_000) / self.timescale);
+                .push(std::cmp::Reverse(pts.saturating_mul(1_000_000) / self.timescale));
             self.annexb_from(&sample.bytes, sample.is_sync)
                 .with_context(|| format!("frame {id} of {}", self.path.display()))?;
             let picture = self
@@ -251,8 +286,8 @@ impl Mp4Source {
         };
         let timestamp_us = self
             .pending_times
-            .pop_front()
-            .unwrap_or_else(|| self.index as u64 * 33_333);
+            .pop()
+            .map_or_else(|| self.index as u64 * 33_333, |std::cmp::Reverse(t)| t);
         let index = self.index;
         self.index += 1;
         let intrinsics = self

@@ -178,3 +178,161 @@ fn tmp(name: &str) -> std::path::PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+/// Debian's ffmpeg (the test set-up installs it: `make ffmpeg`).
+fn ffmpeg(args: &[&str]) {
+    let out = std::process::Command::new("ffmpeg")
+        .args(["-hide_banner", "-loglevel", "error", "-y"])
+        .args(args)
+        .output()
+        .expect("ffmpeg is needed to make test clips (make ffmpeg installs Debian's)");
+    assert!(
+        out.status.success(),
+        "ffmpeg {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Camera MP4s as encoders write them (x264's defaults use B-frames; most cameras and screen recorders
+/// too): every frame decodes, in display order, with increasing times, and matches ffmpeg's own decode (luma,
+/// expanded from limited to full range as every frame of ours). Without B-frames the match is exact; with
+/// them OpenH264 is not bit-exact in a few B-frame blocks (measured: at most 199 of 19,200 pixels of a frame,
+/// by at most 7 grey levels, with x264's temporal direct mode; BENCHMARKS.md "Video input"), so each frame
+/// must be ffmpeg's frame of the same index and differ in under 2 % of its pixels by at most 8 levels.
+#[test]
+fn h264_of_every_common_profile_with_b_frames_decodes_every_frame_in_order() {
+    let d = tmp("profiles");
+    let (w, h, n) = (160usize, 120usize, 60usize);
+    let to_full = |v: u8| ((f64::from(v) - 16.0) * 255.0 / 219.0).round().clamp(0.0, 255.0) as u8;
+    for (name, x264, exact) in [
+        ("baseline", vec!["-profile:v", "baseline"], true),
+        ("high-no-b-frames", vec!["-profile:v", "high", "-bf", "0"], true),
+        ("main-b-frames", vec!["-profile:v", "main", "-bf", "3"], false),
+        (
+            "high-b-frames",
+            vec!["-profile:v", "high", "-bf", "3", "-b_strategy", "2"],
+            false,
+        ),
+        ("x264-defaults", vec![], false),
+        (
+            "high-temporal-direct",
+            vec!["-profile:v", "high", "-x264-params", "direct=temporal"],
+            false,
+        ),
+    ] {
+        let clip = d.join(format!("{name}.mp4"));
+        let clip_s = clip.to_str().unwrap();
+        let mut args = vec![
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc2=size=160x120:rate=25",
+            "-frames:v",
+            "60",
+        ];
+        args.extend(["-pix_fmt", "yuv420p", "-c:v", "libx264"]);
+        args.extend(x264.iter().copied());
+        args.push(clip_s);
+        ffmpeg(&args);
+        // ffmpeg's decode: the raw Y planes, expanded to full range.
+        let raw = d.join(format!("{name}.yuv"));
+        ffmpeg(&[
+            "-i",
+            clip_s,
+            "-f",
+            "rawvideo",
+            "-pix_fmt",
+            "yuv420p",
+            raw.to_str().unwrap(),
+        ]);
+        let yuv = std::fs::read(&raw).unwrap();
+        let frame_bytes = w * h * 3 / 2;
+        assert_eq!(yuv.len(), n * frame_bytes, "{name}: ffmpeg's frame count");
+        let theirs: Vec<Vec<u8>> = (0..n)
+            .map(|i| {
+                yuv[i * frame_bytes..i * frame_bytes + w * h]
+                    .iter()
+                    .map(|&v| to_full(v))
+                    .collect()
+            })
+            .collect();
+        let mut src = open_source(&clip, 25.0, None).unwrap();
+        let frames = read_all(src.as_mut()).unwrap_or_else(|e| panic!("{name}: {e:#}"));
+        assert_eq!(frames.len(), n, "{name}: every frame");
+        let differing = |a: &[u8], b: &[u8]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+        for (i, f) in frames.iter().enumerate() {
+            assert_eq!((f.image.width(), f.image.height()), (w, h), "{name} frame {i}");
+            let ours = f.image.view().data();
+            if exact {
+                assert!(
+                    ours == theirs[i].as_slice(),
+                    "{name}: frame {i} differs from ffmpeg's"
+                );
+            } else {
+                let closest = (0..n).min_by_key(|&j| differing(ours, &theirs[j])).unwrap();
+                assert_eq!(
+                    closest, i,
+                    "{name}: frame {i} is ffmpeg's frame {closest} (out of order)"
+                );
+                let diff = differing(ours, &theirs[i]);
+                let max = ours
+                    .iter()
+                    .zip(&theirs[i])
+                    .map(|(a, b)| a.abs_diff(*b))
+                    .max()
+                    .unwrap();
+                assert!(
+                    diff * 50 < w * h && max <= 8,
+                    "{name}: frame {i}: {diff} pixels differ, by up to {max}"
+                );
+            }
+            if i > 0 {
+                assert!(
+                    f.timestamp_us > frames[i - 1].timestamp_us,
+                    "{name}: frame {i} out of order"
+                );
+            }
+        }
+    }
+    // A codec OpenH264 cannot read is refused by name, with the ffmpeg pipe that reads it.
+    let webm = d.join("clip.webm");
+    ffmpeg(&[
+        "-f",
+        "lavfi",
+        "-i",
+        "testsrc2=size=160x120:rate=25",
+        "-frames:v",
+        "5",
+        "-c:v",
+        "libvpx-vp9",
+        webm.to_str().unwrap(),
+    ]);
+    let err = open_source(&webm, 25.0, None)
+        .err()
+        .expect("a WebM is refused")
+        .to_string();
+    assert!(err.contains("WebM") && err.contains("yuv4mpegpipe"), "{err}");
+    let hevc = d.join("hevc.mp4");
+    ffmpeg(&[
+        "-f",
+        "lavfi",
+        "-i",
+        "testsrc2=size=160x120:rate=25",
+        "-frames:v",
+        "5",
+        "-c:v",
+        "libx265",
+        "-tag:v",
+        "hev1",
+        hevc.to_str().unwrap(),
+    ]);
+    let err = open_source(&hevc, 25.0, None)
+        .err()
+        .expect("HEVC is refused")
+        .to_string();
+    assert!(
+        err.contains("no H.264 video track") && err.contains("yuv4mpegpipe"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}
