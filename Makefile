@@ -300,6 +300,20 @@ train-dan-spread: venv-train
 	  --phase-start 7000 --steps 8100 --lr 1e-4 --loss nme --neg-frac 0.3 --hard-neg 0.5 --spread 0.6 \
 	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-spread0.6.pt
 
+# The teacher-label student (issue 36): from 0.3.0 (step 7,000), cosine 1e-4 over steps 7,000-9,000, half the
+# samples from the teacher-labelled faces (make teacher-labels). Only on a CPU with native bf16 (`lscpu | grep
+# avx512_bf16`) or a GPU. It resumes from runs/dan-teacher/last.pt, else from the committed slim checkpoint of this
+# phase (copy runs/dan-teacher/slim.pt there before a session ends); shipped only if better on validation.
+space := $() $()
+comma := ,
+TEACHER_LABEL_FILES = $(subst $(space),$(comma),$(strip $(LABELS)))
+train-dan-teacher: venv-train
+	@grep -qE 'avx512_bf16|amx_bf16' /proc/cpuinfo || { echo "train-dan-teacher needs a CPU with native bf16" >&2; exit 1; }
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-teacher --width 0.5 \
+	  --threads $(DAN_THREADS) --eval-every 100 --phase-start 7000 --steps 9000 --lr 1e-4 --loss nme \
+	  --neg-frac 0.3 --hard-neg 0.5 --teacher-labels $(TEACHER_LABEL_FILES) --teacher-frac 0.5 \
+	  --init-from models/dan/checkpoints/dan-w0.5-last.pt --resume-from models/dan/checkpoints/dan-w0.5-teacher.pt
+
 DAN_RUN ?= runs/dan-w0.5
 export-dan: venv-train
 	$(PY) models/dan/export_onnx.py --ckpt $(DAN_RUN)/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)

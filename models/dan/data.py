@@ -34,6 +34,42 @@ def load_faces(root: str, names: list[str]) -> list[Face]:
     return faces
 
 
+def load_teacher_faces(path: str, limit: int = 0) -> list[Face]:
+    """The faces of a teacher-label file (`holoface teacher-labels`, format in tools/src/labels.rs): magic
+    `HFLABEL1`, u32 header length + JSON header (its `images` folder), u32 count, per record u16 name length +
+    name + 136 f32 + 1 f32, CRC-32 at the end. At most `limit` faces (0 = all), evenly spaced over the file."""
+    import json
+    import struct
+    import zlib
+
+    with open(path, "rb") as f:
+        data = f.read()
+    if data[:8] != b"HFLABEL1" or len(data) < 20:
+        raise SystemExit(f"{path}: not a holoface label file")
+    if zlib.crc32(data[:-4]) != struct.unpack("<I", data[-4:])[0]:
+        raise SystemExit(f"{path}: checksum mismatch (damaged; make teacher-labels again)")
+    (hlen,) = struct.unpack_from("<I", data, 8)
+    header = json.loads(data[12 : 12 + hlen])
+    at = 12 + hlen
+    (count,) = struct.unpack_from("<I", data, at)
+    at += 4
+    records = []
+    for _ in range(count):
+        (n,) = struct.unpack_from("<H", data, at)
+        name = data[at + 2 : at + 2 + n].decode()
+        at += 2 + n
+        pts = np.frombuffer(data, np.float32, 136, at).reshape(68, 2).astype(np.float64)
+        at += 137 * 4
+        records.append((name, pts))
+    take = min(limit, len(records)) if limit else len(records)
+    faces = []
+    for k in range(take):
+        name, pts = records[k * len(records) // max(take, 1)]
+        img = np.asarray(Image.open(os.path.join(header["images"], name)).convert("L"), dtype=np.uint8)
+        faces.append(Face(f"{header['collection']}/{name}", img, pts))
+    return faces
+
+
 def gt_box(pts: np.ndarray) -> tuple[float, float, float, float]:
     lo = pts.min(axis=0)
     hi = pts.max(axis=0)

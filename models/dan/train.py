@@ -58,12 +58,14 @@ def split(root: str) -> tuple[list[str], list[str]]:
     return [n for n in names if n not in val], sorted(val)
 
 
-def batch(faces, canon, rng, n, neg_frac, occlusion=0.0, hard=0.0, spread=1.0):
+def batch(faces, canon, rng, n, neg_frac, occlusion=0.0, hard=0.0, spread=1.0, teacher=None, teacher_frac=0.0):
     crops = np.empty((n, 1, g.CROP, g.CROP), np.uint8)
     lms = np.zeros((n, 68, 2), np.float32)
     lab = np.zeros(n, np.int64)
     for i in range(n):
-        f = faces[rng.integers(len(faces))]
+        # A share of the samples comes from the teacher-labelled faces (issue 36), the rest from the annotated.
+        pool = teacher if teacher and rng.random() < teacher_frac else faces
+        f = pool[rng.integers(len(pool))]
         c, lm, y = D.make_sample(f, canon, rng, positive=rng.random() >= neg_frac, occlusion=occlusion, hard=hard,
                                    spread=spread)
         crops[i, 0], lms[i], lab[i] = c, lm, y
@@ -212,6 +214,9 @@ def main() -> None:
     ap.add_argument("--spread", type=float, default=1.0,
                     help="multiplier of the positives' perturbation sigmas (data.SIGMA_T/R/S)")
     ap.add_argument("--hard-neg", type=float, default=0.0, help="fraction of negatives that are near misses")
+    ap.add_argument("--teacher-labels", default="", help="comma-separated teacher-label files (make teacher-labels)")
+    ap.add_argument("--teacher-frac", type=float, default=0.5, help="share of samples from teacher-labelled faces")
+    ap.add_argument("--teacher-limit", type=int, default=0, help="at most this many faces per label file (0 = all)")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--neg-frac", type=float, default=0.25)
@@ -239,6 +244,9 @@ def main() -> None:
     print(f"train {len(train_names)} faces, validation {len(val_names)} faces ({SPLIT_FILE})", file=sys.stderr)
     train = D.load_faces(args.data, train_names)
     val_faces = D.load_faces(args.data, val_names)
+    teacher = [f for p in args.teacher_labels.split(",") if p for f in D.load_teacher_faces(p, args.teacher_limit)]
+    if teacher:
+        print(f"teacher-labelled faces: {len(teacher)} ({args.teacher_frac:.0%} of the samples)", file=sys.stderr)
 
     data_canon = g.canonical_from_mean(g.procrustes_mean([f.pts for f in train]))
     last = os.path.join(args.out, "last.pt")
@@ -325,7 +333,8 @@ def main() -> None:
     t0, seen = time.time(), 0
     run_loss = []
     while step < end:
-        x, lm, y = batch(train, canon, rng, args.batch, args.neg_frac, args.occlusion, args.hard_neg, args.spread)
+        x, lm, y = batch(train, canon, rng, args.batch, args.neg_frac, args.occlusion, args.hard_neg, args.spread,
+                         teacher, args.teacher_frac)
         x, lm, y = x.to(dev), lm.to(dev), y.to(dev)
         if channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
