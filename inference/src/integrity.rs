@@ -36,9 +36,9 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
         })
 }
 
-/// The sidecar's text for `bytes` installed as `file_name` (`sha256sum`'s format).
-pub fn sidecar_text(file_name: &str, bytes: &[u8]) -> String {
-    format!("{}  {file_name}\n", sha256_hex(bytes))
+/// The sidecar's text for a file installed as `file_name` whose SHA-256 is `sha` (`sha256sum`'s format).
+pub fn sidecar_text(file_name: &str, sha: &str) -> String {
+    format!("{sha}  {file_name}\n")
 }
 
 /// What the sidecar of a file says, if there is a readable one.
@@ -217,7 +217,11 @@ mod tests {
         let bytes = b"some model bytes".to_vec();
         // No sidecar: nothing to compare.
         verify_sidecar(&path, &bytes).unwrap();
-        std::fs::write(sidecar_path(&path), sidecar_text("model.bin", &bytes)).unwrap();
+        std::fs::write(
+            sidecar_path(&path),
+            sidecar_text("model.bin", &sha256_hex(&bytes)),
+        )
+        .unwrap();
         verify_sidecar(&path, &bytes).unwrap();
         let mut bad = bytes.clone();
         bad[3] ^= 1;

@@ -295,44 +295,34 @@ fn h264_of_every_common_profile_with_b_frames_decodes_every_frame_in_order() {
         }
     }
     // A codec OpenH264 cannot read is refused by name, with the ffmpeg pipe that reads it.
-    let webm = d.join("clip.webm");
-    ffmpeg(&[
-        "-f",
-        "lavfi",
-        "-i",
-        "testsrc2=size=160x120:rate=25",
-        "-frames:v",
-        "5",
-        "-c:v",
-        "libvpx-vp9",
-        webm.to_str().unwrap(),
-    ]);
-    let err = open_source(&webm, 25.0, None)
-        .err()
-        .expect("a WebM is refused")
-        .to_string();
-    assert!(err.contains("WebM") && err.contains("yuv4mpegpipe"), "{err}");
-    let hevc = d.join("hevc.mp4");
-    ffmpeg(&[
-        "-f",
-        "lavfi",
-        "-i",
-        "testsrc2=size=160x120:rate=25",
-        "-frames:v",
-        "5",
-        "-c:v",
-        "libx265",
-        "-tag:v",
-        "hev1",
-        hevc.to_str().unwrap(),
-    ]);
-    let err = open_source(&hevc, 25.0, None)
-        .err()
-        .expect("HEVC is refused")
-        .to_string();
-    assert!(
-        err.contains("no H.264 video track") && err.contains("yuv4mpegpipe"),
-        "{err}"
-    );
+    for (file, codec, want) in [
+        ("clip.webm", ["-c:v", "libvpx-vp9"].as_slice(), "WebM"),
+        (
+            "hevc.mp4",
+            ["-c:v", "libx265", "-tag:v", "hev1"].as_slice(),
+            "no H.264 video track",
+        ),
+    ] {
+        let clip = d.join(file);
+        let mut args = vec![
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc2=size=160x120:rate=25",
+            "-frames:v",
+            "5",
+        ];
+        args.extend(codec.iter().copied());
+        args.push(clip.to_str().unwrap());
+        ffmpeg(&args);
+        let err = open_source(&clip, 25.0, None)
+            .err()
+            .unwrap_or_else(|| panic!("{file} is refused"))
+            .to_string();
+        assert!(
+            err.contains(want) && err.contains("yuv4mpegpipe"),
+            "{file}: {err}"
+        );
+    }
     let _ = std::fs::remove_dir_all(&d);
 }

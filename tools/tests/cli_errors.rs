@@ -5,12 +5,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{holoface, tmp, workspace};
-
-fn write_png(path: &Path, w: u32, h: u32) {
-    let px: Vec<u8> = (0..w * h).map(|i| (i % 251) as u8).collect();
-    image::save_buffer(path, &px, w, h, image::ExtendedColorType::L8).unwrap();
-}
+use common::{holoface, tmp, workspace, write_png};
 
 /// A temporary folder with `n` small textured frames that hold no face: `(folder, frames folder)`.
 fn faceless_frames(tag: &str, n: usize) -> (std::path::PathBuf, std::path::PathBuf) {

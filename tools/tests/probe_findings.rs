@@ -10,12 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{finished, holoface, tmp, workspace};
-
-fn write_png(path: &Path, w: u32, h: u32) {
-    let px: Vec<u8> = (0..w * h).map(|i| (i % 251) as u8).collect();
-    image::save_buffer(path, &px, w, h, image::ExtendedColorType::L8).unwrap();
-}
+use common::{finished, holoface, tmp, workspace, write_png};
 
 /// A folder with one annotated (meaningless) face for `eval --init gt-box`.
 fn one_face(tag: &str) -> PathBuf {

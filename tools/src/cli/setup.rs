@@ -206,11 +206,16 @@ fn install(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
 
 /// Writes the checksum record of an installed file unless an equal one is there.
 fn record_checksum(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    record_sha256(path, &sha256_hex(bytes))
+}
+
+/// [`record_checksum`] from a SHA-256 already known (a pinned member that was just checked).
+fn record_sha256(path: &Path, sha: &str) -> anyhow::Result<()> {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let text = integrity::sidecar_text(&name, bytes);
+    let text = integrity::sidecar_text(&name, sha);
     let side = integrity::sidecar_path(path);
     if std::fs::read_to_string(&side).is_ok_and(|t| t == text) {
         return Ok(());
@@ -228,10 +233,10 @@ fn install_from(fetcher: &mut Fetcher, archive: &Archive, dir: &Path) -> anyhow:
         std::fs::read(dir.join(file)).is_ok_and(|b| sha256_hex(&b) == *sha)
     };
     if archive.members.iter().all(current) {
-        for (_, file, _) in archive.members {
+        // Each was just read and matched its pin: the pin is its checksum.
+        for (_, file, sha) in archive.members {
             let path = dir.join(file);
-            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-            record_checksum(&path, &bytes)?;
+            record_sha256(&path, sha)?;
             report(file, "up to date", &path);
         }
         return Ok(());

@@ -51,3 +51,9 @@ pub(crate) fn json_lines(path: &Path) -> Vec<serde_json::Value> {
         .map(|l| serde_json::from_str(l).unwrap())
         .collect()
 }
+
+/// A small textured grey PNG (no face in it).
+pub(crate) fn write_png(path: &Path, w: u32, h: u32) {
+    let px: Vec<u8> = (0..w * h).map(|i| (i % 251) as u8).collect();
+    image::save_buffer(path, &px, w, h, image::ExtendedColorType::L8).unwrap();
+}
