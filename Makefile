@@ -134,21 +134,27 @@ check:
 # parser or its metrics, nor a video decoder (holoface-sources), nor anyhow (its errors are typed), nor the
 # models' trainers (holoface-models' `train` feature, which only the tools enable).
 deps-check:
+	@# The naming rule: folder X/ holds package holoface-X (library holoface_X); the design card's top level.
+	@for d in headset-client alignment-server protocol models tests deploy; do test -e $$d || { echo "missing top-level $$d/" >&2; exit 1; }; done
+	@for d in $$(sed -n '/^members = \[/,/^\]/s/^ *"\(.*\)",$$/\1/p' Cargo.toml); do \
+	  n=$$(sed -n '/^\[package\]/,/^\[/s/^name = "\(.*\)"$$/\1/p' $$d/Cargo.toml); \
+	  if [ "$$n" != "holoface-$$d" ]; then echo "$$d/ holds package $$n, not holoface-$$d" >&2; exit 1; fi; done
+	@echo "every package: folder X/ = holoface-X"
 	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
 	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
 	@echo "holoface-protocol: no tokio, no quinn"
-	@for c in holoface-client holoface-ffi holoface-python; do \
-	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
+	@for c in holoface-headset-client holoface-ffi holoface-python; do \
+	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-alignment-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
-	  echo "$$c: no holoface-server, holoface-tools, rcgen, toml or hdrhistogram"; done
-	@for c in holoface-client holoface-ffi; do \
+	  echo "$$c: no holoface-alignment-server, holoface-tools, rcgen, toml or hdrhistogram"; done
+	@for c in holoface-headset-client holoface-ffi; do \
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-sources, openh264, mp4 or anyhow"; done
-	@for c in holoface-client holoface-ffi holoface-python holoface-server; do \
+	@for c in holoface-headset-client holoface-ffi holoface-python holoface-alignment-server; do \
 	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-models feature "train"'; then \
 	    echo "$$c compiles the models' trainers (holoface-models/train)" >&2; exit 1; fi; done
-	@echo "holoface-client, holoface-ffi, holoface-python, holoface-server: no trainers"
+	@echo "holoface-headset-client, holoface-ffi, holoface-python, holoface-alignment-server: no trainers"
 	tools/feature-parity.sh
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the

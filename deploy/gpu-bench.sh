@@ -5,8 +5,8 @@
 #   deploy/gpu-bench.sh                 # raw ONNX Runtime CUDA at batch 1/8/32/64, the server saturated, latency
 #   deploy/gpu-bench.sh --cpu-rehearsal # the same commands, short, on the CPU (checks the script, not a GPU)
 #
-# Needs target/release/holoface-server and holoface-server-bench (cargo build --release -p holoface-server
-# -p holoface-e2e), `make ort-gpu` and `make dan-fp16`. Both models (fp32, fp16) are measured. Results: one
+# Needs target/release/holoface-server and holoface-server-bench (cargo build --release -p holoface-alignment-server
+# -p holoface-tests), `make ort-gpu` and `make dan-fp16`. Both models (fp32, fp16) are measured. Results: one
 # JSON line each in $OUT/gpu.jsonl (default target/bench), the commands' output on stdout. Where the system
 # has no CUDA libraries on its path, the nvidia-* Python wheels' (PyTorch's) are used.
 set -euo pipefail

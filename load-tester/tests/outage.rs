@@ -12,7 +12,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use common::{recording, workspace};
-use holoface_server::config::{Settings, TlsSource};
+use holoface_alignment_server::config::{Settings, TlsSource};
 
 const TOKEN: &str = "outage-test";
 
@@ -45,7 +45,7 @@ fn start(dir: &Path, listen: SocketAddr) -> (Killable, SocketAddr, String) {
         .enable_all()
         .build()
         .unwrap();
-    let server = rt.block_on(holoface_server::Server::bind(s)).unwrap();
+    let server = rt.block_on(holoface_alignment_server::Server::bind(s)).unwrap();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint().to_string());
     rt.spawn(server.run(std::future::pending()));
     (Killable { rt }, addr, fp)

@@ -187,7 +187,7 @@ fn headsets_stop_sending_on_the_servers_goaway() {
         || workspace().join(".cache/holoface/libonnxruntime.so.1.31.1"),
         PathBuf::from,
     );
-    let mut s = holoface_server::config::Settings::for_loopback(
+    let mut s = holoface_alignment_server::config::Settings::for_loopback(
         "goaway-test",
         workspace().join("models/assets/dan.onnx"),
         Some(workspace().join("models/assets/refiner.bin")),
@@ -200,7 +200,7 @@ fn headsets_stop_sending_on_the_servers_goaway() {
         .enable_all()
         .build()
         .unwrap();
-    let server = rt.block_on(holoface_server::Server::bind(s)).unwrap();
+    let server = rt.block_on(holoface_alignment_server::Server::bind(s)).unwrap();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint());
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let task = rt.spawn(server.run(async move {

@@ -1,4 +1,4 @@
-//! Python bindings of the headset client's task API ([`holoface_client::tracker`]): `FaceTracker(options)`,
+//! Python bindings of the headset client's task API ([`holoface_headset_client::tracker`]): `FaceTracker(options)`,
 //! `process(image, timestamp_us, camera_to_world=None, intrinsics=None) -> FaceResult`, numpy in and out.
 //!
 //! Images are borrowed, not copied: a C-contiguous `uint8` array of shape `(height, width)` becomes the
@@ -13,11 +13,11 @@ mod installed;
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_client::align::AnsweredBy;
-use holoface_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
-use holoface_client::link::{LinkState, RemoteOptions};
-use holoface_client::session::FaceUpdate;
-use holoface_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
+use holoface_headset_client::align::AnsweredBy;
+use holoface_headset_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
+use holoface_headset_client::link::{LinkState, RemoteOptions};
+use holoface_headset_client::session::FaceUpdate;
+use holoface_headset_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::{Pose, Quat, Vec3};
@@ -360,15 +360,15 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         weights.set_item(unit.name(), w)?;
     }
     let (face_probability, predicted_error) = match u.confidence {
-        holoface_client::align::Confidence::FaceProbability(p) => (Some(p), None),
-        holoface_client::align::Confidence::PredictedError(e) => (None, Some(e)),
+        holoface_headset_client::align::Confidence::FaceProbability(p) => (Some(p), None),
+        holoface_headset_client::align::Confidence::PredictedError(e) => (None, Some(e)),
     };
     Ok(PyFace {
         id,
         landmarks: lm.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
-            holoface_client::align::LandmarkSet::Ibug68 => "ibug68",
-            holoface_client::align::LandmarkSet::Inner51 => "inner51",
+            holoface_headset_client::align::LandmarkSet::Ibug68 => "ibug68",
+            holoface_headset_client::align::LandmarkSet::Inner51 => "inner51",
         }
         .to_owned(),
         answered_by: variant_name(&u.answered_by),

@@ -6,7 +6,7 @@
 //! or not at all.
 //!
 //! Every source implements the runtime's [`FrameSource`] trait and hands over
-//! [`OwnedFrame`]s; the headset runtime (`holoface-client`) knows only that trait, so a headset app never
+//! [`OwnedFrame`]s; the headset runtime (`holoface-headset-client`) knows only that trait, so a headset app never
 //! compiles a video decoder. Constructors report errors with `anyhow` (this is a tools crate: messages name
 //! the file and the frame); [`FrameSource::next_frame`] wraps them in [`SourceError::Other`], whole chain in its
 //! message.
@@ -23,7 +23,7 @@ pub mod video;
 pub mod video;
 pub mod y4m;
 
-pub use holoface_client::frame::{FrameSource, OwnedFrame, SourceError};
+pub use holoface_headset_client::frame::{FrameSource, OwnedFrame, SourceError};
 pub use source::open_source;
 
 /// A source's failure as the runtime's error type. The message is the whole context chain ("cam.y4m: frame 2:

@@ -17,12 +17,12 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
-use holoface_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, crop_from_image};
-use holoface_client::assets::load_face_model;
-use holoface_client::detect::BlazeFace;
-use holoface_client::frame::Frame;
-use holoface_client::link::CropCodec;
-use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
+use holoface_headset_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, crop_from_image};
+use holoface_headset_client::assets::load_face_model;
+use holoface_headset_client::detect::BlazeFace;
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::link::CropCodec;
+use holoface_headset_client::session::{FrameResult, SessionOptions, TrackerSession};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -208,7 +208,7 @@ fn bench_faces(c: &mut Criterion) {
             .collect();
         if n == 5 {
             // What a detection costs on such a frame: the whole frame, and with the several-face tiles.
-            use holoface_client::detect::FaceDetector as _;
+            use holoface_headset_client::detect::FaceDetector as _;
             let mut whole = BlazeFace::load(&det, &ort, 1).unwrap();
             let mut tiled = BlazeFace::load(&det, &ort, 1).unwrap();
             tiled.for_several_faces();

@@ -7,8 +7,8 @@ use holoface_models::image::GrayImage;
 use holoface_models::math3::Vec3;
 
 use crate::plot::Canvas;
-use holoface_client::align::AnsweredBy;
-use holoface_client::session::{FaceUpdate, NoFaceReason, TrackedFace};
+use holoface_headset_client::align::AnsweredBy;
+use holoface_headset_client::session::{FaceUpdate, NoFaceReason, TrackedFace};
 
 /// Length of the drawn pose axes, metres.
 const AXIS_M: f64 = 0.05;
@@ -100,8 +100,8 @@ fn draw_face(cv: &mut Canvas, u: &FaceUpdate, model: &FaceModel, k: &Intrinsics)
         }
     }
     let first = match u.landmark_set {
-        holoface_client::align::LandmarkSet::Ibug68 => 0,
-        holoface_client::align::LandmarkSet::Inner51 => 17,
+        holoface_headset_client::align::LandmarkSet::Ibug68 => 0,
+        holoface_headset_client::align::LandmarkSet::Inner51 => 17,
     };
     for p in &u.landmarks[first..] {
         cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);

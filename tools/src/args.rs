@@ -1,17 +1,17 @@
 //! The command-line options naming the runtime assets (same environment variables and data-folder defaults
-//! as `holoface_client::assets`) and how the tools build engines from them.
+//! as `holoface_headset_client::assets`) and how the tools build engines from them.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use holoface_client::assets::{CANDIDE_ENV, DAN_ENV, DETECTOR_ENV, KRFWS_ENV, home};
+use holoface_headset_client::assets::{CANDIDE_ENV, DAN_ENV, DETECTOR_ENV, KRFWS_ENV, home};
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 
-use holoface_client::align::{DanAligner, KrfwsAligner};
+use holoface_headset_client::align::{DanAligner, KrfwsAligner};
 
 /// Paths and threads of the runtime assets: each path is the option, else its environment variable, else its
-/// file in the holoface data folder, which `holoface setup` fills (`holoface_client::assets::home`).
+/// file in the holoface data folder, which `holoface setup` fills (`holoface_headset_client::assets::home`).
 #[derive(Debug, Clone, Args)]
 pub struct RuntimeArgs {
     /// ONNX Runtime shared library (`holoface setup` fetches it from the pinned PyPI wheel).
@@ -72,19 +72,19 @@ impl RuntimeArgs {
         let engine = OnnxEngine::load(&self.dan_options())
             .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
         let mut aligner = DanAligner::new(holoface_inference::RefinedEngine::new(engine, refiner)?)?;
-        aligner.set_wire_codec(Some(holoface_client::link::CropCodec::default()));
+        aligner.set_wire_codec(Some(holoface_headset_client::link::CropCodec::default()));
         Ok(aligner)
     }
 
     /// BlazeFace through ONNX Runtime (1 thread).
-    pub fn detector(&self) -> anyhow::Result<holoface_client::detect::BlazeFace> {
-        holoface_client::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
+    pub fn detector(&self) -> anyhow::Result<holoface_headset_client::detect::BlazeFace> {
+        holoface_headset_client::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
             .with_context(|| format!("loading the face detector {}", self.detector.display()))
     }
 
     /// KRFWS from its model file.
     pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
-        Ok(KrfwsAligner::new(holoface_client::assets::load_krfws(
+        Ok(KrfwsAligner::new(holoface_headset_client::assets::load_krfws(
             &self.krfws_model,
         )?))
     }
@@ -101,7 +101,7 @@ pub struct CandideArg {
 impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
-        Ok(holoface_client::assets::load_face_model(&self.candide)?)
+        Ok(holoface_headset_client::assets::load_face_model(&self.candide)?)
     }
 }
 

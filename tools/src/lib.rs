@@ -2,7 +2,7 @@
 //! split ([`data`]), teacher-label files ([`labels`]), the synthetic headset renderer ([`render`]), plots ([`plot`]), annotated output
 //! ([`annotate`]), the fault-injecting UDP relay ([`relay`]), the in-process loopback server ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]).
 //!
-//! The headset runtime they drive is `holoface-client`; the demo's in-process alignment server is
+//! The headset runtime they drive is `holoface-headset-client`; the demo's in-process alignment server is
 //! `holoface-server`. A headset app depends on neither this crate nor the server.
 #![deny(missing_docs)]
 

@@ -3,7 +3,7 @@
 
 use std::net::SocketAddr;
 
-use holoface_server::Fingerprint;
+use holoface_alignment_server::Fingerprint;
 
 use crate::args::RuntimeArgs;
 
@@ -18,7 +18,7 @@ pub struct LoopbackServer {
     /// The access token it accepts (random per run).
     pub token: String,
     stop: tokio::sync::oneshot::Sender<()>,
-    task: tokio::task::JoinHandle<Result<(), holoface_server::ServerError>>,
+    task: tokio::task::JoinHandle<Result<(), holoface_alignment_server::ServerError>>,
 }
 
 impl LoopbackServer {
@@ -27,7 +27,7 @@ impl LoopbackServer {
     pub fn start(
         runtime: &RuntimeArgs,
         threads: usize,
-        tweak: impl FnOnce(&mut holoface_server::config::Settings),
+        tweak: impl FnOnce(&mut holoface_alignment_server::config::Settings),
     ) -> anyhow::Result<Self> {
         let token = format!("loopback-{:016x}", {
             use std::hash::{BuildHasher, Hasher};
@@ -35,7 +35,7 @@ impl LoopbackServer {
                 .build_hasher()
                 .finish()
         });
-        let mut settings = holoface_server::config::Settings::for_loopback(
+        let mut settings = holoface_alignment_server::config::Settings::for_loopback(
             &token,
             runtime.dan_model.clone(),
             Some(runtime.refine_model.clone()),
@@ -47,7 +47,7 @@ impl LoopbackServer {
             .worker_threads(1)
             .enable_all()
             .build()?;
-        let server = rt.block_on(holoface_server::Server::bind(settings))?;
+        let server = rt.block_on(holoface_alignment_server::Server::bind(settings))?;
         let (addr, fingerprint) = (server.local_addr()?, server.fingerprint());
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let task = rt.spawn(server.run(async move {

@@ -45,7 +45,7 @@ fn output(cmd: &mut Command) -> (bool, String) {
 fn install(built: &Path, bin: &Path) -> PathBuf {
     assert!(
         built.is_file(),
-        "{} is not built (cargo build -p holoface-server --profile test)",
+        "{} is not built (cargo build -p holoface-alignment-server --profile test)",
         built.display()
     );
     let to = bin.join(built.file_name().unwrap());

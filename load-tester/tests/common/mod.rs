@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use holoface_client::link::CropCodec;
+use holoface_headset_client::link::CropCodec;
 use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };

@@ -27,12 +27,12 @@ use crate::args::RuntimeArgs;
 use crate::plot::Canvas;
 use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
-use holoface_client::align::{Aligner, AnsweredBy};
-use holoface_client::assets::home;
-use holoface_client::detect::{FaceDetector, shape_from_detection};
-use holoface_client::frame::Frame;
-use holoface_client::link::{CropCodec, RemoteOptions};
-use holoface_client::session::{FrameResult, SessionOptions, TrackerSession};
+use holoface_headset_client::align::{Aligner, AnsweredBy};
+use holoface_headset_client::assets::home;
+use holoface_headset_client::detect::{FaceDetector, shape_from_detection};
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::link::{CropCodec, RemoteOptions};
+use holoface_headset_client::session::{FrameResult, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -226,7 +226,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             world_from_camera: pose,
         };
         let t0 = Instant::now();
-        let step = holoface_client::frame_step::step_faces(&mut session, &mut aligner, &frame)?;
+        let step = holoface_headset_client::frame_step::step_faces(&mut session, &mut aligner, &frame)?;
         let (result, alignment) = (step.faces.first(), step.first_alignment());
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
         let report = aligner.last_report();

@@ -15,8 +15,8 @@ use serde::Serialize;
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, list_folder};
 use crate::plot::{Curve, ced_plot_png};
-use holoface_client::align::{Aligner, Confidence};
-use holoface_client::detect::{BlazeFace, FaceDetector, shape_from_detection};
+use holoface_headset_client::align::{Aligner, Confidence};
+use holoface_headset_client::detect::{BlazeFace, FaceDetector, shape_from_detection};
 
 /// How the initial shape is placed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -57,7 +57,7 @@ pub struct Args {
     pub runtime: RuntimeArgs,
     /// KRFWS starts per face (several starts with the median answer, as on a tracker's detection frames;
     /// 1 = a single alignment, the headset's per-frame cost when tracking).
-    #[arg(long, default_value_t = holoface_client::align::KRFWS_DETECTION_STARTS)]
+    #[arg(long, default_value_t = holoface_headset_client::align::KRFWS_DETECTION_STARTS)]
     pub krfws_starts: usize,
     /// Time this many passes over the faces (accuracy is from the first); `ms_per_face` is the mean.
     #[arg(long, default_value_t = 1)]
@@ -71,7 +71,7 @@ pub struct Args {
     /// Pass DAN's crops through this wire encoding first (`raw`, `png`, `jpeg`, `jpeg:Q`), as the server
     /// would receive them; measures the accuracy cost of an encoding. Default: the crop as is.
     #[arg(long)]
-    pub crop_encoding: Option<holoface_client::link::CropCodec>,
+    pub crop_encoding: Option<holoface_headset_client::link::CropCodec>,
 }
 
 #[derive(Debug, Serialize)]
@@ -277,8 +277,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             align_time += t0.elapsed();
             aligned += 1;
             let n68 = match a.set {
-                holoface_client::align::LandmarkSet::Ibug68 => nme68(&a.landmarks, &gt),
-                holoface_client::align::LandmarkSet::Inner51 => None,
+                holoface_headset_client::align::LandmarkSet::Ibug68 => nme68(&a.landmarks, &gt),
+                holoface_headset_client::align::LandmarkSet::Inner51 => None,
             };
             let n49 = nme49(&a.landmarks, &gt);
             e68.push(n68.unwrap_or(f64::INFINITY));

@@ -145,7 +145,7 @@ macro_rules! say {
 
 /// Installs the tracing subscriber (binaries only; libraries never do).
 pub fn init_logging(filter: &str) {
-    holoface_server::logging::init(holoface_server::logging::env_filter_or(&format!(
+    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or(&format!(
         "{filter},quinn=info,rustls=info"
     )));
 }

@@ -33,9 +33,9 @@ use super::tracking_losses::{SequenceExport, cut_face_with_margin};
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
-use holoface_client::align::Aligner;
-use holoface_client::frame::Frame;
-use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
+use holoface_headset_client::align::Aligner;
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::session::{SessionOptions, TrackedFace, TrackerSession};
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -362,13 +362,13 @@ fn track(
                 &json!({"frame": i, "faces_landmarks_px": faces}),
             )?;
         }
-        let step = holoface_client::frame_step::step_faces(&mut session, aligner, &frame)?;
+        let step = holoface_headset_client::frame_step::step_faces(&mut session, aligner, &frame)?;
         let timings = &step.timings;
         run.frame_ms
             .push((timings.prepare + timings.align + timings.complete).as_secs_f64() * 1e3);
         for a in step.alignments.iter().flatten() {
             run.aligned += 1;
-            run.remote += usize::from(a.answered_by == holoface_client::align::AnsweredBy::RemoteDan);
+            run.remote += usize::from(a.answered_by == holoface_headset_client::align::AnsweredBy::RemoteDan);
         }
         if let Some(dir) = args
             .snapshots
@@ -573,9 +573,9 @@ fn remote_aligner(
     args: &Args,
 ) -> anyhow::Result<(
     crate::loopback::LoopbackServer,
-    holoface_client::link::LinkedAligner<holoface_client::align::KrfwsAligner>,
+    holoface_headset_client::link::LinkedAligner<holoface_headset_client::align::KrfwsAligner>,
 )> {
-    use holoface_client::link::{Mode, RemoteOptions};
+    use holoface_headset_client::link::{Mode, RemoteOptions};
     let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
     let mut remote = RemoteOptions::new(server.addr, server.fingerprint, server.token.clone());
     remote.client_name = "holoface-multi-face".into();

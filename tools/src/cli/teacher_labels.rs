@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail, ensure};
-use holoface_client::align::Aligner;
+use holoface_headset_client::align::Aligner;
 use holoface_models::geometry::Point2;
 use holoface_models::metrics::{nme49, nme68};
 use serde::Serialize;

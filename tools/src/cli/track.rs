@@ -10,9 +10,9 @@ use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use holoface_client::align::{Aligner, AnsweredBy};
-use holoface_client::link::RemoteOptions;
-use holoface_client::session::{SessionOptions, TrackedFace, TrackerSession};
+use holoface_headset_client::align::{Aligner, AnsweredBy};
+use holoface_headset_client::link::RemoteOptions;
+use holoface_headset_client::session::{SessionOptions, TrackedFace, TrackerSession};
 use holoface_sources::source::open_source;
 
 /// Arguments of `holoface track`.
@@ -74,13 +74,15 @@ pub struct Args {
     pub deadline_ms: u64,
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
     #[arg(long, default_value = "jpeg:75")]
-    pub crop_encoding: holoface_client::link::CropCodec,
+    pub crop_encoding: holoface_headset_client::link::CropCodec,
     /// Runtime assets.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
 }
 
-fn remote_aligner(args: &Args) -> anyhow::Result<(Box<dyn Aligner>, holoface_client::link::LinkWatch)> {
+fn remote_aligner(
+    args: &Args,
+) -> anyhow::Result<(Box<dyn Aligner>, holoface_headset_client::link::LinkWatch)> {
     let server = args.server.context("--aligner remote needs --server ADDR")?;
     let fingerprint = args
         .fingerprint
@@ -163,7 +165,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
-        let step = holoface_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)
+        let step = holoface_headset_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)
             .with_context(|| format!("frame {} of {}", sf.index, args.source.display()))?;
         let link_state = link.as_ref().map(|w| w.status().state());
         remote_frames += step
@@ -212,12 +214,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(a) = annotated {
         crate::say!("{a}");
     }
-    if let Some(status) = link.as_ref().map(holoface_client::link::LinkWatch::status) {
+    if let Some(status) = link
+        .as_ref()
+        .map(holoface_headset_client::link::LinkWatch::status)
+    {
         if status.welcome().is_some() {
             crate::say!("{remote_frames} of {faces} faces aligned by the remote DAN");
         } else {
             let why = match (&status, status.failure()) {
-                (holoface_client::link::LinkStatus::Failed(f), _) => format!("gave up: {f}"),
+                (holoface_headset_client::link::LinkStatus::Failed(f), _) => format!("gave up: {f}"),
                 (_, Some(f)) => format!("retrying: {f}"),
                 (_, None) => "still connecting".to_owned(),
             };

@@ -33,9 +33,9 @@ use serde_json::json;
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
-use holoface_client::align::Aligner;
-use holoface_client::frame::Frame;
-use holoface_client::session::{FrameResult, InitSource, SessionOptions, TrackerSession};
+use holoface_headset_client::align::Aligner;
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::session::{FrameResult, InitSource, SessionOptions, TrackerSession};
 
 /// Arguments of `holoface tracking-losses`.
 #[derive(Debug, ClapArgs)]
@@ -221,7 +221,8 @@ struct Runner {
 
 impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
-        let step = holoface_client::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
+        let step =
+            holoface_headset_client::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
         let init = step.first_candidate().map(|c| c.source);
         let result = step.faces.first();
         self.tally.record(&result, init, truth);

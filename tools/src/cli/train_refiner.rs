@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use holoface_client::align::crop_from_image;
-use holoface_client::link::CropCodec;
+use holoface_headset_client::align::crop_from_image;
+use holoface_headset_client::link::CropCodec;
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use holoface_models::GrayView;
 use holoface_models::crop::warp_bilinear;
@@ -431,7 +431,7 @@ fn answer_training_crops(
     first: usize,
     args: &Args,
     runner: &mut DanRunner,
-    detector: &mut holoface_client::detect::BlazeFace,
+    detector: &mut holoface_headset_client::detect::BlazeFace,
 ) -> anyhow::Result<()> {
     let mean = dan_mean_shape();
     for (fi, face) in faces.iter().enumerate() {
@@ -555,7 +555,7 @@ fn val_answers(
     faces: &[Sample],
     args: &Args,
     runner: &mut DanRunner,
-    detector: &mut holoface_client::detect::BlazeFace,
+    detector: &mut holoface_headset_client::detect::BlazeFace,
 ) -> anyhow::Result<ValAnswers> {
     runner.answered.clear();
     let mean = dan_mean_shape();

@@ -10,17 +10,17 @@
 use std::time::Duration;
 
 use bytes::Bytes;
-use holoface_e2e::{
-    RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
-    model_path, ort_dylib_path, refiner_path, refused_with, send_frame_on, write_framed,
-};
+use holoface_alignment_server::config::Settings;
 use holoface_inference::{
     BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, RefinedEngine, RefinerModel,
 };
 use holoface_protocol::{
     CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
 };
-use holoface_server::config::Settings;
+use holoface_tests::{
+    RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
+    model_path, ort_dylib_path, refiner_path, refused_with, send_frame_on, write_framed,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Generous: the untrained DAN takes tens of ms per crop on a loaded 2-core box.
@@ -117,8 +117,8 @@ async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
 /// did move them away from DAN's.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_servers_answer_is_what_eval_remote_measures() {
-    use holoface_client::align::{Aligner, crop_from_image, landmarks_from_crop};
-    use holoface_client::link::CropCodec;
+    use holoface_headset_client::align::{Aligner, crop_from_image, landmarks_from_crop};
+    use holoface_headset_client::link::CropCodec;
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
@@ -202,7 +202,10 @@ async fn a_missing_or_corrupt_refiner_model_is_a_clear_start_up_error() {
     ] {
         let mut s = settings();
         s.refine_model = Some(dir.join(file));
-        let e = holoface_server::Server::bind(s).await.unwrap_err().to_string();
+        let e = holoface_alignment_server::Server::bind(s)
+            .await
+            .unwrap_err()
+            .to_string();
         assert!(
             e.contains(file) && e.contains(expect) && e.contains("refine.model"),
             "{file}: {e}"
@@ -349,7 +352,7 @@ async fn handshake_failures_get_their_close_codes_before_inference() {
     write_framed(&mut send, &Message::FrameRequest(frame(1, 0, 10)))
         .await
         .unwrap();
-    let code = holoface_e2e::app_close_code(&within("out of order", conn.closed()).await);
+    let code = holoface_tests::app_close_code(&within("out of order", conn.closed()).await);
     assert_eq!(code, Some(CloseCode::ProtocolViolation));
 
     let m = &server.metrics;
@@ -769,10 +772,10 @@ async fn no_hello_within_the_hello_timeout_is_a_protocol_violation() {
     s.hello_timeout = Duration::from_millis(300);
     let server = RunningServer::start(s).await.unwrap();
     let endpoint =
-        holoface_e2e::client_endpoint_with(server.fingerprint, Some(Duration::from_millis(100))).unwrap();
+        holoface_tests::client_endpoint_with(server.fingerprint, Some(Duration::from_millis(100))).unwrap();
     let conn = connect_raw(&endpoint, server.addr).await.unwrap();
     let started = std::time::Instant::now();
-    let code = holoface_e2e::app_close_code(&within("the hello timeout", conn.closed()).await);
+    let code = holoface_tests::app_close_code(&within("the hello timeout", conn.closed()).await);
     assert_eq!(code, Some(CloseCode::ProtocolViolation));
     assert!(
         started.elapsed() < Duration::from_secs(5),
@@ -853,7 +856,7 @@ fn fp16_model() -> std::path::PathBuf {
     let path = std::env::var_os("HOLOFACE_DAN_FP16_MODEL")
         .filter(|v| !v.is_empty())
         .map_or_else(
-            || holoface_e2e::workspace_root().join(".cache/models/dan.fp16.onnx"),
+            || holoface_tests::workspace_root().join(".cache/models/dan.fp16.onnx"),
             std::path::PathBuf::from,
         );
     assert!(

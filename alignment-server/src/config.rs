@@ -311,7 +311,7 @@ pub struct InternalConfig {
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LogConfig {
-    /// Log filter, e.g. `info` or `holoface_server=debug`; RUST_LOG overrides [default: info].
+    /// Log filter, e.g. `info` or `holoface_alignment_server=debug`; RUST_LOG overrides [default: info].
     #[arg(long = "log-level", env = "HOLOFACE_LOG")]
     pub level: Option<String>,
 }

@@ -2,13 +2,13 @@
 //! [`FaceResult`] per frame.
 //!
 //! ```no_run
-//! use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
-//! use holoface_client::frame::Frame;
+//! use holoface_headset_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
+//! use holoface_headset_client::frame::Frame;
 //! use holoface_models::camera::Intrinsics;
 //! use holoface_models::image::GrayView;
 //! use holoface_models::math3::Pose;
 //!
-//! # fn main() -> Result<(), holoface_client::tracker::TrackerError> {
+//! # fn main() -> Result<(), holoface_headset_client::tracker::TrackerError> {
 //! let mut tracker = FaceTracker::new(TrackerOptions { mode: RunningMode::Video, ..TrackerOptions::default() })?;
 //! let pixels = vec![0u8; 640 * 480];
 //! let frame = Frame {

@@ -9,9 +9,9 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use holoface_e2e::{RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, send_frame_on};
 use holoface_protocol::ReplyOutcome;
 use holoface_quic::Fingerprint;
+use holoface_tests::{RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, send_frame_on};
 
 const INTERVAL: Duration = Duration::from_millis(33);
 const DEADLINE_MS: u16 = 100;

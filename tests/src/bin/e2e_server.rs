@@ -7,9 +7,9 @@
 use std::io::{BufRead, Write};
 use std::net::SocketAddr;
 
-use holoface_e2e::loopback_settings;
-use holoface_server::Server;
-use holoface_server::config::TlsSource;
+use holoface_alignment_server::Server;
+use holoface_alignment_server::config::TlsSource;
+use holoface_tests::loopback_settings;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

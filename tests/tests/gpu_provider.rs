@@ -10,17 +10,17 @@
 
 use std::time::Duration;
 
-use holoface_e2e::{
-    RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, ort_gpu_dylib_path,
-};
 use holoface_inference::{
     BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, InferenceEngine, LandmarkOut, OnnxEngine, Provider,
 };
 use holoface_protocol::ReplyOutcome;
+use holoface_tests::{
+    RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, ort_gpu_dylib_path,
+};
 
 const WAIT: Duration = Duration::from_secs(30);
 
-fn gpu_build_settings(provider: Provider) -> holoface_server::config::Settings {
+fn gpu_build_settings(provider: Provider) -> holoface_alignment_server::config::Settings {
     let mut s = loopback_settings();
     s.engine.ort_dylib = ort_gpu_dylib_path();
     s.engine.provider = provider;

@@ -3,21 +3,21 @@
 //!
 //! ```sh
 //! holoface setup --candide /path/to/candide3.wfm   # fills the data folder (in a checkout: make setup)
-//! cargo run --release -p holoface-client --example embed -- [photo.png]
+//! cargo run --release -p holoface-headset-client --example embed -- [photo.png]
 //! ```
 //! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
-//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_client::assets::home`); the photo defaults
+//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_headset_client::assets::home`); the photo defaults
 //! to the data folder's demo sample.
 
-use holoface_client::frame::Frame;
-use holoface_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
+use holoface_headset_client::frame::Frame;
+use holoface_headset_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
 fn main() -> anyhow::Result<()> {
     let path = std::env::args_os().nth(1).map_or_else(
-        || holoface_client::assets::home::SAMPLE.default_path(),
+        || holoface_headset_client::assets::home::SAMPLE.default_path(),
         std::path::PathBuf::from,
     );
     let photo = image::open(&path)?.into_luma8();

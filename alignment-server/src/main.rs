@@ -1,7 +1,7 @@
 //! `holoface-server`: see `holoface-server --help` and deploy/server.example.toml.
 
 use anyhow::Context as _;
-use holoface_server::{Server, ServerConfig, config::ConfigError, shutdown_signal};
+use holoface_alignment_server::{Server, ServerConfig, config::ConfigError, shutdown_signal};
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
@@ -10,7 +10,7 @@ async fn main() -> anyhow::Result<()> {
         Err(ConfigError::Cli(e)) => e.exit(),
         Err(e) => return Err(e).context("configuration"),
     };
-    holoface_server::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
+    holoface_alignment_server::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
     let server = Server::bind(settings)
         .await
         .context("starting the alignment server")?;

@@ -9,14 +9,14 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use holoface_client::align::{Aligner, AnsweredBy, KrfwsAligner};
-use holoface_client::link::{
+use holoface_headset_client::align::{Aligner, AnsweredBy, KrfwsAligner};
+use holoface_headset_client::link::{
     Backoff, ConnectConfig, FailureKind, LinkOptions, LinkState, LinkStatus, LinkedAligner, Mode, RemoteLink,
 };
-use holoface_e2e::{TEST_TOKEN, workspace_root};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_quic::Fingerprint;
+use holoface_tests::{TEST_TOKEN, workspace_root};
 use holoface_tools::data::{Split, default_data_root, load_folder};
 use holoface_tools::relay::UdpRelay;
 
@@ -226,7 +226,7 @@ fn server_kill_falls_back_within_two_frames_and_restart_returns_to_remote() {
 }
 
 fn server_fingerprint_of(id: &Identity) -> Fingerprint {
-    holoface_server::tls::ServerIdentity::from_pem_files(&id.cert, &id.key)
+    holoface_alignment_server::tls::ServerIdentity::from_pem_files(&id.cert, &id.key)
         .unwrap()
         .fingerprint
 }

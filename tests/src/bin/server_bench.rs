@@ -1,7 +1,7 @@
 //! Loopback benchmark of the alignment server (numbers in BENCHMARKS.md).
 //!
 //! ```text
-//! cargo build --release -p holoface-server -p holoface-e2e
+//! cargo build --release -p holoface-alignment-server -p holoface-tests
 //! target/release/holoface-server-bench ort        # raw ONNX Runtime, batch 1/8/32
 //! target/release/holoface-server-bench throughput # server vs raw ORT, same run
 //! target/release/holoface-server-bench latency    # p50/p99/p999 at 30 fps per client
@@ -24,10 +24,10 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, anyhow, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use hdrhistogram::Histogram;
-use holoface_e2e::{TestClient, client_endpoint_with, frame, hello};
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use holoface_protocol::ReplyOutcome;
 use holoface_quic::Fingerprint;
+use holoface_tests::{TestClient, client_endpoint_with, frame, hello};
 
 const TOKEN: &str = "bench-token";
 
@@ -142,11 +142,13 @@ enum Cmd {
 }
 
 fn model(cli: &Cli) -> PathBuf {
-    cli.model.clone().unwrap_or_else(holoface_e2e::model_path)
+    cli.model.clone().unwrap_or_else(holoface_tests::model_path)
 }
 
 fn dylib(cli: &Cli) -> PathBuf {
-    cli.ort_dylib.clone().unwrap_or_else(holoface_e2e::ort_dylib_path)
+    cli.ort_dylib
+        .clone()
+        .unwrap_or_else(holoface_tests::ort_dylib_path)
 }
 
 fn record(cli: &Cli, value: &serde_json::Value) -> anyhow::Result<()> {
@@ -656,7 +658,7 @@ async fn idle(cli: &Cli, connections: usize, hold_seconds: f64) -> anyhow::Resul
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    holoface_server::logging::init(holoface_server::logging::env_filter_or("warn"));
+    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
     let cli = Cli::parse();
     println!(
         "machine: {} cores; note any background load (load average {})",
