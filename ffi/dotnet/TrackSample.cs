@@ -90,6 +90,11 @@ static class TrackSample
                     r.worldPositionM[0], r.worldPositionM[1], r.worldPositionM[2]));
         }
         Check(faces >= 25, faces + " of 30 frames with a face");
+        // The last field of HfResult: the aligner's own landmarks beside the steadied ones (a still photo:
+        // both on the same nose, within a few pixels), so the marshalled layout matches the library's.
+        Check(r.hasFace == 1 && r.rawLandmarksPx.Length == 136 && r.rawLandmarksPx[60] > 0
+              && Math.Abs(r.rawLandmarksPx[60] - r.landmarksPx[60]) < 5 && Math.Abs(r.rawLandmarksPx[61] - r.landmarksPx[61]) < 5,
+              "raw nose (" + r.rawLandmarksPx[60] + ", " + r.rawLandmarksPx[61] + ") vs steadied (" + r.landmarksPx[60] + ", " + r.landmarksPx[61] + ")");
         var link = tracker.LinkStatus();
         Check(link.state == HfLinkState.Local && link.failure == HfLinkFailure.None, "link state without a server: " + link.state);
 

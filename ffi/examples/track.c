@@ -73,9 +73,10 @@ int main(int argc, char **argv) {
         }
         faces += r.has_face;
         if (i % 10 == 0 || i == 29)
-            printf("frame %2d face=%d by=%d nose(px)=(%.1f, %.1f) head(m)=(%.3f, %.3f, %.3f) jaw=%.2f\n", i,
-                   r.has_face, (int)r.answered_by, r.landmarks_px[2 * 30], r.landmarks_px[2 * 30 + 1],
-                   r.world_position_m[0], r.world_position_m[1], r.world_position_m[2], r.weights[0]);
+            printf("frame %2d face=%d by=%d nose(px)=(%.1f, %.1f) raw (%.1f, %.1f) head(m)=(%.3f, %.3f, %.3f) jaw=%.2f\n",
+                   i, r.has_face, (int)r.answered_by, r.landmarks_px[2 * 30], r.landmarks_px[2 * 30 + 1],
+                   r.raw_landmarks_px[2 * 30], r.raw_landmarks_px[2 * 30 + 1], r.world_position_m[0],
+                   r.world_position_m[1], r.world_position_m[2], r.weights[0]);
     }
     /* No server configured: the link status says the local aligner answers. */
     HfLinkStatus link;

@@ -250,7 +250,7 @@ typedef struct HfResult {
    */
   uint32_t no_face_reason;
   /**
-   * 68 landmarks (x, y) in image pixels.
+   * 68 landmarks (x, y) in image pixels, steadied over time (One-Euro in the face's frame): what to draw.
    */
   float landmarks_px[136];
   /**
@@ -297,6 +297,10 @@ typedef struct HfResult {
    * Mouth open (0/1).
    */
   uint8_t mouth_open;
+  /**
+   * The aligner's own landmarks for this frame (x, y), unfiltered, image pixels.
+   */
+  float raw_landmarks_px[136];
 } HfResult;
 
 /**

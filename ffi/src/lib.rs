@@ -117,7 +117,7 @@ pub struct HfResult {
     /// Without a face: 1 not detected, 2 rejected by the aligner's own check, 3 no aligner answered,
     /// 4 the 3D fit failed; 0 with a face.
     pub no_face_reason: u32,
-    /// 68 landmarks (x, y) in image pixels.
+    /// 68 landmarks (x, y) in image pixels, steadied over time (One-Euro in the face's frame): what to draw.
     pub landmarks_px: [f32; 136],
     /// Head translation in the camera frame, metres.
     pub camera_translation_m: [f64; 3],
@@ -141,6 +141,8 @@ pub struct HfResult {
     pub brows_raised: u8,
     /// Mouth open (0/1).
     pub mouth_open: u8,
+    /// The aligner's own landmarks for this frame (x, y), unfiltered, image pixels.
+    pub raw_landmarks_px: [f32; 136],
 }
 
 /// Most faces one `HfFaces` holds (`hf_tracker_new_faces` accepts 1..=`HF_MAX_FACES`).
@@ -739,6 +741,7 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
         smile: 0,
         brows_raised: 0,
         mouth_open: 0,
+        raw_landmarks_px: [0.0; 136],
     }
 }
 
@@ -746,9 +749,11 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     let q = |q: holoface_models::math3::Quat| [q.w, q.x, q.y, q.z];
     let mut c = empty_result(answered_by, 0);
     c.has_face = 1;
-    for (i, p) in u.landmarks.iter().enumerate() {
+    for (i, (p, r)) in u.landmarks.iter().zip(&u.raw_landmarks).enumerate() {
         c.landmarks_px[2 * i] = p.x;
         c.landmarks_px[2 * i + 1] = p.y;
+        c.raw_landmarks_px[2 * i] = r.x;
+        c.raw_landmarks_px[2 * i + 1] = r.y;
     }
     c.camera_translation_m = u.fit.translation.to_array();
     c.camera_rotation_wxyz = q(u.fit.rotation);

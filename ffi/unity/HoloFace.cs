@@ -37,6 +37,8 @@ namespace HoloFace
         [MarshalAs(UnmanagedType.ByValArray, SizeConst = 4)] public double[] displayRotationWxyz;
         [MarshalAs(UnmanagedType.ByValArray, SizeConst = 5)] public double[] weights;
         public byte smile, browsRaised, mouthOpen;
+        /// <summary>The aligner's own landmarks, unfiltered (landmarksPx is steadied: draw that).</summary>
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = 136)] public float[] rawLandmarksPx;
     }
 
     /// <summary>One face of a several-face tracker: its stable id and its answer.</summary>

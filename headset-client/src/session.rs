@@ -17,12 +17,15 @@
 
 use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
-use holoface_models::geometry::{Point2, Rect};
+use holoface_models::geometry::{Point2, Rect, Similarity2};
 use holoface_models::kalman::{Denoiser, KalmanParams, PositionPredictor};
 use holoface_models::math3::{Pose, Quat, Vec3};
 use holoface_models::pose::{
     AttributeThresholds, Attributes, WorldPose, compensate_headset_motion, world_pose,
 };
+use holoface_models::shape::OUTER_EYE_CORNERS;
+pub use holoface_models::steady::{FilterParams, OneEuroParams, SteadyParams};
+use holoface_models::steady::{LandmarkFilter, Source};
 use serde::Serialize;
 
 pub use crate::align::InitSource;
@@ -49,6 +52,10 @@ pub struct SessionOptions {
     /// While at least one face but fewer than `max_faces` are tracked, the detector runs every this many
     /// frames to find the others (at least 1); with no face tracked it runs on every frame.
     pub detect_every: u32,
+    /// The landmark filter (One-Euro, in the face's own frame; [`holoface_models::steady`]): what
+    /// [`FaceUpdate::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
+    /// `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
+    pub steady: Option<SteadyParams>,
 }
 
 impl Default for SessionOptions {
@@ -64,6 +71,7 @@ impl Default for SessionOptions {
             motion_compensation: true,
             max_faces: 1,
             detect_every: 10,
+            steady: Some(SteadyParams::default()),
         }
     }
 }
@@ -84,6 +92,9 @@ pub enum SessionOptionsError {
     /// `max_faces` is 0 or more than [`MAX_TRACKED_FACES`].
     #[error("max_faces {0} must be within 1..=64")]
     MaxFaces(usize),
+    /// A landmark filter parameter is not finite or out of range.
+    #[error("steady: cut-offs must be > 0 Hz, beta >= 0 and times >= 0 (finite)")]
+    Steady,
 }
 
 impl SessionOptions {
@@ -94,6 +105,9 @@ impl SessionOptions {
         }
         if !(1..=MAX_TRACKED_FACES).contains(&self.max_faces) {
             return Err(SessionOptionsError::MaxFaces(self.max_faces));
+        }
+        if self.steady.is_some_and(|p| !p.is_valid()) {
+            return Err(SessionOptionsError::Steady);
         }
         Ok(())
     }
@@ -166,8 +180,10 @@ impl FrameFaces {
 /// A tracked face in one frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FaceUpdate {
-    /// Landmarks in image pixels.
+    /// Landmarks in image pixels, steadied over time ([`SessionOptions::steady`]): what an app draws.
     pub landmarks: [Point2; 68],
+    /// The aligner's own landmarks for this frame, unfiltered (image pixels).
+    pub raw_landmarks: [Point2; 68],
     /// Which landmarks the aligner produced.
     pub landmark_set: LandmarkSet,
     /// The aligner's confidence.
@@ -223,6 +239,7 @@ struct Track {
     predictor: PositionPredictor,
     attributes: Attributes,
     denoiser: Denoiser,
+    steady: Option<LandmarkFilter<68>>,
 }
 
 /// The tracker state machine. See the module documentation for the call order.
@@ -409,6 +426,25 @@ impl TrackerSession {
             return no_face(c.track, NoFaceReason::Rejected);
         }
         let warm = index.map(|i| self.tracks[i].fit);
+        // The track's landmark filter, or a new one for a new face; the fit sees the steadied landmarks.
+        let mut steady = index.and_then(|i| self.tracks[i].steady.take()).or_else(|| {
+            self.opts
+                .steady
+                .and_then(|p| LandmarkFilter::new(&self.mean, OUTER_EYE_CORNERS, p).ok())
+        });
+        // The headset's own motion since the track's last frame, as the image sees it: the similarity
+        // between the track's landmarks and the candidate's start (those landmarks moved with the headset).
+        let moved = index
+            .filter(|_| c.source == InitSource::Tracking)
+            .and_then(|i| Similarity2::fit(&self.tracks[i].landmarks, &c.init))
+            .unwrap_or(Similarity2::IDENTITY);
+        let shown = steady.as_mut().map_or(a.landmarks, |f| {
+            let source = Source {
+                id: a.answered_by as u8,
+                precise: a.answered_by != crate::align::AnsweredBy::Krfws,
+            };
+            f.filter(&a.landmarks, frame.timestamp_us, source, &moved)
+        });
         let opts = if warm.is_some() {
             self.opts.fit
         } else {
@@ -417,7 +453,7 @@ impl TrackerSession {
                 ..self.opts.fit
             }
         };
-        let Ok(fitted) = fit(&self.model, &frame.intrinsics, &a.landmarks, warm.as_ref(), &opts) else {
+        let Ok(fitted) = fit(&self.model, &frame.intrinsics, &shown, warm.as_ref(), &opts) else {
             if let Some(i) = index {
                 self.tracks.remove(i);
             }
@@ -454,6 +490,7 @@ impl TrackerSession {
             predictor,
             attributes,
             denoiser,
+            steady,
         };
         // Oldest first: a track keeps its place, a new one goes after every older one.
         let at = self.tracks.partition_point(|t| t.id < id);
@@ -461,7 +498,8 @@ impl TrackerSession {
         CandidateOutcome {
             id: Some(id),
             result: FrameResult::Face(FaceUpdate {
-                landmarks: a.landmarks,
+                landmarks: shown,
+                raw_landmarks: a.landmarks,
                 landmark_set: a.set,
                 confidence: a.confidence,
                 fit: fitted,
@@ -632,6 +670,104 @@ mod tests {
             FrameResult::NoFace(NoFaceReason::Rejected)
         );
         assert!(!s.is_tracking());
+    }
+
+    #[test]
+    fn options_out_of_range_are_refused_by_name() {
+        assert_eq!(SessionOptions::default().validate(), Ok(()));
+        let with = |o: SessionOptions| o.validate();
+        let lookahead = SessionOptions {
+            lookahead_s: -0.1,
+            ..SessionOptions::default()
+        };
+        assert!(with(lookahead).unwrap_err().to_string().contains("lookahead_ms"));
+        let faces = SessionOptions {
+            max_faces: 65,
+            ..SessionOptions::default()
+        };
+        assert!(with(faces).unwrap_err().to_string().contains("max_faces"));
+        let mut p = SteadyParams::default();
+        p.noisy.shape.min_cutoff_hz = f64::INFINITY;
+        let steady = |steady| SessionOptions {
+            steady,
+            ..SessionOptions::default()
+        };
+        assert_eq!(with(steady(Some(p))), Err(SessionOptionsError::Steady));
+        assert_eq!(with(steady(None)), Ok(()));
+    }
+
+    /// The aligner's noisy answers stay available raw; what the session shows (and fits) is steadied,
+    /// and `steady: None` shows the raw answers.
+    #[test]
+    fn landmarks_are_steadied_and_the_raw_ones_kept() {
+        let m = model();
+        let lm = truth_landmarks(&m, 0.6);
+        let det = || FakeDetector {
+            present: true,
+            keypoints: [lm[39], lm[42], lm[30], lm[62], lm[0], lm[16]],
+        };
+        let pixels = vec![0u8; 320 * 240];
+        let mut rng = holoface_models::rng::Rng::new(3);
+        let noisy: Vec<[Point2; 68]> = (0..60)
+            .map(|_| lm.map(|p| Point2::new(p.x + rng.normal() as f32, p.y + rng.normal() as f32)))
+            .collect();
+        let run = |steady: Option<SteadyParams>| {
+            let opts = SessionOptions {
+                steady,
+                ..SessionOptions::default()
+            };
+            let mut s = TrackerSession::new(
+                Box::new(det()),
+                m.clone(),
+                holoface_models::shape::dan_mean_shape(),
+                opts,
+            );
+            let mut out = Vec::new();
+            for (k, n) in noisy.iter().enumerate() {
+                let f = Frame {
+                    timestamp_us: k as u64 * 33_333,
+                    image: GrayView::new(&pixels, 320, 240, 320).unwrap(),
+                    intrinsics: K,
+                    world_from_camera: Pose::IDENTITY,
+                };
+                let c = s.prepare_faces(&f).unwrap();
+                let a = Alignment {
+                    landmarks: *n,
+                    set: LandmarkSet::Ibug68,
+                    confidence: Confidence::PredictedError(0.02),
+                    accepted: true,
+                    answered_by: crate::align::AnsweredBy::Krfws,
+                };
+                let FrameResult::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
+                    panic!("frame {k}: no face")
+                };
+                assert_eq!(
+                    u.raw_landmarks, *n,
+                    "frame {k}: the raw landmarks are the aligner's"
+                );
+                out.push(u.landmarks);
+            }
+            out
+        };
+        let err = |shown: &[[Point2; 68]]| -> f32 {
+            shown[20..]
+                .iter()
+                .flat_map(|s| s.iter().zip(&lm).map(|(a, b)| a.dist(*b)))
+                .sum::<f32>()
+                / (40.0 * 68.0)
+        };
+        let (steadied, raw) = (run(Some(SteadyParams::default())), run(None));
+        assert_eq!(
+            raw, noisy,
+            "without the filter the shown landmarks are the raw ones"
+        );
+        assert_eq!(steadied[0], noisy[0], "the first frame passes through");
+        assert!(
+            err(&steadied) < 0.75 * err(&raw),
+            "steadied {} px vs raw {} px",
+            err(&steadied),
+            err(&raw)
+        );
     }
 
     /// Detector fake for several faces: one detection per entry of `faces` (keypoints), counting calls.

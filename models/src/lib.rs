@@ -23,6 +23,7 @@ pub mod pose;
 pub mod refine;
 pub mod rng;
 pub mod shape;
+pub mod steady;
 
 pub use camera::Intrinsics;
 pub use crop::{CROP_PIXELS, CROP_SIZE, Crop112, crop_bilinear};

@@ -70,7 +70,9 @@ class Face:
     id: int
     """The track id: the same for as long as the face is tracked, never reused by this tracker."""
     landmarks: npt.NDArray[np.float32]
-    """[68, 2] iBUG-68 landmarks in image pixels."""
+    """[68, 2] iBUG-68 landmarks in image pixels, steadied over time (what to draw)."""
+    raw_landmarks: npt.NDArray[np.float32]
+    """[68, 2] the aligner's own landmarks for this frame, unfiltered."""
     landmark_set: str
     """"ibug68" or "inner51" (KRFWS aligns the 51 inner points; the jaw holds the initial shape)."""
     answered_by: str

@@ -224,8 +224,10 @@ impl PyTrackerOptions {
 struct PyFace {
     /// The face's track id: the same for as long as it is tracked, never reused by this tracker.
     id: u32,
-    /// float32 array [68, 2]: the iBUG-68 landmarks in image pixels.
+    /// float32 array [68, 2]: the iBUG-68 landmarks in image pixels, steadied over time (what to draw).
     landmarks: Py<PyArray2<f32>>,
+    /// float32 array [68, 2]: the aligner's own landmarks for this frame, unfiltered.
+    raw_landmarks: Py<PyArray2<f32>>,
     /// "ibug68" (all 68 aligned) or "inner51" (KRFWS: the jaw slots hold the initial shape).
     landmark_set: String,
     /// "remote_dan", "krfws" or "local_dan".
@@ -351,9 +353,12 @@ fn matrix4(py: Python<'_>, rotation: Quat, translation: Vec3) -> Py<PyArray2<f64
 
 fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
     let mut lm = Array2::<f32>::zeros((68, 2));
-    for (i, p) in u.landmarks.iter().enumerate() {
+    let mut raw = Array2::<f32>::zeros((68, 2));
+    for (i, (p, r)) in u.landmarks.iter().zip(&u.raw_landmarks).enumerate() {
         lm[[i, 0]] = p.x;
         lm[[i, 1]] = p.y;
+        raw[[i, 0]] = r.x;
+        raw[[i, 1]] = r.y;
     }
     let weights = PyDict::new(py);
     for (unit, w) in u.fit.weights.iter() {
@@ -366,6 +371,7 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
     Ok(PyFace {
         id,
         landmarks: lm.into_pyarray(py).unbind(),
+        raw_landmarks: raw.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
             holoface_headset_client::align::LandmarkSet::Ibug68 => "ibug68",
             holoface_headset_client::align::LandmarkSet::Inner51 => "inner51",

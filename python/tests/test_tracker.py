@@ -24,6 +24,9 @@ def test_same_landmarks_as_the_rust_cli(clip, cli_lines):
             assert face.landmarks.dtype == np.float32 and face.landmarks.shape == (68, 2)
             diff = np.abs(face.landmarks - np.asarray(want["faces"][0]["landmarks_px"], dtype=np.float32)).max()
             assert diff <= 1e-4, f"frame {frame.index}: landmarks differ from the CLI's by {diff} px"
+            assert face.raw_landmarks.dtype == np.float32 and face.raw_landmarks.shape == (68, 2)
+            diff = np.abs(face.raw_landmarks - np.asarray(want["faces"][0]["raw_landmarks_px"], dtype=np.float32)).max()
+            assert diff <= 1e-4, f"frame {frame.index}: raw landmarks differ from the CLI's by {diff} px"
             assert face.answered_by == want["faces"][0]["aligner"] == "krfws"
             assert face.init == want["faces"][0]["init"]
             np.testing.assert_allclose(face.camera_pose[:3, 3], want["faces"][0]["camera"]["translation_m"], atol=1e-9)

@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use holoface_headset_client::assets::{CANDIDE_ENV, DAN_ENV, DETECTOR_ENV, KRFWS_ENV, home};
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
+use holoface_models::steady::SteadyParams;
 
 use holoface_headset_client::align::{DanAligner, KrfwsAligner};
 
@@ -129,5 +130,53 @@ impl AlignerKind {
             Self::Dan => "dan",
             Self::Remote => "remote",
         }
+    }
+}
+
+/// The landmark filter's settings (`holoface_models::steady`); defaults are `SteadyParams::default()`.
+#[derive(Debug, Clone, Copy, Args)]
+pub struct SteadyArgs {
+    /// Turn the landmark filter off (the steadied landmarks then equal the aligner's raw ones).
+    #[arg(long)]
+    pub no_steady: bool,
+    /// KRFWS's answers: One-Euro cut-off at rest of the shape in the face's frame, Hz.
+    #[arg(long, default_value_t = SteadyParams::default().noisy.shape.min_cutoff_hz)]
+    pub steady_shape_cutoff_hz: f64,
+    /// KRFWS's answers: One-Euro speed coefficient of the shape (per eye distance per second).
+    #[arg(long, default_value_t = SteadyParams::default().noisy.shape.beta)]
+    pub steady_shape_beta: f64,
+    /// KRFWS's answers: One-Euro cut-off at rest of the face's placement (translation, scale, rotation), Hz.
+    #[arg(long, default_value_t = SteadyParams::default().noisy.rigid.min_cutoff_hz)]
+    pub steady_rigid_cutoff_hz: f64,
+    /// KRFWS's answers: One-Euro speed coefficient of the placement.
+    #[arg(long, default_value_t = SteadyParams::default().noisy.rigid.beta)]
+    pub steady_rigid_beta: f64,
+    /// DAN's (and the server's) answers: shape cut-off at rest, Hz.
+    #[arg(long, default_value_t = SteadyParams::default().precise.shape.min_cutoff_hz)]
+    pub steady_precise_shape_cutoff_hz: f64,
+    /// DAN's answers: shape speed coefficient.
+    #[arg(long, default_value_t = SteadyParams::default().precise.shape.beta)]
+    pub steady_precise_shape_beta: f64,
+    /// DAN's answers: placement cut-off at rest, Hz.
+    #[arg(long, default_value_t = SteadyParams::default().precise.rigid.min_cutoff_hz)]
+    pub steady_precise_rigid_cutoff_hz: f64,
+    /// DAN's answers: placement speed coefficient.
+    #[arg(long, default_value_t = SteadyParams::default().precise.rigid.beta)]
+    pub steady_precise_rigid_beta: f64,
+}
+
+impl SteadyArgs {
+    /// The session's `steady` setting.
+    pub fn params(&self) -> Option<SteadyParams> {
+        let mut p = SteadyParams::default();
+        p.noisy.shape.min_cutoff_hz = self.steady_shape_cutoff_hz;
+        p.noisy.shape.beta = self.steady_shape_beta;
+        p.noisy.rigid.min_cutoff_hz = self.steady_rigid_cutoff_hz;
+        p.noisy.rigid.beta = self.steady_rigid_beta;
+        p.precise.shape.min_cutoff_hz = self.steady_precise_shape_cutoff_hz;
+        p.precise.shape.beta = self.steady_precise_shape_beta;
+        p.precise.rigid.min_cutoff_hz = self.steady_precise_rigid_cutoff_hz;
+        p.precise.rigid.beta = self.steady_precise_rigid_beta;
+        (!self.no_steady).then_some(p)
     }
 }

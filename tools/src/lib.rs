@@ -15,4 +15,5 @@ pub mod loopback;
 pub mod plot;
 pub mod relay;
 pub mod render;
+pub mod stability;
 pub mod stats;

@@ -8,6 +8,7 @@ pub mod multi_face;
 pub mod record;
 pub mod setup;
 pub mod simulate;
+pub mod stability;
 pub mod teacher_labels;
 pub mod track;
 pub mod tracking_losses;
@@ -43,6 +44,9 @@ pub enum Command {
     Record(record::Args),
     /// Synthetic headset sequences from CANDIDE-3: fit recovery, prediction and motion-compensation numbers.
     Simulate(simulate::Args),
+    /// Landmark stability on real, unannotated video: per aligner, jitter of the raw and the steadied
+    /// landmarks, re-detections, jumps at remote/local switches, agreement with a per-frame peer (dlib).
+    Stability(stability::Args),
     /// Track faces over an image folder, an MP4 video or a recorded stream; one JSON line per frame.
     Track(track::Args),
     /// Label unannotated face photographs with dlib's predictor and our remote pipeline, keeping the faces
@@ -71,6 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Track(args) => track::run(args),
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::Stability(args) => stability::run(args),
         Command::TeacherLabels(args) => teacher_labels::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),
         Command::TrainKrfws(args) => train_krfws::run(args),

@@ -75,6 +75,9 @@ pub struct Args {
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
     #[arg(long, default_value = "jpeg:75")]
     pub crop_encoding: holoface_headset_client::link::CropCodec,
+    /// The landmark filter.
+    #[command(flatten)]
+    pub steady: crate::args::SteadyArgs,
     /// Runtime assets.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
@@ -107,6 +110,7 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
         "init": u.init,
         "confidence": u.confidence,
         "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
+        "raw_landmarks_px": u.raw_landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
         "camera": {
             "translation_m": u.fit.translation.to_array(),
             "rotation_wxyz": [u.fit.rotation.w, u.fit.rotation.x, u.fit.rotation.y, u.fit.rotation.z],
@@ -151,6 +155,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         lookahead_s: args.lookahead_ms / 1e3,
         max_faces: usize::from(args.max_faces),
         detect_every: args.detect_every,
+        steady: args.steady.params(),
         ..SessionOptions::default()
     };
     let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);

@@ -67,6 +67,9 @@ pub struct Args {
     /// JSON report.
     #[arg(long, default_value = "runs/tracking-losses.json")]
     pub out: PathBuf,
+    /// The landmark filter.
+    #[command(flatten)]
+    pub steady: crate::args::SteadyArgs,
     /// Also export the first face's sequence (MP4 + pose sidecar + true landmarks) into this folder.
     #[arg(long)]
     pub write_sequence: Option<PathBuf>,
@@ -162,8 +165,17 @@ struct Tally {
     losses: usize,
     nme49_sum: f64,
     nme49_n: usize,
+    /// NME49 of the aligner's own (unsteadied) landmarks, over the same frames.
+    raw_nme49_sum: f64,
+    /// Lag behind the truth, least squares over the 49 points of every frame after the first of a track:
+    /// `sum <truth - shown, v> / sum |v|^2` with `v` the truth's motion since the previous frame (frames).
+    lag_num: f64,
+    lag_raw_num: f64,
+    lag_den: f64,
     #[serde(skip)]
     was_good: bool,
+    #[serde(skip)]
+    prev_truth: Option<[Point2; 68]>,
 }
 
 impl Tally {
@@ -175,9 +187,24 @@ impl Tally {
         let good = match result {
             FrameResult::Face(u) => {
                 let e = nme49(&u.landmarks, truth).unwrap_or(f64::INFINITY);
-                if e.is_finite() {
+                let raw = nme49(&u.raw_landmarks, truth).unwrap_or(f64::INFINITY);
+                if e.is_finite() && raw.is_finite() {
                     self.nme49_sum += e;
+                    self.raw_nme49_sum += raw;
                     self.nme49_n += 1;
+                }
+                if let Some(prev) = self.prev_truth.filter(|_| init == Some(InitSource::Tracking)) {
+                    for &i in &holoface_models::shape::PROTOCOL49 {
+                        let v = (
+                            f64::from(truth[i].x - prev[i].x),
+                            f64::from(truth[i].y - prev[i].y),
+                        );
+                        let behind =
+                            |p: Point2| f64::from(truth[i].x - p.x) * v.0 + f64::from(truth[i].y - p.y) * v.1;
+                        self.lag_num += behind(u.landmarks[i]);
+                        self.lag_raw_num += behind(u.raw_landmarks[i]);
+                        self.lag_den += v.0 * v.0 + v.1 * v.1;
+                    }
                 }
                 if e <= GOOD_NME {
                     self.good += 1;
@@ -196,6 +223,7 @@ impl Tally {
             self.losses += 1;
         }
         self.was_good = good;
+        self.prev_truth = Some(*truth);
     }
 
     fn summary(&self, fps: f64) -> serde_json::Value {
@@ -209,6 +237,9 @@ impl Tally {
             "no_face_frames_pct": 100.0 * self.no_face as f64 / n,
             "detector_runs": self.detections,
             "mean_nme49_pct": 100.0 * self.nme49_sum / self.nme49_n.max(1) as f64,
+            "raw_mean_nme49_pct": 100.0 * self.raw_nme49_sum / self.nme49_n.max(1) as f64,
+            "lag_frames": self.lag_num / self.lag_den.max(1e-12),
+            "raw_lag_frames": self.lag_raw_num / self.lag_den.max(1e-12),
         })
     }
 }
@@ -304,6 +335,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for compensate in [true, false] {
         let opts = SessionOptions {
             motion_compensation: compensate,
+            steady: args.steady.params(),
             ..SessionOptions::default()
         };
         runners.push(Runner {
@@ -337,6 +369,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for r in &mut runners {
             r.session.reset();
             r.tally.was_good = false;
+            r.tally.prev_truth = None;
         }
         for i in 0..frames {
             let t = i as f64 / args.fps;
@@ -405,6 +438,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "no_face_frames_pct",
         "detector_runs",
         "mean_nme49_pct",
+        "raw_mean_nme49_pct",
+        "lag_frames",
+        "raw_lag_frames",
     ] {
         let f = |v: &serde_json::Value| v[key].as_f64().unwrap_or(f64::NAN);
         crate::say!(
