@@ -309,7 +309,7 @@ speed-vs-dlib: setup-release venv-peer
 # DAN_PHASE='--phase-start 7000 --steps N --lr ...' (the slim checkpoint carries the step and the RNG state).
 DAN_PHASE ?= --phase-start 6500 --steps 7000 --lr 1e-4 --loss nme --neg-frac 0.3 --hard-neg 0.5
 DAN_THREADS ?= 2
-DAN_VERSION ?= 0.3.0
+DAN_VERSION ?= 0.4.0
 train-dan: venv-train
 	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-w0.5 --width 0.5 \
 	  --threads $(DAN_THREADS) --eval-every 100 $(DAN_PHASE) \
