@@ -300,3 +300,101 @@ fn a_truncated_or_malformed_y4m_is_an_error_naming_the_frame() {
     assert!(!ok && text.contains("not a YUV4MPEG2 stream"), "{text}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// `holoface stability` over a y4m clip: with our own raw landmarks as the per-frame peer the agreement is
+/// exact and the peer's jitter is ours; the steadied columns exist and are the raw ones with `--no-steady`;
+/// a malformed peer file is refused naming its line.
+#[test]
+fn stability_reports_jitter_and_agreement_and_refuses_bad_peers() {
+    let d = tmp("stability");
+    let clip = sample_clip(12);
+    let y4m = d.join("cam.y4m");
+    write_y4m(&y4m, &clip);
+    let track = d.join("track.jsonl");
+    let (ok, text) = run(&[
+        "track",
+        "--source",
+        y4m.to_str().unwrap(),
+        "--no-steady",
+        "--out",
+        track.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let mut peer = String::new();
+    for (k, g) in lines(&track).iter().enumerate() {
+        let raw = g["faces"][0]["raw_landmarks_px"].as_array().unwrap();
+        assert_eq!(
+            raw,
+            g["faces"][0]["landmarks_px"].as_array().unwrap(),
+            "--no-steady shows the raw ones"
+        );
+        let nums: Vec<String> = raw
+            .iter()
+            .flat_map(|p| [p[0].as_f64().unwrap(), p[1].as_f64().unwrap()])
+            .map(|v| format!("{v}"))
+            .collect();
+        peer.push_str(&format!("{k} {}\n", nums.join(" ")));
+    }
+    let peer_file = d.join("peer.tsv");
+    std::fs::write(&peer_file, peer).unwrap();
+    let report = d.join("report.json");
+    let plot = d.join("jitter.png");
+    let stability = |extra: &[&str], peer: &std::path::Path| {
+        let mut args = vec![
+            "stability",
+            "--source",
+            y4m.to_str().unwrap(),
+            "--aligners",
+            "krfws",
+            "--peer",
+            peer.to_str().unwrap(),
+            "--out",
+            report.to_str().unwrap(),
+            "--plot",
+            plot.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        run(&args)
+    };
+    let (ok, text) = stability(&["--no-steady"], &peer_file);
+    assert!(ok, "{text}");
+    assert!(text.contains("12 frames"), "{text}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let a = &r["aligners"][0];
+    assert_eq!(
+        (
+            a["aligner"].as_str(),
+            a["frames"].as_u64(),
+            a["faces_found"].as_u64()
+        ),
+        (Some("krfws"), Some(12), Some(12))
+    );
+    assert_eq!(a["redetections"], 0);
+    let f = |v: &serde_json::Value| v.as_f64().unwrap();
+    assert!(f(&a["raw_vs_peer_nme49"]["mean"]) < 1e-6, "{a}");
+    assert_eq!(
+        a["raw_jitter49"]["frames"], 10,
+        "every frame but the first and the last"
+    );
+    assert!(
+        (f(&a["raw_jitter49"]["mean"]) - f(&r["peer"]["jitter49"]["mean"])).abs() < 1e-6,
+        "{r}"
+    );
+    assert_eq!(a["raw_jitter49"], a["steadied_jitter49"]);
+    assert!(std::fs::read(&plot).unwrap().starts_with(b"\x89PNG"));
+
+    let (ok, text) = stability(&[], &peer_file);
+    assert!(ok, "{text}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let a = &r["aligners"][0];
+    assert!(
+        f(&a["steadied_jitter49"]["mean"]).is_finite() && f(&a["steadied_vs_peer_nme49"]["mean"]) < 0.05,
+        "{a}"
+    );
+
+    let bad = d.join("bad.tsv");
+    std::fs::write(&bad, "0 1 2 3\n").unwrap();
+    let (ok, text) = stability(&[], &bad);
+    assert!(!ok && text.contains("bad.tsv: line 1: 3 numbers"), "{text}");
+    let _ = std::fs::remove_dir_all(&d);
+}
