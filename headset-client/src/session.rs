@@ -704,7 +704,7 @@ mod tests {
         let lm = truth_landmarks(&m, 0.6);
         let det = || FakeDetector {
             present: true,
-            keypoints: [lm[39], lm[42], lm[30], lm[62], lm[0], lm[16]],
+            keypoints: keypoints_of(&lm),
         };
         let pixels = vec![0u8; 320 * 240];
         let mut rng = holoface_models::rng::Rng::new(3);

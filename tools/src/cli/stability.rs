@@ -147,6 +147,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         steady: args.steady.params(),
         ..SessionOptions::default()
     };
+    let model = args.candide.load()?;
     let mut server = None;
     let mut runs = Vec::new();
     for &a in &args.aligners {
@@ -174,7 +175,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             },
             session: TrackerSession::new(
                 Box::new(args.runtime.detector()?),
-                args.candide.load()?,
+                model.clone(),
                 dan_mean_shape(),
                 session_opts,
             ),
