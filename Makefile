@@ -155,6 +155,17 @@ deps-check:
 	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-models feature "train"'; then \
 	    echo "$$c compiles the models' trainers (holoface-models/train)" >&2; exit 1; fi; done
 	@echo "holoface-headset-client, holoface-ffi, holoface-python, holoface-alignment-server: no trainers"
+	@# The facade: without the tools feature only the runtime's root is public, and the C ABI, the Python
+	@# module and the embedding example compile against it alone; no quinn type in its documented API.
+	@for c in holoface-ffi holoface-python; do \
+	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-headset-client feature "tools"'; then \
+	    echo "$$c enables holoface-headset-client/tools: it must use the facade only" >&2; exit 1; fi; done
+	$(CARGO) check --locked -q -p holoface-headset-client -p holoface-ffi -p holoface-python --lib --examples
+	@rm -rf target/doc/holoface_headset_client
+	$(CARGO) doc --locked -q -p holoface-headset-client --no-deps --lib
+	@if grep -rqi quinn target/doc/holoface_headset_client; then \
+	  echo "the runtime's app-facing API mentions quinn" >&2; exit 1; fi
+	@echo "holoface-headset-client: the facade alone serves the C ABI, Python and the embedding example; no quinn in it"
 	tools/feature-parity.sh
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the

@@ -16,14 +16,14 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_headset_client::align::AnsweredBy;
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::link::{FailureKind, LinkState, LinkStatus, RemoteOptions, RemoteOptionsError};
-use holoface_headset_client::session::{FaceUpdate, FrameResult, NoFaceReason};
-use holoface_headset_client::tracker::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
-use holoface_models::camera::Intrinsics;
-use holoface_models::image::GrayView;
-use holoface_models::math3::Pose;
+use holoface_headset_client::AnsweredBy;
+use holoface_headset_client::Frame;
+use holoface_headset_client::GrayView;
+use holoface_headset_client::Intrinsics;
+use holoface_headset_client::Pose;
+use holoface_headset_client::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
+use holoface_headset_client::{FaceResult, FaceUpdate, NoFaceReason};
+use holoface_headset_client::{FailureKind, LinkInfo, LinkState, RemoteOptions, RemoteOptionsError};
 
 /// Result of every call.
 #[repr(C)]
@@ -246,7 +246,7 @@ fn link_failure(kind: Option<FailureKind>) -> HfLinkFailure {
     }
 }
 
-fn link_status(status: Option<LinkStatus>) -> HfLinkStatus {
+fn link_status(status: Option<LinkInfo>) -> HfLinkStatus {
     let mut out = HfLinkStatus {
         state: HfLinkState::Local,
         failure: HfLinkFailure::None,
@@ -497,7 +497,7 @@ unsafe fn new_tracker(
             unsafe { out.write(ptr) };
             HfStatus::Ok
         }
-        Err(e @ holoface_headset_client::tracker::TrackerError::Options(_)) => {
+        Err(e @ holoface_headset_client::TrackerError::Options(_)) => {
             fail(HfStatus::InvalidArgument, e.to_string())
         }
         Err(e) => fail(HfStatus::AssetError, e.to_string()),
@@ -516,7 +516,7 @@ unsafe fn process_frame(
     timestamp_us: u64,
     camera: *const HfCamera,
     world_from_camera: *const f32,
-) -> Result<holoface_headset_client::tracker::FaceResult, HfStatus> {
+) -> Result<holoface_headset_client::FrameResult, HfStatus> {
     if !registered(tracker) {
         return Err(fail(
             HfStatus::InvalidHandle,
@@ -582,7 +582,7 @@ unsafe fn process_frame(
         Ok(r) => r,
         Err(e) => {
             let status = match e {
-                holoface_headset_client::tracker::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
+                holoface_headset_client::TrackerError::Timestamp { .. } => HfStatus::InvalidArgument,
                 _ => HfStatus::ProcessingError,
             };
             return Err(fail(status, e.to_string()));
@@ -746,7 +746,7 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
 }
 
 fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
-    let q = |q: holoface_models::math3::Quat| [q.w, q.x, q.y, q.z];
+    let q = |q: holoface_headset_client::Quat| [q.w, q.x, q.y, q.z];
     let mut c = empty_result(answered_by, 0);
     c.has_face = 1;
     for (i, (p, r)) in u.landmarks.iter().zip(&u.raw_landmarks).enumerate() {
@@ -769,15 +769,15 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     c
 }
 
-fn to_c(r: &holoface_headset_client::tracker::FaceResult) -> HfResult {
+fn to_c(r: &holoface_headset_client::FrameResult) -> HfResult {
     let by = answered_by_c(r.answered_by);
     match r.first() {
-        FrameResult::Face(u) => face_to_c(&u, by),
-        FrameResult::NoFace(reason) => empty_result(by, no_face_code(reason)),
+        FaceResult::Face(u) => face_to_c(&u, by),
+        FaceResult::NoFace(reason) => empty_result(by, no_face_code(reason)),
     }
 }
 
-fn faces_to_c(r: &holoface_headset_client::tracker::FaceResult, struct_size: u32) -> HfFaces {
+fn faces_to_c(r: &holoface_headset_client::FrameResult, struct_size: u32) -> HfFaces {
     let none = HfFace {
         id: 0,
         face: empty_result(HfAnsweredBy::None, 0),
@@ -993,13 +993,13 @@ mod tests {
 
     #[test]
     fn link_status_says_state_kind_and_message() {
-        use holoface_headset_client::link::LinkFailure;
+        use holoface_headset_client::LinkFailure;
         let local = link_status(None);
         assert_eq!(
             (local.state, local.failure, local.message[0]),
             (HfLinkState::Local, HfLinkFailure::None, 0)
         );
-        let failed = link_status(Some(LinkStatus::Failed(LinkFailure::new(
+        let failed = link_status(Some(LinkInfo::Failed(LinkFailure::new(
             FailureKind::Unauthorized,
             "connection: closed by peer",
         ))));
@@ -1013,7 +1013,7 @@ mod tests {
             .unwrap();
         assert_eq!(msg, "unauthorized: connection: closed by peer");
         // A long, multi-byte message is cut on a character boundary and stays NUL-terminated.
-        let long = link_status(Some(LinkStatus::Connecting {
+        let long = link_status(Some(LinkInfo::Connecting {
             last_error: Some(LinkFailure::new(FailureKind::Unreachable, "é".repeat(400))),
         }));
         assert_eq!(
@@ -1027,7 +1027,7 @@ mod tests {
             "{}",
             msg.len()
         );
-        let up = link_status(Some(LinkStatus::Connecting { last_error: None }));
+        let up = link_status(Some(LinkInfo::Connecting { last_error: None }));
         assert_eq!(
             (up.state, up.failure),
             (HfLinkState::Connecting, HfLinkFailure::None)

@@ -6,18 +6,17 @@
 //! cargo run --release -p holoface-headset-client --example embed -- [photo.png]
 //! ```
 //! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
-//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_headset_client::assets::home`); the photo defaults
+//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_headset_client::home`); the photo defaults
 //! to the data folder's demo sample.
 
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
-use holoface_models::camera::Intrinsics;
-use holoface_models::image::GrayImage;
-use holoface_models::math3::Pose;
+// Everything comes from the runtime's root: an app depends on this one crate.
+use holoface_headset_client::{
+    FaceTracker, Frame, GrayImage, Intrinsics, Pose, RunningMode, TrackerOptions, Unit,
+};
 
 fn main() -> anyhow::Result<()> {
     let path = std::env::args_os().nth(1).map_or_else(
-        || holoface_headset_client::assets::home::SAMPLE.default_path(),
+        || holoface_headset_client::home::SAMPLE.default_path(),
         std::path::PathBuf::from,
     );
     let photo = image::open(&path)?.into_luma8();
@@ -48,7 +47,7 @@ fn main() -> anyhow::Result<()> {
     println!(
         "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
         face.fit.translation.to_array(),
-        face.fit.weights[holoface_models::expression::Unit::JawDrop],
+        face.fit.weights[Unit::JawDrop],
         r.answered_by
     );
 

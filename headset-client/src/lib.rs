@@ -1,16 +1,102 @@
-//! The HoloFace headset runtime, the library a headset app embeds: the frame type, face detection, tracking
-//! with an interchangeable aligner (remote DAN over QUIC with KRFWS fallback, or KRFWS alone), CANDIDE-3
-//! fitting, world pose and prediction. The command-line tools live in `holoface-tools` and the readers of
-//! image folders, videos and recordings in `holoface-sources`; neither the alignment server nor a video
-//! decoder is ever compiled into a headset app.
+//! The HoloFace headset runtime, the library a headset app embeds: face detection, tracking with an
+//! interchangeable aligner (remote DAN over QUIC with KRFWS fallback, or KRFWS alone), CANDIDE-3 fitting,
+//! world pose and prediction. The command-line tools live in `holoface-tools` and the readers of image
+//! folders, videos and recordings in `holoface-sources`; neither the alignment server nor a video decoder is
+//! ever compiled into a headset app.
+//!
+//! **The app-facing API is this page**: everything an app needs is re-exported here, so an app depends on
+//! this one crate. Start with [`FaceTracker`] (or [`LiveTracker`] for a live camera) and [`TrackerOptions`];
+//! each [`Frame`] gets a [`FrameResult`] with one [`FaceResult`] per tracked face, or the reason there is
+//! none.
+//!
+//! ```no_run
+//! use holoface_headset_client::{FaceTracker, Frame, GrayView, Intrinsics, Pose, RunningMode, TrackerOptions};
+//!
+//! # fn main() -> Result<(), holoface_headset_client::TrackerError> {
+//! let mut tracker = FaceTracker::new(TrackerOptions { mode: RunningMode::Video, ..TrackerOptions::default() })?;
+//! let pixels = vec![0u8; 640 * 480];
+//! let frame = Frame {
+//!     timestamp_us: 0,
+//!     image: GrayView::new(&pixels, 640, 480, 640).expect("640x480"),
+//!     intrinsics: Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 },
+//!     world_from_camera: Pose::IDENTITY,
+//! };
+//! let result = tracker.process(&frame)?;
+//! if let Some(face) = result.face() {
+//!     println!("head at {:?} m in the world", face.world.position.to_array());
+//! }
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! **Coordinate frames.** Landmarks are in image pixels (origin top-left, x right, y down). `fit` is the head
+//! in the *camera* frame (OpenCV axes: x right, y down, z forward; metres). `world`, `predicted_position` and
+//! `display` are in the *world* frame of the `world_from_camera` poses the caller supplies.
+//!
+//! The modules themselves are private; the feature `tools` makes them public for the workspace's tools, load
+//! tester and tests (the aligners, the detector, the session, the link's connection): not a stable API.
 #![deny(missing_docs)]
 
-pub mod align;
-pub mod assets;
-pub mod crop_codec;
-pub mod detect;
-pub mod frame;
-pub mod frame_step;
-pub mod link;
-pub mod session;
-pub mod tracker;
+/// Declares modules public with the `tools` feature and private without it.
+macro_rules! tools_modules {
+    ($($(#[$attr:meta])* $name:ident;)*) => {$(
+        $(#[$attr])*
+        #[cfg(feature = "tools")]
+        pub mod $name;
+        #[cfg(not(feature = "tools"))]
+        #[allow(dead_code, unused_imports, unreachable_pub)]
+        mod $name;
+    )*};
+}
+
+tools_modules! {
+    /// Aligners: the trait, KRFWS, in-process DAN.
+    align;
+    /// Asset paths and loading.
+    assets;
+    /// Crop encodings on the wire.
+    crop_codec;
+    /// Face detection.
+    detect;
+    /// Frame types.
+    frame;
+    /// One frame's step.
+    frame_step;
+    /// The remote link with its local fallback.
+    link;
+    /// The tracker state machine.
+    session;
+    /// The embedding API.
+    tracker;
+}
+
+// The app-facing API.
+pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
+pub use assets::{
+    AssetError, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home,
+    parse_face_model,
+};
+pub use crop_codec::CropCodec;
+pub use frame::{Frame, FrameSource, OwnedFrame, SourceError, default_intrinsics};
+pub use frame_step::Timings;
+pub use link::{
+    FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,
+};
+pub use session::{
+    FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, NoFaceReason, OneEuroParams,
+    SessionOptions, SessionOptionsError, SteadyParams, TrackedFace,
+};
+pub use tracker::{
+    AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,
+    TrackerError, TrackerOptions,
+};
+
+// The types the API takes and returns, from the algorithms crate.
+pub use holoface_models::camera::Intrinsics;
+pub use holoface_models::candide::FitResult;
+pub use holoface_models::expression::{ExpressionWeights, Unit};
+pub use holoface_models::geometry::Point2;
+pub use holoface_models::image::{GrayImage, GrayView};
+pub use holoface_models::math3::{Pose, Quat, Vec3};
+pub use holoface_models::pose::{Attributes, WorldPose};
+pub use holoface_quic::Fingerprint;

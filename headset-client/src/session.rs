@@ -95,6 +95,9 @@ pub enum SessionOptionsError {
     /// A landmark filter parameter is not finite or out of range.
     #[error("steady: cut-offs must be > 0 Hz, beta >= 0 and times >= 0 (finite)")]
     Steady,
+    /// The detector's tiles per side are 0 or more than [`crate::tracker::MAX_DETECT_TILES`].
+    #[error("detect_tiles {0} must be within 1..=32")]
+    DetectTiles(usize),
 }
 
 impl SessionOptions {
@@ -138,7 +141,7 @@ pub struct CandidateOutcome {
     /// detection that was not accepted.
     pub id: Option<u32>,
     /// The face, or why this candidate has none.
-    pub result: FrameResult,
+    pub result: FaceResult,
 }
 
 /// Every face of one frame.
@@ -161,18 +164,18 @@ impl FrameFaces {
             self.outcomes
                 .iter()
                 .find_map(|o| match o.result {
-                    FrameResult::NoFace(r) => Some(r),
-                    FrameResult::Face(_) => None,
+                    FaceResult::NoFace(r) => Some(r),
+                    FaceResult::Face(_) => None,
                 })
                 .unwrap_or(NoFaceReason::NotDetected),
         )
     }
 
     /// The first face's answer in the single-face form.
-    pub fn first(&self) -> FrameResult {
+    pub fn first(&self) -> FaceResult {
         self.faces.first().map_or_else(
-            || FrameResult::NoFace(self.no_face_reason().unwrap_or(NoFaceReason::NotDetected)),
-            |f| FrameResult::Face(f.update),
+            || FaceResult::NoFace(self.no_face_reason().unwrap_or(NoFaceReason::NotDetected)),
+            |f| FaceResult::Face(f.update),
         )
     }
 }
@@ -208,7 +211,7 @@ pub struct FaceUpdate {
 // One value per frame, moved once: boxing the large variant would only add an allocation per frame.
 #[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum FrameResult {
+pub enum FaceResult {
     /// A face was tracked.
     Face(FaceUpdate),
     /// No face in this frame.
@@ -396,7 +399,7 @@ impl TrackerSession {
         let mut faces: Vec<TrackedFace> = outcomes
             .iter()
             .filter_map(|o| match (o.id, o.result) {
-                (Some(id), FrameResult::Face(update)) => Some(TrackedFace { id, update }),
+                (Some(id), FaceResult::Face(update)) => Some(TrackedFace { id, update }),
                 _ => None,
             })
             .collect();
@@ -413,7 +416,7 @@ impl TrackerSession {
         let index = c.track.and_then(|id| self.tracks.iter().position(|t| t.id == id));
         let no_face = |id, reason| CandidateOutcome {
             id,
-            result: FrameResult::NoFace(reason),
+            result: FaceResult::NoFace(reason),
         };
         let Some(a) = alignment else {
             // Keep the track: a late answer is not evidence that the face is gone.
@@ -497,7 +500,7 @@ impl TrackerSession {
         self.tracks.insert(at, track);
         CandidateOutcome {
             id: Some(id),
-            result: FrameResult::Face(FaceUpdate {
+            result: FaceResult::Face(FaceUpdate {
                 landmarks: shown,
                 raw_landmarks: a.landmarks,
                 landmark_set: a.set,
@@ -529,7 +532,7 @@ impl TrackerSession {
                 Some(j) => {
                     let gone = self.tracks.remove(j).id;
                     for o in outcomes.iter_mut().filter(|o| o.id == Some(gone)) {
-                        o.result = FrameResult::NoFace(NoFaceReason::Rejected);
+                        o.result = FaceResult::NoFace(NoFaceReason::Rejected);
                     }
                 }
                 None => i += 1,
@@ -643,7 +646,7 @@ mod tests {
         let f1 = frame(0);
         let (c, r) = one(&mut s, &f1, Some(answer(true)));
         assert_eq!(c.map(|c| c.source), Some(InitSource::Detection));
-        let FrameResult::Face(u) = r else {
+        let FaceResult::Face(u) = r else {
             panic!("expected a face")
         };
         assert!(
@@ -657,17 +660,17 @@ mod tests {
         let c = c.expect("a tracked candidate");
         assert_eq!(c.source, InitSource::Tracking);
         assert!(c.init[30].dist(lm[30]) < 1e-3);
-        assert!(matches!(r, FrameResult::Face(_)));
+        assert!(matches!(r, FaceResult::Face(_)));
         // Frame 3: no answer in time keeps the track; frame 4: rejection loses it.
         let f3 = frame(66_000);
         assert_eq!(
             one(&mut s, &f3, None).1,
-            FrameResult::NoFace(NoFaceReason::NoAnswer)
+            FaceResult::NoFace(NoFaceReason::NoAnswer)
         );
         assert!(s.is_tracking());
         assert_eq!(
             one(&mut s, &f3, Some(answer(false))).1,
-            FrameResult::NoFace(NoFaceReason::Rejected)
+            FaceResult::NoFace(NoFaceReason::Rejected)
         );
         assert!(!s.is_tracking());
     }
@@ -738,7 +741,7 @@ mod tests {
                     accepted: true,
                     answered_by: crate::align::AnsweredBy::Krfws,
                 };
-                let FrameResult::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
+                let FaceResult::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
                     panic!("frame {k}: no face")
                 };
                 assert_eq!(
@@ -903,7 +906,7 @@ mod tests {
         let (_, r) = run(&mut s, 20, Some(1));
         assert_eq!(ids(&r), [0, 2]);
         let lost = r.outcomes.iter().find(|o| o.id == Some(1)).unwrap();
-        assert_eq!(lost.result, FrameResult::NoFace(NoFaceReason::Rejected));
+        assert_eq!(lost.result, FaceResult::NoFace(NoFaceReason::Rejected));
         // Found again at the next detection: a new id, never a reused one.
         let mut found = None;
         for i in 21..30 {
@@ -956,7 +959,7 @@ mod tests {
         assert_eq!(r.faces.iter().map(|f| f.id).collect::<Vec<_>>(), [0]);
         assert_eq!(
             r.outcomes.iter().find(|o| o.id == Some(1)).map(|o| o.result),
-            Some(FrameResult::NoFace(NoFaceReason::Rejected))
+            Some(FaceResult::NoFace(NoFaceReason::Rejected))
         );
     }
 }

@@ -1,5 +1,5 @@
 //! The embedding API: one [`FaceTracker`], an options struct with defaults, three running modes and one
-//! [`FaceResult`] per frame.
+//! [`FrameResult`] per frame.
 //!
 //! ```no_run
 //! use holoface_headset_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
@@ -39,8 +39,8 @@ use crate::detect::DetectError;
 use crate::frame::{Frame, OwnedFrame};
 use crate::frame_step::StepError;
 pub use crate::frame_step::Timings;
-use crate::link::{LinkState, LinkStatus, LinkWatch, RemoteOptions};
-use crate::session::{FaceUpdate, FrameResult, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
+use crate::link::{LinkState, LinkInfo, LinkWatch, RemoteOptions};
+use crate::session::{FaceUpdate, FaceResult, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -77,6 +77,8 @@ pub struct TrackerOptions {
     pub aligner: AlignerChoice,
     /// Tracker settings (fit, Kalman, look-ahead, attributes, motion compensation).
     pub session: SessionOptions,
+    /// Face detector settings.
+    pub detector: DetectorOptions,
 }
 
 impl From<StepError> for TrackerError {
@@ -119,7 +121,7 @@ pub enum TrackerError {
 
 /// The answer for one frame.
 #[derive(Clone, Debug, PartialEq)]
-pub struct FaceResult {
+pub struct FrameResult {
     /// The frame's timestamp.
     pub timestamp_us: u64,
     /// Every face tracked in this frame with its stable id, oldest track first (at most
@@ -139,31 +141,62 @@ pub struct FaceResult {
     pub link: Option<LinkState>,
 }
 
-impl FaceResult {
+impl FrameResult {
     /// The oldest tracked face, if any (a one-face view of `faces`).
     pub fn face(&self) -> Option<&FaceUpdate> {
         self.faces.first().map(|f| &f.update)
     }
 
     /// The one-face view: the oldest face, or "no face" with the reason.
-    pub fn first(&self) -> FrameResult {
+    pub fn first(&self) -> FaceResult {
         match (self.face(), self.no_face) {
-            (Some(u), _) => FrameResult::Face(*u),
-            (None, reason) => FrameResult::NoFace(reason.unwrap_or(NoFaceReason::NotDetected)),
+            (Some(u), _) => FaceResult::Face(*u),
+            (None, reason) => FaceResult::NoFace(reason.unwrap_or(NoFaceReason::NotDetected)),
+        }
+    }
+}
+
+/// The face detector's settings.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DetectorOptions {
+    /// Tiles per side the detector looks at besides the whole frame (1 = the whole frame only, at most
+    /// [`MAX_DETECT_TILES`]). `None`: 1 for one face, 3 with the several-face settings. BlazeFace sees
+    /// 128 px: a face narrower than about a tenth of a tile's side is missed.
+    pub tiles: Option<usize>,
+    /// The several-face settings (3 x 3 tiles, score threshold 0.5) whatever `max_faces` is. `None`: when
+    /// [`SessionOptions::max_faces`] is above 1.
+    pub several_faces: Option<bool>,
+}
+
+/// The most detector tiles per side ([`DetectorOptions::tiles`]).
+pub const MAX_DETECT_TILES: usize = 32;
+
+impl DetectorOptions {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<(), crate::session::SessionOptionsError> {
+        match self.tiles {
+            Some(t) if !(1..=MAX_DETECT_TILES).contains(&t) => {
+                Err(crate::session::SessionOptionsError::DetectTiles(t))
+            }
+            _ => Ok(()),
         }
     }
 }
 
 /// Detects, aligns, fits and filters faces frame by frame (see the module docs).
-pub struct FaceTracker {
+///
+/// Every tracker of the workspace, whatever its aligner, is assembled here ([`FaceTracker::new`]; the
+/// tools' own aligners through `with_aligner`, behind the `tools` feature): the detector with its
+/// settings, CANDIDE-3, the mean shape and the several-face session.
+pub struct FaceTracker<A: ?Sized = dyn Aligner + Send> {
     mode: RunningMode,
     session: TrackerSession,
-    aligner: Box<dyn Aligner + Send>,
     link: Option<LinkWatch>,
     last_timestamp: Option<u64>,
+    aligner: Box<A>,
 }
 
-impl std::fmt::Debug for FaceTracker {
+impl<A: ?Sized> std::fmt::Debug for FaceTracker<A> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("FaceTracker")
             .field("mode", &self.mode)
@@ -171,46 +204,117 @@ impl std::fmt::Debug for FaceTracker {
     }
 }
 
-impl FaceTracker {
-    /// Loads the assets and, for [`AlignerChoice::Remote`], starts connecting in the background.
-    pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
+/// What every tracker loads before its aligner: the detector with its settings and CANDIDE-3.
+struct Parts {
+    detector: crate::detect::BlazeFace,
+    model: holoface_models::candide::FaceModel,
+}
+
+impl Parts {
+    fn load(opts: &TrackerOptions) -> Result<Self, TrackerError> {
         opts.session.validate()?;
+        opts.detector.validate()?;
         let a = &opts.assets;
         let mut detector = crate::detect::BlazeFace::load(&a.detector, &a.ort_dylib, 1)?;
-        if opts.session.max_faces > 1 {
+        if opts.detector.several_faces.unwrap_or(opts.session.max_faces > 1) {
             // Several people in view are smaller in the frame: look at tiles too (see `BlazeFace::tiles`).
             detector.for_several_faces();
         }
+        if let Some(tiles) = opts.detector.tiles {
+            detector.tiles = tiles;
+        }
         let model = crate::assets::load_face_model(&a.candide)?;
-        let krfws = crate::assets::load_krfws(&a.krfws)?;
-        let local = crate::align::KrfwsAligner::new(krfws);
-        let mut watch = None;
-        let aligner: Box<dyn Aligner + Send> = match &opts.aligner {
-            AlignerChoice::Local => Box::new(local),
+        Ok(Self { detector, model })
+    }
+
+    /// The one place a [`TrackerSession`] is made.
+    fn assemble<A: ?Sized>(self, opts: &TrackerOptions, aligner: Box<A>, link: Option<LinkWatch>) -> FaceTracker<A> {
+        FaceTracker {
+            mode: opts.mode,
+            session: TrackerSession::new(Box::new(self.detector), self.model, dan_mean_shape(), opts.session),
+            link,
+            last_timestamp: None,
+            aligner,
+        }
+    }
+}
+
+impl FaceTracker {
+    /// Loads the assets and, for [`AlignerChoice::Remote`], starts connecting in the background.
+    pub fn new(opts: TrackerOptions) -> Result<Self, TrackerError> {
+        let parts = Parts::load(&opts)?;
+        let local = crate::align::KrfwsAligner::new(crate::assets::load_krfws(&opts.assets.krfws)?);
+        let (aligner, link): (Box<dyn Aligner + Send>, _) = match &opts.aligner {
+            AlignerChoice::Local => (Box::new(local), None),
             AlignerChoice::Remote(remote) => {
                 let linked = remote.start(local, opts.session.max_faces)?;
-                watch = Some(linked.link().watch());
-                Box::new(linked)
+                let watch = linked.link().watch();
+                (Box::new(linked), Some(watch))
             }
         };
-        let session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts.session);
-        Ok(Self {
-            mode: opts.mode,
-            session,
-            aligner,
-            link: watch,
-            last_timestamp: None,
-        })
+        Ok(parts.assemble(&opts, aligner, link))
+    }
+}
+
+impl<A: Aligner + ?Sized> FaceTracker<A> {
+    /// A tracker around an aligner of the caller's (`opts.aligner` is not used); `link` reports the state
+    /// of a remote aligner's link in each result. For the tools, which also run DAN in-process.
+    #[cfg(feature = "tools")]
+    pub fn with_aligner(opts: &TrackerOptions, aligner: Box<A>, link: Option<LinkWatch>) -> Result<Self, TrackerError> {
+        Ok(Parts::load(opts)?.assemble(opts, aligner, link))
+    }
+
+    /// The aligner (tools read a remote aligner's counters through it).
+    #[cfg(feature = "tools")]
+    pub fn aligner(&self) -> &A {
+        &self.aligner
+    }
+
+    /// The aligner back, for a tracker of another sequence (the tools keep a warmed-up remote link).
+    #[cfg(feature = "tools")]
+    pub fn into_aligner(self) -> Box<A> {
+        self.aligner
+    }
+
+    /// The CANDIDE-3 model the faces are fitted with.
+    pub fn face_model(&self) -> &holoface_models::candide::FaceModel {
+        self.session.face_model()
+    }
+
+    /// Forgets every tracked face and the last timestamp: the next frame starts from a detection, at any
+    /// timestamp.
+    pub fn reset(&mut self) {
+        self.session.reset();
+        self.last_timestamp = None;
     }
 
     /// With [`AlignerChoice::Remote`]: the link's full status (the failure message included); `None` with
     /// the local aligner.
-    pub fn link_status(&self) -> Option<LinkStatus> {
+    pub fn link_status(&self) -> Option<LinkInfo> {
         self.link.as_ref().map(LinkWatch::status)
     }
 
     /// Processes one frame. In `Image` mode every frame starts from a detection.
-    pub fn process(&mut self, frame: &Frame<'_>) -> Result<FaceResult, TrackerError> {
+    pub fn process(&mut self, frame: &Frame<'_>) -> Result<FrameResult, TrackerError> {
+        let step = self.step(frame)?;
+        Ok(FrameResult {
+            timestamp_us: frame.timestamp_us,
+            no_face: step.faces.no_face_reason(),
+            answered_by: step.first_alignment().map(|a| a.answered_by),
+            detected: step.detected,
+            faces: step.faces.faces,
+            timings: step.timings,
+            link: self.link.as_ref().map(|w| w.status().state()),
+        })
+    }
+
+    /// [`FaceTracker::process`] with every candidate and alignment of the frame (the tools report them).
+    #[cfg(feature = "tools")]
+    pub fn process_step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
+        self.step(frame)
+    }
+
+    fn step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
         if self.mode == RunningMode::Image {
             self.session.reset();
         } else {
@@ -222,16 +326,7 @@ impl FaceTracker {
             }
             self.last_timestamp = Some(frame.timestamp_us);
         }
-        let step = crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
-        Ok(FaceResult {
-            timestamp_us: frame.timestamp_us,
-            no_face: step.faces.no_face_reason(),
-            answered_by: step.alignments.first().copied().flatten().map(|a| a.answered_by),
-            detected: step.detected,
-            faces: step.faces.faces,
-            timings: step.timings,
-            link: self.link.as_ref().map(|w| w.status().state()),
-        })
+        Ok(crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?)
     }
 }
 
@@ -257,7 +352,7 @@ impl LiveTracker {
     /// Starts the worker; `on_result` receives every processed frame's result (or error) on that thread.
     pub fn start(
         opts: TrackerOptions,
-        mut on_result: impl FnMut(Result<FaceResult, TrackerError>) + Send + 'static,
+        mut on_result: impl FnMut(Result<FrameResult, TrackerError>) + Send + 'static,
     ) -> Result<Self, TrackerError> {
         let mut tracker = FaceTracker::new(TrackerOptions {
             mode: RunningMode::LiveStream,

@@ -13,11 +13,11 @@ mod installed;
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_headset_client::align::AnsweredBy;
-use holoface_headset_client::frame::{Frame, FrameSource, OwnedFrame, default_intrinsics};
-use holoface_headset_client::link::{LinkState, RemoteOptions};
-use holoface_headset_client::session::FaceUpdate;
-use holoface_headset_client::tracker::{self, AlignerChoice, RunningMode, TrackerError};
+use holoface_headset_client::AnsweredBy;
+use holoface_headset_client::FaceUpdate;
+use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
+use holoface_headset_client::{Frame, FrameSource, OwnedFrame, default_intrinsics};
+use holoface_headset_client::{LinkState, RemoteOptions};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::{Pose, Quat, Vec3};
@@ -365,16 +365,16 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         weights.set_item(unit.name(), w)?;
     }
     let (face_probability, predicted_error) = match u.confidence {
-        holoface_headset_client::align::Confidence::FaceProbability(p) => (Some(p), None),
-        holoface_headset_client::align::Confidence::PredictedError(e) => (None, Some(e)),
+        holoface_headset_client::Confidence::FaceProbability(p) => (Some(p), None),
+        holoface_headset_client::Confidence::PredictedError(e) => (None, Some(e)),
     };
     Ok(PyFace {
         id,
         landmarks: lm.into_pyarray(py).unbind(),
         raw_landmarks: raw.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
-            holoface_headset_client::align::LandmarkSet::Ibug68 => "ibug68",
-            holoface_headset_client::align::LandmarkSet::Inner51 => "inner51",
+            holoface_headset_client::LandmarkSet::Ibug68 => "ibug68",
+            holoface_headset_client::LandmarkSet::Inner51 => "inner51",
         }
         .to_owned(),
         answered_by: variant_name(&u.answered_by),
@@ -393,7 +393,7 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
     })
 }
 
-fn result_to_py(py: Python<'_>, r: &tracker::FaceResult) -> PyResult<PyFaceResult> {
+fn result_to_py(py: Python<'_>, r: &tracker::FrameResult) -> PyResult<PyFaceResult> {
     let faces = r
         .faces
         .iter()

@@ -23,7 +23,7 @@ pub mod video;
 pub mod video;
 pub mod y4m;
 
-pub use holoface_headset_client::frame::{FrameSource, OwnedFrame, SourceError};
+pub use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
 pub use source::open_source;
 
 /// A source's failure as the runtime's error type. The message is the whole context chain ("cam.y4m: frame 2:

@@ -28,7 +28,7 @@ use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
 use crate::output::Output;
-use holoface_headset_client::frame::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
+use holoface_headset_client::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;

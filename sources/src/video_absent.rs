@@ -6,7 +6,7 @@ use std::convert::Infallible;
 use std::path::Path;
 
 use anyhow::bail;
-use holoface_headset_client::frame::{FrameSource, OwnedFrame, SourceError};
+use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use holoface_headset_client::frame::FrameSource;
+use holoface_headset_client::FrameSource;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_sources::poses::write_line;
@@ -40,7 +40,7 @@ fn pose(i: usize) -> Pose {
     }
 }
 
-fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_headset_client::frame::OwnedFrame>> {
+fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_headset_client::OwnedFrame>> {
     let mut out = Vec::new();
     while let Some(f) = src.next_frame()? {
         out.push(f);

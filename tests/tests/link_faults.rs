@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use holoface_headset_client::align::{Aligner, AnsweredBy, KrfwsAligner};
 use holoface_headset_client::link::{
-    Backoff, ConnectConfig, FailureKind, LinkOptions, LinkState, LinkStatus, LinkedAligner, Mode, RemoteLink,
+    Backoff, ConnectConfig, FailureKind, LinkInfo, LinkOptions, LinkState, LinkedAligner, Mode, RemoteLink,
 };
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -273,7 +273,7 @@ fn lossy_delaying_relay_falls_back_and_recovers() {
 }
 
 /// Polls `link` until `done(status)` holds or `limit` passes; returns the last status.
-fn wait_status(link: &RemoteLink, limit: Duration, done: impl Fn(&LinkStatus) -> bool) -> LinkStatus {
+fn wait_status(link: &RemoteLink, limit: Duration, done: impl Fn(&LinkInfo) -> bool) -> LinkInfo {
     let end = Instant::now() + limit;
     loop {
         let s = link.status();
@@ -317,7 +317,7 @@ fn wrong_token_and_wrong_certificate_fail_once_with_the_reason() {
     for (cfg, kind) in cases {
         let link = RemoteLink::start(cfg, fast_backoff()).unwrap();
         let status = wait_status(&link, Duration::from_secs(10), |s| {
-            matches!(s, LinkStatus::Failed(_))
+            matches!(s, LinkInfo::Failed(_))
         });
         assert_eq!(status.state(), LinkState::Failed(kind), "{status:?}");
         assert!(!status.failure().unwrap().message.is_empty());
@@ -358,6 +358,6 @@ fn unreachable_server_is_reported_and_retried() {
     );
 }
 
-fn has_failed_once(s: &LinkStatus) -> bool {
-    matches!(s, LinkStatus::Connecting { last_error: Some(_) })
+fn has_failed_once(s: &LinkInfo) -> bool {
+    matches!(s, LinkInfo::Connecting { last_error: Some(_) })
 }

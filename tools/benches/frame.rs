@@ -1,9 +1,9 @@
 //! Client CPU per tracked frame **excluding the aligner** (the target: ≤ 0.5 ms), one thread:
-//! `prepare_faces` (tracking init with headset-motion compensation), the 112×112 DAN crop the remote path
-//! sends, and `complete_faces` (verification, CANDIDE-3 fit warm-started, world pose, Kalman prediction,
-//! two-frame denoising, attributes). The aligner's answer is replaced by the true landmarks of the
-//! rendered frame (a perfect aligner), so the numbers contain none of its cost. Also reported: the JPEG
-//! q75 encoding of the crop (the remote path's wire format).
+//! `FaceTracker::process` as an app calls it: tracking init with headset-motion compensation, the 112×112
+//! DAN crop the remote path sends, verification, CANDIDE-3 fit warm-started, world pose, Kalman prediction,
+//! two-frame denoising, attributes. The aligner ([`TruthAligner`]) cuts the crop, then answers with the true
+//! landmarks of the rendered frame (a perfect aligner), so the numbers contain none of its cost. Also
+//! reported: the JPEG q75 encoding of the crop (the remote path's wire format).
 //!
 //! Frames: the first validation face rendered as a life-size picture seen by a moving headset
 //! (`render.rs`), 60 frames. The detector (BlazeFace through ONNX Runtime) runs once in the set-up to
@@ -17,12 +17,14 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{Criterion, Throughput, criterion_group};
-use holoface_headset_client::align::{Alignment, AnsweredBy, Confidence, LandmarkSet, crop_from_image};
-use holoface_headset_client::assets::load_face_model;
+use std::sync::{Arc, Mutex};
+
+use holoface_headset_client::align::{AlignError, Aligner, Alignment, crop_from_image};
 use holoface_headset_client::detect::BlazeFace;
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::link::CropCodec;
-use holoface_headset_client::session::{FrameResult, SessionOptions, TrackerSession};
+use holoface_headset_client::{
+    AnsweredBy, AssetPaths, Confidence, CropCodec, FaceResult, FaceTracker, Frame, GrayView, LandmarkSet,
+    SessionOptions, TrackerOptions,
+};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -33,9 +35,82 @@ use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_tools::render::PlanarScene;
 use holoface_tools::render::SCENE_CAMERA;
 
+/// The true landmarks of the frame being processed, shared with the [`TruthAligner`].
+type Truths = Arc<Mutex<Vec<[Point2; 68]>>>;
+
 struct Setup {
-    session: TrackerSession,
+    tracker: FaceTracker<TruthAligner>,
+    truths: Truths,
     frames: Vec<(GrayImage, Pose, [Point2; 68])>,
+}
+
+/// A perfect aligner: cuts the crop the remote aligner would send, then answers each face with the true
+/// landmarks (of the frame being processed) nearest its initial shape.
+struct TruthAligner {
+    truths: Truths,
+    canonical: [Point2; 68],
+    crop: Crop112,
+}
+
+impl TruthAligner {
+    fn new() -> (Self, Truths) {
+        let truths = Arc::new(Mutex::new(Vec::new()));
+        let mean = holoface_models::shape::canonical_from_mean(&dan_mean_shape());
+        let aligner = Self {
+            truths: Arc::clone(&truths),
+            canonical: std::array::from_fn(|i| mean[i]),
+            crop: Crop112::default(),
+        };
+        (aligner, truths)
+    }
+}
+
+impl Aligner for TruthAligner {
+    fn name(&self) -> &'static str {
+        "truth"
+    }
+
+    fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+        let sim = crop_from_image(init, &self.canonical)?;
+        crop_bilinear(image, &sim, &mut self.crop)?;
+        let centre = holoface_models::geometry::centroid(init);
+        let truths = self.truths.lock().unwrap();
+        let nearest = truths
+            .iter()
+            .min_by(|a, b| {
+                let da = holoface_models::geometry::centroid(&a[..]).dist(centre);
+                da.total_cmp(&holoface_models::geometry::centroid(&b[..]).dist(centre))
+            })
+            .ok_or_else(|| AlignError::BadOutput("no truth".into()))?;
+        Ok(truth_alignment(nearest))
+    }
+}
+
+/// The tracker of a video with these assets and the perfect aligner.
+fn tracker(
+    ort: PathBuf,
+    det: PathBuf,
+    wfm: PathBuf,
+    max_faces: usize,
+) -> (FaceTracker<TruthAligner>, Truths) {
+    let opts = TrackerOptions {
+        assets: AssetPaths {
+            ort_dylib: ort,
+            detector: det,
+            candide: wfm,
+            ..AssetPaths::default()
+        },
+        session: SessionOptions {
+            max_faces,
+            ..SessionOptions::default()
+        },
+        ..TrackerOptions::default()
+    };
+    let (aligner, truths) = TruthAligner::new();
+    (
+        FaceTracker::with_aligner(&opts, Box::new(aligner), None).unwrap(),
+        truths,
+    )
 }
 
 fn env_path(var: &str) -> Option<PathBuf> {
@@ -73,14 +148,12 @@ fn setup() -> Option<Setup> {
             (img, cam, scene.landmarks_in(&h))
         })
         .collect();
-    let detector = BlazeFace::load(&det, &ort, 1).unwrap();
-    let session = TrackerSession::new(
-        Box::new(detector),
-        load_face_model(&wfm).unwrap(),
-        dan_mean_shape(),
-        SessionOptions::default(),
-    );
-    Some(Setup { session, frames })
+    let (tracker, truths) = tracker(ort, det, wfm, 1);
+    Some(Setup {
+        tracker,
+        truths,
+        frames,
+    })
 }
 
 fn truth_alignment(lm: &[Point2; 68]) -> Alignment {
@@ -94,35 +167,30 @@ fn truth_alignment(lm: &[Point2; 68]) -> Alignment {
 }
 
 fn bench_frame(c: &mut Criterion) {
-    let Some(Setup { mut session, frames }) = setup() else {
+    let Some(Setup {
+        mut tracker,
+        truths,
+        frames,
+    }) = setup()
+    else {
         eprintln!("runtime assets or ../shared/data missing (run `make setup`); skipping");
         return;
     };
-    let mean = holoface_models::shape::canonical_from_mean(&dan_mean_shape());
-    let canonical: [Point2; 68] = std::array::from_fn(|i| mean[i]);
-    let mut crop = Crop112::default();
-    let mut step = |n: usize, crop: &mut Crop112| -> FrameResult {
+    let mut step = |n: usize| -> FaceResult {
         let (img, cam, truth) = &frames[n % frames.len()];
+        *truths.lock().unwrap() = vec![*truth];
         let frame = Frame {
             timestamp_us: n as u64 * 33_333,
             image: img.view(),
             intrinsics: SCENE_CAMERA,
             world_from_camera: *cam,
         };
-        let candidates = session.prepare_faces(&frame).unwrap();
-        let Some(first) = candidates.first() else {
-            panic!("frame {n}: no face")
-        };
-        let sim = crop_from_image(&first.init, &canonical).unwrap();
-        crop_bilinear(&frame.image, &sim, crop).unwrap();
-        session
-            .complete_faces(&frame, &[Some(truth_alignment(truth))])
-            .first()
+        tracker.process(&frame).unwrap().first()
     };
     // Start tracking (the detector runs here, outside the measurement).
     let mut n = 0usize;
     assert!(
-        matches!(step(n, &mut crop), FrameResult::Face(_)),
+        matches!(step(n), FaceResult::Face(_)),
         "no face in the first frame"
     );
     let mut g = c.benchmark_group("client_frame");
@@ -130,11 +198,12 @@ fn bench_frame(c: &mut Criterion) {
     g.bench_function("prepare+crop+fit+pose+filter", |b| {
         b.iter(|| {
             n += 1;
-            let r = step(n, &mut crop);
-            assert!(matches!(r, FrameResult::Face(_)), "tracking lost at frame {n}");
+            let r = step(n);
+            assert!(matches!(r, FaceResult::Face(_)), "tracking lost at frame {n}");
             black_box(r)
         })
     });
+    let crop = &tracker.aligner().crop;
     g.bench_function("crop_jpeg_q75", |b| {
         let codec: CropCodec = "jpeg:75".parse().unwrap();
         b.iter(|| black_box(codec.encode(black_box(crop.as_slice()), 112, 112).unwrap()))
@@ -180,9 +249,6 @@ fn bench_faces(c: &mut Criterion) {
     };
     let wfm =
         env_path("HOLOFACE_CANDIDE").unwrap_or_else(|| default_data_root().join("candide3/candide3.wfm"));
-    let model = load_face_model(&wfm).unwrap();
-    let mean = holoface_models::shape::canonical_from_mean(&dan_mean_shape());
-    let canonical: [Point2; 68] = std::array::from_fn(|i| mean[i]);
     let mut g = c.benchmark_group("client_frame_faces");
     for n in [1usize, 2, 3, 5] {
         let frames: Vec<(GrayImage, Pose, Vec<[Point2; 68]>)> = (0..60)
@@ -221,43 +287,21 @@ fn bench_faces(c: &mut Criterion) {
                 b.iter(|| black_box(tiled.detect(&img.view()).unwrap()))
             });
         }
-        let mut detector = BlazeFace::load(&det, &ort, 1).unwrap();
-        detector.for_several_faces();
-        let opts = SessionOptions {
-            max_faces: n,
-            ..SessionOptions::default()
-        };
-        let mut session = TrackerSession::new(Box::new(detector), model.clone(), dan_mean_shape(), opts);
-        let mut crop = Crop112::default();
-        let mut step = |i: usize, crop: &mut Crop112| -> usize {
+        let (mut tracker, current) = tracker(ort.clone(), det.clone(), wfm.clone(), n);
+        let mut step = |i: usize| -> usize {
             let (img, cam, truths) = &frames[i % frames.len()];
+            current.lock().unwrap().clone_from(truths);
             let frame = Frame {
                 timestamp_us: i as u64 * 33_333,
                 image: img.view(),
                 intrinsics: SCENE_CAMERA,
                 world_from_camera: *cam,
             };
-            let cands = session.prepare_faces(&frame).unwrap();
-            let answers: Vec<_> = cands
-                .iter()
-                .map(|c| {
-                    let sim = crop_from_image(&c.init, &canonical).unwrap();
-                    crop_bilinear(&frame.image, &sim, crop).unwrap();
-                    let centre = holoface_models::geometry::centroid(&c.init);
-                    truths
-                        .iter()
-                        .min_by(|a, b| {
-                            let da = holoface_models::geometry::centroid(&a[..]).dist(centre);
-                            da.total_cmp(&holoface_models::geometry::centroid(&b[..]).dist(centre))
-                        })
-                        .map(truth_alignment)
-                })
-                .collect();
-            session.complete_faces(&frame, &answers).faces.len()
+            tracker.process(&frame).unwrap().faces.len()
         };
         // Track every face first (the detector runs here, outside the measurement).
         let mut i = 0usize;
-        while step(i, &mut crop) < n {
+        while step(i) < n {
             i += 1;
             assert!(i < 60, "{n} faces: not all detected");
         }
@@ -265,7 +309,7 @@ fn bench_faces(c: &mut Criterion) {
         g.bench_function(format!("{n}_faces"), |b| {
             b.iter(|| {
                 i += 1;
-                let tracked = step(i, &mut crop);
+                let tracked = step(i);
                 assert_eq!(tracked, n, "a face was lost at frame {i}");
                 black_box(tracked)
             })

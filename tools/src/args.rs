@@ -5,11 +5,14 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use holoface_headset_client::assets::{CANDIDE_ENV, DAN_ENV, DETECTOR_ENV, KRFWS_ENV, home};
+use holoface_headset_client::{
+    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, SessionOptions, TrackerOptions, home,
+};
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 use holoface_models::steady::SteadyParams;
 
-use holoface_headset_client::align::{DanAligner, KrfwsAligner};
+use crate::dan_aligner::DanAligner;
+use holoface_headset_client::align::KrfwsAligner;
 
 /// Paths and threads of the runtime assets: each path is the option, else its environment variable, else its
 /// file in the holoface data folder, which `holoface setup` fills (`holoface_headset_client::assets::home`).
@@ -19,7 +22,7 @@ pub struct RuntimeArgs {
     #[arg(long, env = ORT_DYLIB_ENV, default_value_os_t = home::ORT_LIBRARY.default_path())]
     pub ort_dylib: PathBuf,
     /// DAN model (ONNX).
-    #[arg(long, env = DAN_ENV, default_value_os_t = home::DAN.default_path())]
+    #[arg(long, env = home::DAN.env, default_value_os_t = home::DAN.default_path())]
     pub dan_model: PathBuf,
     /// Face detector model (BlazeFace short range, ONNX).
     #[arg(long, env = DETECTOR_ENV, default_value_os_t = home::DETECTOR.default_path())]
@@ -73,8 +76,23 @@ impl RuntimeArgs {
         let engine = OnnxEngine::load(&self.dan_options())
             .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
         let mut aligner = DanAligner::new(holoface_inference::RefinedEngine::new(engine, refiner)?)?;
-        aligner.set_wire_codec(Some(holoface_headset_client::link::CropCodec::default()));
+        aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
         Ok(aligner)
+    }
+
+    /// The tracker options of a video with these assets, the CANDIDE-3 model of `candide`, `session`'s settings,
+    /// the local aligner and the detector's defaults (the commands change what their options say).
+    pub fn tracker_options(&self, candide: &CandideArg, session: SessionOptions) -> TrackerOptions {
+        TrackerOptions {
+            assets: AssetPaths {
+                ort_dylib: self.ort_dylib.clone(),
+                detector: self.detector.clone(),
+                krfws: self.krfws_model.clone(),
+                candide: candide.candide.clone(),
+            },
+            session,
+            ..TrackerOptions::default()
+        }
     }
 
     /// BlazeFace through ONNX Runtime (1 thread).

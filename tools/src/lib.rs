@@ -9,6 +9,7 @@
 pub mod annotate;
 pub mod args;
 pub mod cli;
+pub mod dan_aligner;
 pub mod data;
 pub mod labels;
 pub mod loopback;

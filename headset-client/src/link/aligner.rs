@@ -564,10 +564,10 @@ mod tests {
     }
 
     impl Link for FakeLink {
-        fn status(&self) -> super::super::LinkStatus {
+        fn status(&self) -> super::super::LinkInfo {
             match &self.up {
-                Some(w) => super::super::LinkStatus::Up(Arc::clone(w)),
-                None => super::super::LinkStatus::Connecting { last_error: None },
+                Some(w) => super::super::LinkInfo::Up(Arc::clone(w)),
+                None => super::super::LinkInfo::Connecting { last_error: None },
             }
         }
         fn send(&self, req: FrameRequest) -> Result<(), WaitError> {

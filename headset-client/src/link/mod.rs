@@ -48,7 +48,7 @@ impl Default for Backoff {
 
 /// State of the link as the frame loop sees it.
 #[derive(Clone, Debug)]
-pub enum LinkStatus {
+pub enum LinkInfo {
     /// Connecting or waiting to retry; the last failure, if any.
     Connecting {
         /// Why the previous attempt or connection ended.
@@ -63,7 +63,7 @@ pub enum LinkStatus {
     Stopped,
 }
 
-impl LinkStatus {
+impl LinkInfo {
     /// The welcome when the link is up.
     pub fn welcome(&self) -> Option<&Arc<ServerWelcome>> {
         match self {
@@ -93,7 +93,7 @@ impl LinkStatus {
     }
 }
 
-/// [`LinkStatus`] without the welcome and the message: what each frame's result carries.
+/// [`LinkInfo`] without the welcome and the message: what each frame's result carries.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case", tag = "state", content = "failure")]
 pub enum LinkState {
@@ -150,17 +150,17 @@ pub struct LinkCounters {
 }
 
 struct Shared {
-    status: Mutex<LinkStatus>,
+    status: Mutex<LinkInfo>,
     counters: LinkCounters,
     current: Mutex<Option<quinn::Connection>>,
 }
 
 impl Shared {
-    fn set(&self, s: LinkStatus) {
+    fn set(&self, s: LinkInfo) {
         *self.status.lock().unwrap_or_else(PoisonError::into_inner) = s;
     }
 
-    fn get(&self) -> LinkStatus {
+    fn get(&self) -> LinkInfo {
         self.status.lock().unwrap_or_else(PoisonError::into_inner).clone()
     }
 }
@@ -192,7 +192,7 @@ impl RemoteLink {
         let (events_tx, events) = mpsc::channel();
         let (shutdown, shutdown_rx) = oneshot::channel();
         let shared = Arc::new(Shared {
-            status: Mutex::new(LinkStatus::Connecting { last_error: None }),
+            status: Mutex::new(LinkInfo::Connecting { last_error: None }),
             counters: LinkCounters::default(),
             current: Mutex::new(None),
         });
@@ -223,7 +223,7 @@ impl RemoteLink {
     }
 
     /// The current status.
-    pub fn status(&self) -> LinkStatus {
+    pub fn status(&self) -> LinkInfo {
         self.shared.get()
     }
 
@@ -312,7 +312,7 @@ impl std::fmt::Debug for LinkWatch {
 
 impl LinkWatch {
     /// The link's current status.
-    pub fn status(&self) -> LinkStatus {
+    pub fn status(&self) -> LinkInfo {
         self.shared.get()
     }
 }
@@ -320,7 +320,7 @@ impl LinkWatch {
 /// What [`LinkedAligner`] needs from a link: [`RemoteLink`] in the headset, a scripted link in unit tests.
 pub trait Link {
     /// Where the link stands (the server's welcome when up).
-    fn status(&self) -> LinkStatus;
+    fn status(&self) -> LinkInfo;
     /// Queues a frame for sending (never blocks).
     fn send(&self, req: FrameRequest) -> Result<(), WaitError>;
     /// Hands every event to `each` until it returns `true`, the deadline passes
@@ -332,7 +332,7 @@ pub trait Link {
 }
 
 impl Link for RemoteLink {
-    fn status(&self) -> LinkStatus {
+    fn status(&self) -> LinkInfo {
         Self::status(self)
     }
     fn send(&self, req: FrameRequest) -> Result<(), WaitError> {
@@ -387,7 +387,7 @@ async fn supervise(
     events: mpsc::Sender<LinkEvent>,
     shared: &Shared,
     mut shutdown: oneshot::Receiver<()>,
-) -> LinkStatus {
+) -> LinkInfo {
     let endpoint = match connection::client_endpoint(&cfg) {
         Ok(e) => e,
         Err(e) => {
@@ -396,14 +396,14 @@ async fn supervise(
                 format!("cannot open the client endpoint: {e}"),
             );
             tracing::warn!(server = %cfg.server, error = %failure, "alignment server link failed; answering locally");
-            return LinkStatus::Failed(failure);
+            return LinkInfo::Failed(failure);
         }
     };
     let mut delay = backoff.initial;
     let mut last_kind = None;
     let stopped = loop {
         let attempt = tokio::select! {
-            _ = &mut shutdown => break LinkStatus::Stopped,
+            _ = &mut shutdown => break LinkInfo::Stopped,
             r = connection::connect(&endpoint, &cfg) => r,
         };
         let failure = match attempt {
@@ -415,7 +415,7 @@ async fn supervise(
                 // Frames queued while down are stale.
                 while frames.try_recv().is_ok() {}
                 *shared.current.lock().unwrap_or_else(PoisonError::into_inner) = Some(conn.clone());
-                shared.set(LinkStatus::Up(Arc::new(welcome)));
+                shared.set(LinkInfo::Up(Arc::new(welcome)));
                 let end = serve(
                     &conn,
                     control,
@@ -443,7 +443,7 @@ async fn supervise(
                 match end {
                     None => {
                         conn.close(CloseCode::NoError.as_u32().into(), b"client shutting down");
-                        break LinkStatus::Stopped;
+                        break LinkInfo::Stopped;
                     }
                     Some(failure) => {
                         tracing::warn!(server = %cfg.server, error = %failure, "link down; answering locally");
@@ -469,13 +469,13 @@ async fn supervise(
         if failure.kind.is_permanent() {
             tracing::warn!(server = %cfg.server, error = %failure,
                 "giving up on the alignment server: retrying cannot fix this; answering locally");
-            break LinkStatus::Failed(failure);
+            break LinkInfo::Failed(failure);
         }
-        shared.set(LinkStatus::Connecting {
+        shared.set(LinkInfo::Connecting {
             last_error: Some(failure),
         });
         tokio::select! {
-            _ = &mut shutdown => break LinkStatus::Stopped,
+            _ = &mut shutdown => break LinkInfo::Stopped,
             () = tokio::time::sleep(delay) => {}
         }
         delay = (delay * 2).min(backoff.max);

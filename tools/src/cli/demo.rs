@@ -32,7 +32,7 @@ use holoface_headset_client::assets::home;
 use holoface_headset_client::detect::{FaceDetector, shape_from_detection};
 use holoface_headset_client::frame::Frame;
 use holoface_headset_client::link::{CropCodec, RemoteOptions};
-use holoface_headset_client::session::{FrameResult, SessionOptions, TrackerSession};
+use holoface_headset_client::{FaceResult, FaceTracker, SessionOptions};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -175,13 +175,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     remote.client_name = "holoface-demo".into();
     remote.deadline = Duration::from_millis(args.deadline_ms);
     remote.codec = args.crop_encoding;
-    let mut aligner = remote.start(args.runtime.krfws_aligner()?, 1)?;
-    let mut session = TrackerSession::new(
-        Box::new(args.runtime.detector()?),
-        args.candide.load()?,
-        dan_mean_shape(),
-        SessionOptions::default(),
-    );
+    let linked = remote.start(args.runtime.krfws_aligner()?, 1)?;
+    let watch = linked.link().watch();
+    let opts = args
+        .runtime
+        .tracker_options(&args.candide, SessionOptions::default());
+    let mut tracker = FaceTracker::with_aligner(&opts, Box::new(linked), Some(watch))?;
 
     let log_path = args.out.join("frames.jsonl");
     let mut log = Output::create(&log_path)?;
@@ -201,6 +200,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let truth = scene.landmarks_in(&h);
         if i == args.cut_at {
             // Wire cost while the link is healthy (during the cut, lost packets inflate it).
+            let aligner = tracker.aligner();
             let sent = aligner
                 .link()
                 .counters()
@@ -226,9 +226,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             world_from_camera: pose,
         };
         let t0 = Instant::now();
-        let step = holoface_headset_client::frame_step::step_faces(&mut session, &mut aligner, &frame)?;
+        let step = tracker.process_step(&frame)?;
         let (result, alignment) = (step.faces.first(), step.first_alignment());
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let aligner = tracker.aligner();
         let report = aligner.last_report();
         let (answered_by, landmarks) = match (&result, alignment) {
             (_, Some(a)) => (Some(a.answered_by), Some(a.landmarks)),
@@ -260,7 +261,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "nme68_vs_reference": n68,
         });
         match &result {
-            FrameResult::Face(u) => {
+            FaceResult::Face(u) => {
                 line["face"] = json!(true);
                 line["world_position_m"] = json!(u.world.position.to_array());
                 line["display_position_m"] = json!(u.display.0.to_array());
@@ -271,7 +272,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "mouth_open": u.attributes.mouth_open,
                 });
             }
-            FrameResult::NoFace(reason) => {
+            FaceResult::NoFace(reason) => {
                 line["face"] = json!(false);
                 line["reason"] = json!(reason);
             }
@@ -284,6 +285,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let wall = start.elapsed().as_secs_f64();
     log.commit()?;
+    let aligner = tracker.aligner();
     let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| {
         let sent = aligner
             .link()
@@ -293,7 +295,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (aligner.link().udp_bytes().0, sent)
     });
     let switches = aligner.policy().switches();
-    drop(aligner);
+    drop(tracker);
     drop(relay);
     server.stop();
 

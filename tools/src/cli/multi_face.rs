@@ -35,7 +35,7 @@ use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
 use holoface_headset_client::align::Aligner;
 use holoface_headset_client::frame::Frame;
-use holoface_headset_client::session::{SessionOptions, TrackedFace, TrackerSession};
+use holoface_headset_client::{FaceTracker, SessionOptions, TrackedFace};
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -302,24 +302,24 @@ impl Run {
     }
 }
 
-/// Tracks one rendered sequence of `which` (with `max_faces` = its size) and tallies the faces in it.
+/// Tracks one rendered sequence of `which` (with `max_faces` = its size) and tallies the faces in it; hands the
+/// aligner back for the next sequence.
 fn track(
     args: &Args,
-    model: &holoface_models::candide::FaceModel,
-    aligner: &mut dyn Aligner,
+    aligner: Box<dyn Aligner + Send>,
     people: &[Person],
     which: &[usize],
     mut export: Option<&mut SequenceExport>,
-) -> anyhow::Result<Run> {
-    let opts = SessionOptions {
+) -> anyhow::Result<(Run, Box<dyn Aligner + Send>)> {
+    let session = SessionOptions {
         max_faces: which.len(),
         detect_every: args.detect_every,
         ..SessionOptions::default()
     };
+    let mut opts = args.runtime.tracker_options(&args.candide, session);
     // The same detector for the scene and for each face alone: the several-face settings.
-    let mut detector = args.runtime.detector()?;
-    detector.for_several_faces();
-    let mut session = TrackerSession::new(Box::new(detector), model.clone(), dan_mean_shape(), opts);
+    opts.detector.several_faces = Some(true);
+    let mut tracker = FaceTracker::with_aligner(&opts, aligner, None)?;
     let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
     let mut run = Run {
         tallies: vec![FaceTally::default(); which.len()],
@@ -362,7 +362,7 @@ fn track(
                 &json!({"frame": i, "faces_landmarks_px": faces}),
             )?;
         }
-        let step = holoface_headset_client::frame_step::step_faces(&mut session, aligner, &frame)?;
+        let step = tracker.process_step(&frame)?;
         let timings = &step.timings;
         run.frame_ms
             .push((timings.prepare + timings.align + timings.complete).as_secs_f64() * 1e3);
@@ -381,7 +381,7 @@ fn track(
                 i,
                 &step.faces.faces,
                 step.faces.no_face_reason(),
-                model,
+                tracker.face_model(),
                 &SCENE_CAMERA,
             );
             let path = dir.join(format!("scene_{}.png", which.len()));
@@ -395,7 +395,7 @@ fn track(
             tally.record(k, m, all[which[k]].1, &mut owner);
         }
     }
-    Ok(run)
+    Ok((run, tracker.into_aligner()))
 }
 
 /// Runs `holoface multi-face`.
@@ -414,9 +414,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| default_data_root().join("faces68/train"));
     let samples = load_folder(&root, Split::Validation, true)?;
-    let model = args.candide.load()?;
     let mut server = None;
-    let mut aligner: Box<dyn Aligner> = match args.aligner {
+    let mut aligner: Box<dyn Aligner + Send> = match args.aligner {
         AlignerKind::Krfws => Box::new(args.runtime.krfws_aligner()?),
         AlignerKind::Dan => Box::new(args.runtime.dan_aligner()?),
         AlignerKind::Remote => {
@@ -464,7 +463,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             Some(dir) if scenes.is_empty() => Some(SequenceExport::create(dir, args.fps)?),
             _ => None,
         };
-        let together = track(&args, &model, &mut *aligner, &people, &all, export.as_mut())?;
+        let (together, back) = track(&args, aligner, &people, &all, export.as_mut())?;
+        aligner = back;
         if let (Some(e), Some(dir)) = (export, args.write_sequence.as_deref()) {
             crate::say!(
                 "wrote {} frames of the {n}-face scene to {}",
@@ -476,7 +476,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut line = String::new();
         let mut covered_line = String::new();
         for (k, tally) in together.tallies.iter().enumerate() {
-            let alone = track(&args, &model, &mut *aligner, &people, &[k], None)?;
+            let (alone, back) = track(&args, aligner, &people, &[k], None)?;
+            aligner = back;
             let solo = &alone.tallies[0];
             let rel = together_vs_alone(tally.nme_pct(), solo.nme_pct());
             let (clear, clear_alone, clear_frames) = tally.uncovered_vs(solo);

@@ -44,7 +44,7 @@ pub struct Args {
     /// `jpeg:Q`): the tracker runs locally (detector, KRFWS) and each frame's 112x112 crop is stored with
     /// its crop-to-image similarity. Frames without a face are skipped. The load tester replays these.
     #[arg(long)]
-    pub crops: Option<holoface_headset_client::link::CropCodec>,
+    pub crops: Option<holoface_headset_client::CropCodec>,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -55,38 +55,30 @@ pub struct Args {
 
 /// Cuts the client's crop of each frame by running the tracker locally.
 struct CropCutter {
-    codec: holoface_headset_client::link::CropCodec,
-    session: holoface_headset_client::session::TrackerSession,
-    local: holoface_headset_client::align::KrfwsAligner,
+    codec: holoface_headset_client::CropCodec,
+    tracker: holoface_headset_client::FaceTracker,
     mean: [holoface_models::geometry::Point2; 68],
     crop: holoface_models::crop::Crop112,
 }
 
 impl CropCutter {
-    fn new(codec: holoface_headset_client::link::CropCodec, args: &Args) -> anyhow::Result<Self> {
+    fn new(codec: holoface_headset_client::CropCodec, args: &Args) -> anyhow::Result<Self> {
         let mean = holoface_models::shape::dan_mean_shape();
         Ok(Self {
             codec,
-            session: holoface_headset_client::session::TrackerSession::new(
-                Box::new(args.runtime.detector()?),
-                args.candide.load()?,
-                mean,
-                holoface_headset_client::session::SessionOptions::default(),
-            ),
-            local: args.runtime.krfws_aligner()?,
+            // The local tracker an app runs (KRFWS).
+            tracker: holoface_headset_client::FaceTracker::new(
+                args.runtime.tracker_options(&args.candide, Default::default()),
+            )?,
             mean,
             crop: holoface_models::crop::Crop112::default(),
         })
     }
 
     /// The crop payload of `f`, or `None` when no face is tracked.
-    fn cut(
-        &mut self,
-        f: &holoface_headset_client::frame::OwnedFrame,
-    ) -> anyhow::Result<Option<FramePayload>> {
+    fn cut(&mut self, f: &holoface_headset_client::OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
         let frame = f.view();
-        let step =
-            holoface_headset_client::frame_step::step_faces(&mut self.session, &mut self.local, &frame)?;
+        let step = self.tracker.process_step(&frame)?;
         let Some(first) = step.first_candidate() else {
             return Ok(None);
         };

@@ -7,10 +7,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
-use holoface_headset_client::align::{Aligner, AnsweredBy};
-use holoface_headset_client::link::RemoteOptions;
-use holoface_headset_client::session::{InitSource, SessionOptions, TrackerSession};
-use holoface_models::shape::dan_mean_shape;
+use holoface_headset_client::{
+    AlignerChoice, AnsweredBy, FaceTracker, InitSource, RemoteOptions, SessionOptions, TrackerOptions,
+};
 use holoface_sources::output::write_atomic;
 use holoface_sources::source::open_source;
 use serde_json::json;
@@ -73,8 +72,7 @@ pub struct Args {
 /// One aligner's tracker and what it answered per frame.
 struct Run {
     name: &'static str,
-    session: TrackerSession,
-    aligner: Box<dyn Aligner>,
+    tracker: FaceTracker,
     raw: Vec<Landmarks>,
     steady: Vec<Landmarks>,
     by: Vec<Option<AnsweredBy>>,
@@ -147,12 +145,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         steady: args.steady.params(),
         ..SessionOptions::default()
     };
-    let model = args.candide.load()?;
+    let opts = args.runtime.tracker_options(&args.candide, session_opts);
     let mut server = None;
     let mut runs = Vec::new();
     for &a in &args.aligners {
-        let aligner: Box<dyn Aligner> = match a {
-            StabilityAligner::Krfws => Box::new(args.runtime.krfws_aligner()?),
+        let aligner = match a {
+            StabilityAligner::Krfws => AlignerChoice::Local,
             StabilityAligner::Remote => {
                 let s = match server.take() {
                     Some(s) => s,
@@ -163,9 +161,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 let mut remote = RemoteOptions::new(s.addr, s.fingerprint, s.token.clone());
                 remote.client_name = "holoface-stability".into();
                 remote.deadline = Duration::from_millis(args.deadline_ms);
-                let linked = remote.start(args.runtime.krfws_aligner()?, 1)?;
                 server = Some(s);
-                Box::new(linked)
+                AlignerChoice::Remote(remote)
             }
         };
         runs.push(Run {
@@ -173,13 +170,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 StabilityAligner::Krfws => "krfws",
                 StabilityAligner::Remote => "remote",
             },
-            session: TrackerSession::new(
-                Box::new(args.runtime.detector()?),
-                model.clone(),
-                dan_mean_shape(),
-                session_opts,
-            ),
-            aligner,
+            tracker: FaceTracker::new(TrackerOptions {
+                aligner,
+                ..opts.clone()
+            })?,
             raw: Vec::new(),
             steady: Vec::new(),
             by: Vec::new(),
@@ -203,11 +197,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         let frame = sf.view();
         for r in &mut runs {
-            let step =
-                holoface_headset_client::frame_step::step_faces(&mut r.session, &mut *r.aligner, &frame)
-                    .with_context(|| {
-                        format!("frame {} of {} ({})", sf.index, args.source.display(), r.name)
-                    })?;
+            let step = r
+                .tracker
+                .process_step(&frame)
+                .with_context(|| format!("frame {} of {} ({})", sf.index, args.source.display(), r.name))?;
             let face = step.faces.faces.first().map(|f| f.update);
             r.raw.push(face.map(|u| u.raw_landmarks));
             r.steady.push(face.map(|u| u.landmarks));

@@ -6,13 +6,12 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
-use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use holoface_headset_client::align::{Aligner, AnsweredBy};
-use holoface_headset_client::link::RemoteOptions;
-use holoface_headset_client::session::{SessionOptions, TrackedFace, TrackerSession};
+use holoface_headset_client::{
+    AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
+};
 use holoface_sources::source::open_source;
 
 /// Arguments of `holoface track`.
@@ -83,9 +82,8 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-fn remote_aligner(
-    args: &Args,
-) -> anyhow::Result<(Box<dyn Aligner>, holoface_headset_client::link::LinkWatch)> {
+/// The remote options from `--server`, `--fingerprint`, `--token`, `--deadline-ms` and `--crop-encoding`.
+fn remote_options(args: &Args) -> anyhow::Result<RemoteOptions> {
     let server = args.server.context("--aligner remote needs --server ADDR")?;
     let fingerprint = args
         .fingerprint
@@ -96,9 +94,7 @@ fn remote_aligner(
     let mut remote = RemoteOptions::new(server, fingerprint, args.token.clone());
     remote.deadline = std::time::Duration::from_millis(args.deadline_ms);
     remote.codec = args.crop_encoding;
-    let aligner = remote.start(args.runtime.krfws_aligner()?, usize::from(args.max_faces))?;
-    let watch = aligner.link().watch();
-    Ok((Box::new(aligner), watch))
+    Ok(remote)
 }
 
 /// One face of a `track` line.
@@ -134,23 +130,7 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
 
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let model = args.candide.load()?;
-    let mut detector = args.runtime.detector()?;
-    if args.max_faces > 1 {
-        detector.for_several_faces();
-    }
-    if let Some(tiles) = args.detect_tiles {
-        detector.tiles = usize::from(tiles);
-    }
-    let (mut aligner, link): (Box<dyn Aligner>, _) = match args.aligner {
-        AlignerKind::Krfws => (Box::new(args.runtime.krfws_aligner()?), None),
-        AlignerKind::Dan => (Box::new(args.runtime.dan_aligner()?), None),
-        AlignerKind::Remote => {
-            let (aligner, watch) = remote_aligner(&args)?;
-            (aligner, Some(watch))
-        }
-    };
-    let opts = SessionOptions {
+    let session = SessionOptions {
         motion_compensation: !args.no_motion_compensation,
         lookahead_s: args.lookahead_ms / 1e3,
         max_faces: usize::from(args.max_faces),
@@ -158,7 +138,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         steady: args.steady.params(),
         ..SessionOptions::default()
     };
-    let mut session = TrackerSession::new(Box::new(detector), model, dan_mean_shape(), opts);
+    let mut opts = args.runtime.tracker_options(&args.candide, session);
+    opts.detector.tiles = args.detect_tiles.map(usize::from);
+    // KRFWS and the remote aligner as an app runs them; DAN in-process is the tools' own aligner.
+    let mut tracker = match args.aligner {
+        AlignerKind::Krfws => FaceTracker::new(opts)?,
+        AlignerKind::Remote => FaceTracker::new(TrackerOptions {
+            aligner: AlignerChoice::Remote(remote_options(&args)?),
+            ..opts
+        })?,
+        AlignerKind::Dan => FaceTracker::with_aligner(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
+    };
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
     // The lines appear at --out only when every frame was tracked: a failed run leaves no file.
     let mut out = Output::create(&args.out)?;
@@ -170,9 +160,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     while let Some(sf) = source.next_frame()? {
         let frame = sf.view();
-        let step = holoface_headset_client::frame_step::step_faces(&mut session, &mut *aligner, &frame)
+        let step = tracker
+            .process_step(&frame)
             .with_context(|| format!("frame {} of {}", sf.index, args.source.display()))?;
-        let link_state = link.as_ref().map(|w| w.status().state());
+        let link_state = tracker.link_status().map(|s| s.state());
         remote_frames += step
             .faces
             .faces
@@ -187,7 +178,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 sf.index,
                 &step.faces.faces,
                 no_face,
-                session.face_model(),
+                tracker.face_model(),
                 &sf.intrinsics,
             );
             out.push(sf.index, &canvas)?;
@@ -219,15 +210,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(a) = annotated {
         crate::say!("{a}");
     }
-    if let Some(status) = link
-        .as_ref()
-        .map(holoface_headset_client::link::LinkWatch::status)
-    {
+    if let Some(status) = tracker.link_status() {
         if status.welcome().is_some() {
             crate::say!("{remote_frames} of {faces} faces aligned by the remote DAN");
         } else {
             let why = match (&status, status.failure()) {
-                (holoface_headset_client::link::LinkStatus::Failed(f), _) => format!("gave up: {f}"),
+                (holoface_headset_client::LinkInfo::Failed(f), _) => format!("gave up: {f}"),
                 (_, Some(f)) => format!("retrying: {f}"),
                 (_, None) => "still connecting".to_owned(),
             };

@@ -27,15 +27,13 @@ use holoface_models::geometry::{Point2, Rect};
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::metrics::nme49;
-use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
-use holoface_headset_client::align::Aligner;
 use holoface_headset_client::frame::Frame;
-use holoface_headset_client::session::{FrameResult, InitSource, SessionOptions, TrackerSession};
+use holoface_headset_client::{FaceResult, FaceTracker, InitSource, SessionOptions};
 
 /// Arguments of `holoface tracking-losses`.
 #[derive(Debug, ClapArgs)]
@@ -179,13 +177,13 @@ struct Tally {
 }
 
 impl Tally {
-    fn record(&mut self, result: &FrameResult, init: Option<InitSource>, truth: &[Point2; 68]) {
+    fn record(&mut self, result: &FaceResult, init: Option<InitSource>, truth: &[Point2; 68]) {
         self.frames += 1;
         if init == Some(InitSource::Detection) {
             self.detections += 1;
         }
         let good = match result {
-            FrameResult::Face(u) => {
+            FaceResult::Face(u) => {
                 let e = nme49(&u.landmarks, truth).unwrap_or(f64::INFINITY);
                 let raw = nme49(&u.raw_landmarks, truth).unwrap_or(f64::INFINITY);
                 if e.is_finite() && raw.is_finite() {
@@ -214,7 +212,7 @@ impl Tally {
                     false
                 }
             }
-            FrameResult::NoFace(_) => {
+            FaceResult::NoFace(_) => {
                 self.no_face += 1;
                 false
             }
@@ -245,15 +243,13 @@ impl Tally {
 }
 
 struct Runner {
-    session: TrackerSession,
-    aligner: Box<dyn Aligner>,
+    tracker: FaceTracker,
     tally: Tally,
 }
 
 impl Runner {
     fn step(&mut self, frame: &Frame<'_>, truth: &[Point2; 68]) -> anyhow::Result<()> {
-        let step =
-            holoface_headset_client::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?;
+        let step = self.tracker.process_step(frame)?;
         let init = step.first_candidate().map(|c| c.source);
         let result = step.faces.first();
         self.tally.record(&result, init, truth);
@@ -321,16 +317,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| default_data_root().join("faces68/train"));
     let samples = load_folder(&root, Split::Validation, true)?;
-    let model = args.candide.load()?;
-    let make_aligner = || -> anyhow::Result<Box<dyn Aligner>> {
-        Ok(match args.aligner {
-            AlignerKind::Krfws => Box::new(args.runtime.krfws_aligner()?),
-            AlignerKind::Dan => Box::new(args.runtime.dan_aligner()?),
-            AlignerKind::Remote => {
-                bail!("tracking-losses measures an aligner in-process: --aligner krfws or dan")
-            }
-        })
-    };
+    if args.aligner == AlignerKind::Remote {
+        bail!("tracking-losses measures an aligner in-process: --aligner krfws or dan")
+    }
     let mut runners = Vec::new();
     for compensate in [true, false] {
         let opts = SessionOptions {
@@ -338,14 +327,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             steady: args.steady.params(),
             ..SessionOptions::default()
         };
+        let opts = args.runtime.tracker_options(&args.candide, opts);
+        let tracker = match args.aligner {
+            AlignerKind::Dan => FaceTracker::with_aligner(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
+            _ => FaceTracker::new(opts)?,
+        };
         runners.push(Runner {
-            session: TrackerSession::new(
-                Box::new(args.runtime.detector()?),
-                model.clone(),
-                dan_mean_shape(),
-                opts,
-            ),
-            aligner: make_aligner()?,
+            tracker,
             tally: Tally::default(),
         });
     }
@@ -367,7 +355,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let before: Vec<Tally> = runners.iter().map(|r| r.tally.clone()).collect();
         for r in &mut runners {
-            r.session.reset();
+            r.tracker.reset();
             r.tally.was_good = false;
             r.tally.prev_truth = None;
         }
