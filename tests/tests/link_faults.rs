@@ -17,8 +17,8 @@ use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_quic::Fingerprint;
 use holoface_tests::{TEST_TOKEN, workspace_root};
-use holoface_tools::data::{Split, default_data_root, load_folder};
-use holoface_tools::relay::UdpRelay;
+use holoface_toolkit::data::{Split, default_data_root, load_folder};
+use holoface_toolkit::relay::UdpRelay;
 
 const FRAME: Duration = Duration::from_micros(33_333);
 

@@ -122,7 +122,7 @@ async fn the_servers_answer_is_what_eval_remote_measures() {
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
-    use holoface_tools::data::{Split, default_data_root, load_folder};
+    use holoface_toolkit::data::{Split, default_data_root, load_folder};
 
     let faces = load_folder(
         &default_data_root().join("faces68/train"),
@@ -135,17 +135,17 @@ async fn the_servers_answer_is_what_eval_remote_measures() {
     let mean = dan_mean_shape();
     let mut init = [Point2::default(); 68];
     fit_to_box(&mean, &Rect::bounding(&gt).unwrap(), &mut init);
-    let runtime = holoface_tools::args::RuntimeArgs {
+    let engine = holoface_inference::OnnxOptions {
+        model: model_path(),
         ort_dylib: ort_dylib_path(),
-        dan_model: model_path(),
-        detector: "unused".into(),
-        refine_model: refiner_path(),
-        krfws_model: "unused".into(),
-        threads: 1,
+        intra_threads: 1,
+        max_batch: 1,
+        provider: holoface_inference::Provider::Cpu,
+        spin: false,
     };
-    let mut remote = runtime.remote_aligner().unwrap();
+    let mut remote = holoface_toolkit::dan_aligner::server_pipeline(&engine, &refiner_path()).unwrap();
     let eval = remote.align(&face.image.view(), &init).unwrap();
-    let mut dan_alone = runtime.dan_aligner().unwrap();
+    let mut dan_alone = holoface_toolkit::dan_aligner::dan_alone(&engine).unwrap();
     dan_alone.set_wire_codec(Some(CropCodec::default()));
     let dan = dan_alone.align(&face.image.view(), &init).unwrap();
     assert!(eval.accepted, "a validation face is accepted");

@@ -48,7 +48,7 @@ impl RuntimeArgs {
         self.detector.clone()
     }
     /// In-process DAN's engine options (CPU, batch 1).
-    fn dan_options(&self) -> OnnxOptions {
+    pub fn dan_options(&self) -> OnnxOptions {
         OnnxOptions {
             model: self.dan_model.clone(),
             ort_dylib: self.ort_dylib.clone(),
@@ -59,25 +59,16 @@ impl RuntimeArgs {
         }
     }
 
-    /// DAN through ONNX Runtime in this process.
+    /// DAN alone in this process.
     pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
-        let engine = OnnxEngine::load(&self.dan_options())
-            .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
-        Ok(DanAligner::new(engine)?)
+        holoface_toolkit::dan_aligner::dan_alone(&self.dan_options())
     }
 
-    /// The server's pipeline in this process: the crop through the wire's JPEG q75 round trip, DAN, then
-    /// the refinement cascade ([`holoface_inference::RefinedEngine`], the type the server's engine threads
-    /// run).
+    /// The server's pipeline in this process (`holoface_toolkit::dan_aligner::server_pipeline`).
     pub fn remote_aligner(
         &self,
     ) -> anyhow::Result<DanAligner<holoface_inference::RefinedEngine<OnnxEngine>>> {
-        let refiner = holoface_inference::RefinerModel::load(&self.refine_model)?;
-        let engine = OnnxEngine::load(&self.dan_options())
-            .with_context(|| format!("loading DAN model {}", self.dan_model.display()))?;
-        let mut aligner = DanAligner::new(holoface_inference::RefinedEngine::new(engine, refiner)?)?;
-        aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
-        Ok(aligner)
+        holoface_toolkit::dan_aligner::server_pipeline(&self.dan_options(), &self.refine_model)
     }
 
     /// The tracker options of a video with these assets, the CANDIDE-3 model of `candide`, `session`'s settings,

@@ -1,6 +1,8 @@
-//! The `holoface` command-line tools and what only tools need: annotated data folders and the validation
-//! split ([`data`]), teacher-label files ([`labels`]), the synthetic headset renderer ([`render`]), plots ([`plot`]), annotated output
-//! ([`annotate`]), the fault-injecting UDP relay ([`relay`]), the in-process loopback server ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]).
+//! The `holoface` command-line tools and what only they need: teacher-label files ([`labels`]), the synthetic
+//! headset renderer ([`render`]), annotated output ([`annotate`]), the in-process loopback server
+//! ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]). A leaf:
+//! nothing else in the workspace depends on this crate; what the load tester and the end-to-end tests share
+//! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-toolkit`.
 //!
 //! The headset runtime they drive is `holoface-headset-client`; the demo's in-process alignment server is
 //! `holoface-server`. A headset app depends on neither this crate nor the server.
@@ -9,12 +11,11 @@
 pub mod annotate;
 pub mod args;
 pub mod cli;
-pub mod dan_aligner;
-pub mod data;
 pub mod labels;
 pub mod loopback;
-pub mod plot;
-pub mod relay;
 pub mod render;
 pub mod stability;
 pub mod stats;
+
+// Shared with the load tester and the end-to-end tests (holoface-toolkit); kept at their old paths here.
+pub use holoface_toolkit::{dan_aligner, data, plot, relay};

@@ -331,7 +331,7 @@ fn face_crops() -> anyhow::Result<Vec<holoface_protocol::Crop>> {
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect, Similarity2};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
-    use holoface_tools::data::{Split, default_data_root, load_folder};
+    use holoface_toolkit::data::{Split, default_data_root, load_folder};
     let mean = dan_mean_shape();
     let faces = load_folder(
         &default_data_root().join("faces68/train"),

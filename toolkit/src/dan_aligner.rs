@@ -2,13 +2,38 @@
 //! headset would send, one ONNX Runtime call, the landmarks mapped back. A headset never runs DAN itself (it
 //! asks the alignment server), so this lives here and not in the runtime.
 
+use anyhow::Context;
 use holoface_headset_client::align::{
     AlignError, Aligner, Alignment, Candidate, Neighbours, crop_from_image, landmarks_from_crop,
 };
-use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut};
+use holoface_inference::{
+    BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions, RefinedEngine, RefinerModel,
+};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayView;
+
+/// DAN alone, in this process (`engine`: CPU, batch 1).
+pub fn dan_alone(engine: &OnnxOptions) -> anyhow::Result<DanAligner<OnnxEngine>> {
+    let dan =
+        OnnxEngine::load(engine).with_context(|| format!("loading DAN model {}", engine.model.display()))?;
+    Ok(DanAligner::new(dan)?)
+}
+
+/// The alignment server's pipeline in this process: the crop through the wire's default encoding (JPEG q75)
+/// and back, DAN, then the refinement cascade at `refiner` ([`RefinedEngine`], the type the server's engine
+/// threads run).
+pub fn server_pipeline(
+    engine: &OnnxOptions,
+    refiner: &std::path::Path,
+) -> anyhow::Result<DanAligner<RefinedEngine<OnnxEngine>>> {
+    let refiner = RefinerModel::load(refiner)?;
+    let dan =
+        OnnxEngine::load(engine).with_context(|| format!("loading DAN model {}", engine.model.display()))?;
+    let mut aligner = DanAligner::new(RefinedEngine::new(dan, refiner)?)?;
+    aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
+    Ok(aligner)
+}
 
 /// DAN in-process: similarity crop onto the model's mean shape, one ONNX Runtime call, inverse map.
 #[derive(Debug)]
