@@ -171,6 +171,7 @@ deps-check:
 	@users=$$($(CARGO) tree --locked --workspace -i holoface-tools -e normal,dev,build --prefix none | { grep -v '^holoface-tools ' || true; } | sort -u | tr '\n' ' '); \
 	  if [ -n "$$users" ]; then echo "holoface-tools is a leaf, but these depend on it: $$users" >&2; exit 1; fi
 	@echo "holoface-tools: a leaf (nothing depends on it)"
+	python3 tools/module-cycles.py $$(sed -n '/^members = \[/,/^\]/s/^ *"\(.*\)",$$/\1/p' Cargo.toml)
 	tools/feature-parity.sh
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the

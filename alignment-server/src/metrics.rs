@@ -428,7 +428,7 @@ mod tests {
         let m = Metrics::new(8);
         assert!(!m.render().contains("holoface_engine_info"), "no engine yet");
         use holoface_inference::InferenceEngine as _;
-        let mut model = holoface_inference::engine::FakeEngine::new(1).info().clone();
+        let mut model = holoface_inference::FakeEngine::new(1).info().clone();
         model.name = "da\"n".into();
         let execution = Execution {
             fallback: Some("no libcudart".into()),

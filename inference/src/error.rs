@@ -103,7 +103,7 @@ pub enum EngineError {
     BadOutput(String),
     /// The refinement cascade's model file is missing, unreadable, damaged or does not fit the DAN model.
     #[error("refiner model {path}: {detail} (set refine.model / --refine-model, or refine.enabled = false)")]
-    RefinerModel {
+    LoadedCascade {
         /// The file.
         path: PathBuf,
         /// What is wrong.

@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::engine::{BatchTensor, InferenceEngine, LandmarkOut};
+use crate::contract::{BatchTensor, InferenceEngine, LandmarkOut};
 use crate::error::EngineError;
 
 /// The sidecar of `path`: `dan.onnx` -> `dan.onnx.sha256`.

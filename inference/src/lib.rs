@@ -1,9 +1,11 @@
 //! HoloFace inference: what the alignment server and the headset client share to run ONNX models.
 //!
 //! * [`crop`]: the one decoder of a crop's PNG/JPEG payload ([`decode_crop`]), hardened for network bytes.
-//! * [`engine`]: the [`InferenceEngine`] trait (the DAN model contract), [`OnnxEngine`] (ort,
-//!   `load-dynamic`), model-contract validation; `FakeEngine` under `cfg(test)` / the `test-util` feature.
-//! * [`refine`]: [`RefinedEngine`], DAN followed by the refinement cascade (the server's pipeline).
+//! * [`contract`]: the [`InferenceEngine`] trait and the DAN model contract (batch, outputs, metadata,
+//!   input/output validation), which every engine below meets.
+//! * [`onnx`]: [`OnnxEngine`] (ort, `load-dynamic`; CUDA with fail-over to the CPU).
+//! * [`refine`]: [`CascadeEngine`], an engine followed by the refinement cascade (the server's pipeline).
+//! * `fake`: `FakeEngine` under `cfg(test)` / the `test-util` feature.
 //! * [`files`]: bounded reads of the files front ends name (kind and size checked before reading).
 //! * [`integrity`]: model files checked before use (sidecar checksums, the shipped releases' checksums, a
 //!   start-up self-test of the engine on a fixed crop).
@@ -16,20 +18,26 @@
 //! No IO besides loading the library, the model files and the bounded reads of [`files`]; no async runtime, no network.
 #![deny(missing_docs)]
 
+pub mod contract;
 pub mod crop;
-pub mod engine;
 pub mod error;
+#[cfg(any(test, feature = "test-util"))]
+pub mod fake;
 pub mod files;
 pub mod home;
 pub mod integrity;
+pub mod onnx;
 pub mod refine;
 pub mod runtime;
 
-pub use crop::{CropDecodeError, decode_crop};
-pub use engine::{
-    BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, Execution, InferenceEngine, LandmarkOut, ModelInfo, OnnxEngine,
-    OnnxOptions, Provider,
+pub use contract::{
+    BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, CascadeStats, Execution, InferenceEngine, LandmarkOut,
+    ModelInfo,
 };
+pub use crop::{CropDecodeError, decode_crop};
 pub use error::EngineError;
-pub use refine::{RefinedEngine, Refinement, RefinerModel};
+#[cfg(any(test, feature = "test-util"))]
+pub use fake::FakeEngine;
+pub use onnx::{OnnxEngine, OnnxOptions, Provider};
+pub use refine::{CascadeEngine, LoadedCascade};
 pub use runtime::{ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

@@ -1,6 +1,6 @@
 //! DAN followed by the refinement cascade: the server's alignment pipeline as one [`InferenceEngine`].
 //!
-//! [`RefinedEngine`] runs the wrapped engine (DAN) on the batch, then refines, on the very crop bytes of
+//! [`CascadeEngine`] runs the wrapped engine (DAN) on the batch, then refines, on the very crop bytes of
 //! the batch, the landmarks of every crop whose output is usable and whose face probability passes the
 //! model's threshold (`holoface_models::refine`). Rejected crops keep DAN's answer: the client discards
 //! them anyway. The server's engine threads and `holoface eval --aligner remote` run this same type, so the
@@ -8,24 +8,24 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use holoface_models::refine::{RefineScratch, Refiner};
+use holoface_models::refine::{RefineCascade, RefineScratch};
 
-use crate::engine::{BatchTensor, Execution, InferenceEngine, LandmarkOut, ModelInfo};
+use crate::contract::{BatchTensor, CascadeStats, Execution, InferenceEngine, LandmarkOut, ModelInfo};
 use crate::error::EngineError;
 
 /// A loaded refiner with its identity (`name (crc XXXXXXXX)`), shared by every engine instance.
 #[derive(Debug, Clone)]
-pub struct RefinerModel {
-    model: Arc<Refiner>,
+pub struct LoadedCascade {
+    model: Arc<RefineCascade>,
     identity: String,
 }
 
-impl RefinerModel {
+impl LoadedCascade {
     /// Loads and validates a refiner model file.
     pub fn load(path: &Path) -> Result<Self, EngineError> {
-        let err = |detail: String| EngineError::RefinerModel {
+        let err = |detail: String| EngineError::LoadedCascade {
             path: path.to_path_buf(),
             detail,
         };
@@ -49,8 +49,8 @@ impl RefinerModel {
 
     /// A refiner from file bytes.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, EngineError> {
-        let model = Refiner::from_bytes(bytes).map_err(|e| EngineError::Refine(e.to_string()))?;
-        let crc = Refiner::file_crc(bytes).unwrap_or(0);
+        let model = RefineCascade::from_bytes(bytes).map_err(|e| EngineError::Refine(e.to_string()))?;
+        let crc = RefineCascade::file_crc(bytes).unwrap_or(0);
         let identity = format!("{} (crc {crc:08x})", model.name);
         Ok(Self {
             model: Arc::new(model),
@@ -64,33 +64,24 @@ impl RefinerModel {
     }
 
     /// The cascade.
-    pub fn model(&self) -> &Refiner {
+    pub fn model(&self) -> &RefineCascade {
         &self.model
     }
 }
 
-/// What the last batch's refinement did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Refinement {
-    /// Crops refined (the others failed the face threshold or had unusable output).
-    pub crops: usize,
-    /// Time spent refining them.
-    pub elapsed: Duration,
-}
-
 /// DAN (any [`InferenceEngine`]) followed by the refinement cascade.
 #[derive(Debug)]
-pub struct RefinedEngine<E> {
+pub struct CascadeEngine<E> {
     inner: E,
-    refiner: RefinerModel,
+    refiner: LoadedCascade,
     /// One scratch per refinement thread.
     scratch: Vec<RefineScratch>,
-    last: Refinement,
+    last: CascadeStats,
 }
 
-impl<E: InferenceEngine> RefinedEngine<E> {
+impl<E: InferenceEngine> CascadeEngine<E> {
     /// Wraps `inner`; the refiner must work on the model's crop size.
-    pub fn new(inner: E, refiner: RefinerModel) -> Result<Self, EngineError> {
+    pub fn new(inner: E, refiner: LoadedCascade) -> Result<Self, EngineError> {
         let size = inner.info().crop_size;
         if refiner.model().crop_size != size || inner.info().landmark_count != 68 {
             return Err(EngineError::Refine(format!(
@@ -103,7 +94,7 @@ impl<E: InferenceEngine> RefinedEngine<E> {
             inner,
             refiner,
             scratch: vec![RefineScratch::default()],
-            last: Refinement::default(),
+            last: CascadeStats::default(),
         })
     }
 
@@ -116,7 +107,7 @@ impl<E: InferenceEngine> RefinedEngine<E> {
     }
 }
 
-impl<E: InferenceEngine> InferenceEngine for RefinedEngine<E> {
+impl<E: InferenceEngine> InferenceEngine for CascadeEngine<E> {
     fn info(&self) -> &ModelInfo {
         self.inner.info()
     }
@@ -133,7 +124,7 @@ impl<E: InferenceEngine> InferenceEngine for RefinedEngine<E> {
         Some(self.refiner.identity())
     }
 
-    fn last_refinement(&self) -> Option<Refinement> {
+    fn last_refinement(&self) -> Option<CascadeStats> {
         Some(self.last)
     }
 
@@ -183,7 +174,7 @@ impl<E: InferenceEngine> InferenceEngine for RefinedEngine<E> {
                 })
             })?;
         }
-        self.last = Refinement {
+        self.last = CascadeStats {
             crops,
             elapsed: started.elapsed(),
         };
@@ -198,14 +189,14 @@ mod tests {
     use holoface_models::refine::{RefineStage, RegressionTree, SHAPE_DIM, SplitTest};
 
     use super::*;
-    use crate::engine::FakeEngine;
+    use crate::fake::FakeEngine;
 
     /// A refiner that moves every landmark by (+1, +1) crop pixels (its mean shape is the fake model's, so
     /// on the fake's output its frame is the identity).
     fn shift_by_one() -> Vec<u8> {
         let fake = FakeEngine::new(1);
         let m = &fake.info().mean_shape;
-        Refiner {
+        RefineCascade {
             crop_size: 112,
             depth: 1,
             mean: std::array::from_fn(|i| Point2::new(m[i][0], m[i][1])),
@@ -230,14 +221,14 @@ mod tests {
 
     #[test]
     fn refines_accepted_crops_and_leaves_rejected_ones() {
-        let model = RefinerModel::from_bytes(&shift_by_one()).unwrap();
+        let model = LoadedCascade::from_bytes(&shift_by_one()).unwrap();
         assert!(
             model.identity().starts_with("shift (crc "),
             "{}",
             model.identity()
         );
         let mut plain = FakeEngine::new(4);
-        let mut refined = RefinedEngine::new(FakeEngine::new(4), model).unwrap();
+        let mut refined = CascadeEngine::new(FakeEngine::new(4), model).unwrap();
         assert_eq!(refined.refiner(), Some(refined.refiner.identity()));
         let mut batch = BatchTensor::new(4, 112 * 112);
         // The fake's face probability is the mean pixel / 255: a dark crop is rejected.
@@ -258,9 +249,9 @@ mod tests {
 
     #[test]
     fn several_threads_give_the_same_answers() {
-        let model = RefinerModel::from_bytes(&shift_by_one()).unwrap();
-        let mut one = RefinedEngine::new(FakeEngine::new(8), model.clone()).unwrap();
-        let mut three = RefinedEngine::new(FakeEngine::new(8), model)
+        let model = LoadedCascade::from_bytes(&shift_by_one()).unwrap();
+        let mut one = CascadeEngine::new(FakeEngine::new(8), model.clone()).unwrap();
+        let mut three = CascadeEngine::new(FakeEngine::new(8), model)
             .unwrap()
             .with_threads(3);
         let mut batch = BatchTensor::new(8, 112 * 112);
@@ -281,7 +272,9 @@ mod tests {
     fn a_missing_damaged_or_mismatched_refiner_is_a_clear_error() {
         let dir = std::env::temp_dir().join(format!("holoface-refiner-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let missing = RefinerModel::load(&dir.join("nope.bin")).unwrap_err().to_string();
+        let missing = LoadedCascade::load(&dir.join("nope.bin"))
+            .unwrap_err()
+            .to_string();
         assert!(
             missing.contains("nope.bin") && missing.contains("refine.model"),
             "{missing}"
@@ -290,15 +283,15 @@ mod tests {
         let mut bytes = shift_by_one();
         bytes[30] ^= 0xff;
         std::fs::write(&corrupt, &bytes).unwrap();
-        let e = RefinerModel::load(&corrupt).unwrap_err().to_string();
+        let e = LoadedCascade::load(&corrupt).unwrap_err().to_string();
         assert!(e.contains("corrupt.bin") && e.contains("checksum"), "{e}");
-        let e = RefinerModel::load(&dir).unwrap_err().to_string();
+        let e = LoadedCascade::load(&dir).unwrap_err().to_string();
         assert!(e.contains("directory"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
-        let mut big = Refiner::from_bytes(&shift_by_one()).unwrap();
+        let mut big = RefineCascade::from_bytes(&shift_by_one()).unwrap();
         big.crop_size = 224;
-        let m = RefinerModel::from_bytes(&big.to_bytes()).unwrap();
-        let e = RefinedEngine::new(FakeEngine::new(1), m).unwrap_err().to_string();
+        let m = LoadedCascade::from_bytes(&big.to_bytes()).unwrap();
+        let e = CascadeEngine::new(FakeEngine::new(1), m).unwrap_err().to_string();
         assert!(e.contains("224 px"), "{e}");
     }
 }

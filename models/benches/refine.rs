@@ -15,7 +15,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::{Point2, Rect, Similarity2};
 use holoface_models::image::GrayImage;
-use holoface_models::refine::{RefineScratch, Refiner};
+use holoface_models::refine::{RefineCascade, RefineScratch};
 use holoface_models::shape::{dan_mean_shape, fit_to_box, parse_pts68};
 
 fn data_root() -> PathBuf {
@@ -24,11 +24,11 @@ fn data_root() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
 }
 
-fn model() -> Refiner {
+fn model() -> RefineCascade {
     let path = std::env::var_os("HOLOFACE_REFINE_MODEL")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/refiner.bin"));
-    Refiner::from_bytes(&std::fs::read(&path).unwrap()).unwrap()
+    RefineCascade::from_bytes(&std::fs::read(&path).unwrap()).unwrap()
 }
 
 /// A validation face's 112-px crop, or a synthetic one.

@@ -12,7 +12,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use holoface_alignment_server::config::Settings;
 use holoface_inference::{
-    BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, RefinedEngine, RefinerModel,
+    BatchTensor, CascadeEngine, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine,
 };
 use holoface_protocol::{
     CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
@@ -46,8 +46,8 @@ fn reference(seed: u8) -> LandmarkOut {
     let s = loopback_settings();
     let mut opts = s.engine.clone();
     opts.max_batch = 1;
-    let refiner = RefinerModel::load(&refiner_path()).unwrap();
-    let mut engine = RefinedEngine::new(OnnxEngine::load(&opts).unwrap(), refiner).unwrap();
+    let refiner = LoadedCascade::load(&refiner_path()).unwrap();
+    let mut engine = CascadeEngine::new(OnnxEngine::load(&opts).unwrap(), refiner).unwrap();
     let mut batch = BatchTensor::new(1, 112 * 112);
     batch.push(&frame(0, seed, 0).crop.data).unwrap();
     let mut out = vec![LandmarkOut::default()];

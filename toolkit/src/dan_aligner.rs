@@ -7,7 +7,7 @@ use holoface_headset_client::align::{
     AlignError, Aligner, Alignment, Candidate, Neighbours, crop_from_image, landmarks_from_crop,
 };
 use holoface_inference::{
-    BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions, RefinedEngine, RefinerModel,
+    BatchTensor, CascadeEngine, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine, OnnxOptions,
 };
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
@@ -21,16 +21,16 @@ pub fn dan_alone(engine: &OnnxOptions) -> anyhow::Result<DanAligner<OnnxEngine>>
 }
 
 /// The alignment server's pipeline in this process: the crop through the wire's default encoding (JPEG q75)
-/// and back, DAN, then the refinement cascade at `refiner` ([`RefinedEngine`], the type the server's engine
+/// and back, DAN, then the refinement cascade at `refiner` ([`CascadeEngine`], the type the server's engine
 /// threads run).
 pub fn server_pipeline(
     engine: &OnnxOptions,
     refiner: &std::path::Path,
-) -> anyhow::Result<DanAligner<RefinedEngine<OnnxEngine>>> {
-    let refiner = RefinerModel::load(refiner)?;
+) -> anyhow::Result<DanAligner<CascadeEngine<OnnxEngine>>> {
+    let refiner = LoadedCascade::load(refiner)?;
     let dan =
         OnnxEngine::load(engine).with_context(|| format!("loading DAN model {}", engine.model.display()))?;
-    let mut aligner = DanAligner::new(RefinedEngine::new(dan, refiner)?)?;
+    let mut aligner = DanAligner::new(CascadeEngine::new(dan, refiner)?)?;
     aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
     Ok(aligner)
 }

@@ -67,7 +67,7 @@ impl RuntimeArgs {
     /// The server's pipeline in this process (`holoface_toolkit::dan_aligner::server_pipeline`).
     pub fn remote_aligner(
         &self,
-    ) -> anyhow::Result<DanAligner<holoface_inference::RefinedEngine<OnnxEngine>>> {
+    ) -> anyhow::Result<DanAligner<holoface_inference::CascadeEngine<OnnxEngine>>> {
         holoface_toolkit::dan_aligner::server_pipeline(&self.dan_options(), &self.refine_model)
     }
 

@@ -138,7 +138,7 @@ pub(super) fn engine_loop(
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
-    use holoface_inference::engine::FakeEngine;
+    use holoface_inference::FakeEngine;
     use holoface_inference::{EngineError, ModelInfo};
     use tokio::sync::oneshot;
 

@@ -66,7 +66,7 @@ use crate::config::{ServerConfig, Settings, TlsSource};
 use crate::metrics::Metrics;
 use crate::tls::{Fingerprint, ServerIdentity, TlsError};
 use crate::{config::ConfigError, metrics_http};
-use holoface_inference::{EngineError, InferenceEngine, ModelInfo, OnnxEngine, RefinedEngine, RefinerModel};
+use holoface_inference::{CascadeEngine, EngineError, InferenceEngine, LoadedCascade, ModelInfo, OnnxEngine};
 
 use admission::{Admission, Admit};
 use connection::connection;
@@ -142,13 +142,13 @@ impl Server {
         let refine_path = settings.refine_model.clone();
         let engines = tokio::task::spawn_blocking(move || {
             // One refiner, shared by every instance; a missing or damaged file stops the start here.
-            let refiner = refine_path.as_deref().map(RefinerModel::load).transpose()?;
+            let refiner = refine_path.as_deref().map(LoadedCascade::load).transpose()?;
             (0..instances)
                 .map(|_| {
                     let dan = OnnxEngine::load(&opts)?;
                     Ok(match &refiner {
                         Some(r) => {
-                            Box::new(RefinedEngine::new(dan, r.clone())?.with_threads(opts.intra_threads))
+                            Box::new(CascadeEngine::new(dan, r.clone())?.with_threads(opts.intra_threads))
                                 as Box<dyn InferenceEngine>
                         }
                         None => Box::new(dan) as Box<dyn InferenceEngine>,

@@ -135,7 +135,7 @@ mod tests {
 
     use crate::batcher::{BatchPolicy, BatcherConfig};
     use crate::server::engine_thread::engine_loop;
-    use holoface_inference::engine::FakeEngine;
+    use holoface_inference::FakeEngine;
 
     fn submit(client: ClientId, seed: u8, at: Instant) -> (SchedMsg, oneshot::Receiver<FrameOutcome>) {
         let (tx, rx) = oneshot::channel();

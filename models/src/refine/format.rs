@@ -23,7 +23,9 @@
 //! Every count is checked against its bound and against the bytes left before anything is allocated;
 //! every index and float is validated, so a damaged file is an error naming what is wrong, never a panic.
 
-use super::{REFINE_LANDMARKS, RefineError, RefineStage, Refiner, RegressionTree, SHAPE_DIM, SplitTest};
+use super::{
+    REFINE_LANDMARKS, RefineCascade, RefineError, RefineStage, RegressionTree, SHAPE_DIM, SplitTest,
+};
 use crate::geometry::Point2;
 
 /// File magic.
@@ -77,7 +79,7 @@ impl<'a> Reader<'a> {
     }
 }
 
-impl Refiner {
+impl RefineCascade {
     /// The model as file bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut out = Vec::new();
@@ -271,10 +273,10 @@ mod tests {
     fn round_trip_keeps_the_model() {
         let r = tiny(0.5, -1.25);
         let bytes = r.to_bytes();
-        let back = Refiner::from_bytes(&bytes).unwrap();
+        let back = RefineCascade::from_bytes(&bytes).unwrap();
         assert_eq!(back, r);
         assert_eq!(
-            Refiner::file_crc(&bytes),
+            RefineCascade::file_crc(&bytes),
             Some(crc32fast::hash(&bytes[..bytes.len() - 4]))
         );
     }
@@ -312,7 +314,7 @@ mod tests {
     #[test]
     fn damaged_files_are_clear_errors() {
         let good = tiny(0.5, -1.25).to_bytes();
-        let err = |b: &[u8]| Refiner::from_bytes(b).unwrap_err().to_string();
+        let err = |b: &[u8]| RefineCascade::from_bytes(b).unwrap_err().to_string();
         assert!(err(b"").contains("bad magic"));
         assert!(err(b"GARBAGE!GARBAGE!").contains("bad magic"));
         let mut flipped = good.clone();

@@ -3,7 +3,7 @@
 //!
 //! DAN is the robust part of the remote pipeline (it rarely fails and its face head is excellent); a
 //! tree cascade is precise, cheap to train on a CPU and cheap to run, but needs a good start. The server
-//! has that start, so it runs DAN, then this cascade (`holoface-inference`'s `RefinedEngine`).
+//! has that start, so it runs DAN, then this cascade (`holoface-inference`'s `CascadeEngine`).
 //!
 //! # Model
 //! Landmarks are in crop pixels (the client's crop, mean shape 56 px in 112). Each stage has a pool of
@@ -197,7 +197,7 @@ impl RefineStage {
 
 /// A trained refinement cascade.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Refiner {
+pub struct RefineCascade {
     /// Side of the square crop it works on.
     pub crop_size: usize,
     /// Tree depth (every tree of every stage).
@@ -215,7 +215,7 @@ pub struct Refiner {
     pub mirror: bool,
 }
 
-/// The starts [`Refiner::refine`] runs when the model asks for several ([`Refiner::starts`]): the given
+/// The starts [`RefineCascade::refine`] runs when the model asks for several ([`RefineCascade::starts`]): the given
 /// shape, then shifted by `(dx, dy)` in the mean-shape frame (crop pixels of the mean shape: ±1.5 px is
 /// about 4 % of the eye-corner distance), scaled about its centroid and turned by degrees. Fixed, so the
 /// answer is a function of the crop and the start alone.
@@ -340,7 +340,7 @@ impl RegressionTree {
     }
 }
 
-impl Refiner {
+impl RefineCascade {
     /// Number of trees over all stages.
     pub fn tree_count(&self) -> usize {
         self.stages.iter().map(|s| s.trees.len()).sum()
@@ -388,7 +388,7 @@ impl Refiner {
         Ok(())
     }
 
-    /// The cascade from [`Refiner::starts`] starts around `shape` (their per-coordinate median), in place.
+    /// The cascade from [`RefineCascade::starts`] starts around `shape` (their per-coordinate median), in place.
     fn refine_starts(
         &self,
         crop: &[u8],
@@ -440,7 +440,7 @@ impl Refiner {
         }
     }
 
-    /// [`Refiner::refine`] on `[x, y]` pairs (the engine's output layout), in place.
+    /// [`RefineCascade::refine`] on `[x, y]` pairs (the engine's output layout), in place.
     pub fn refine_pairs(
         &self,
         crop: &[u8],
@@ -470,10 +470,10 @@ mod tests {
     use crate::shape::dan_mean_shape;
 
     /// A one-stage, one-tree refiner of depth 1 whose test reads two fixed pixels.
-    pub(crate) fn tiny(left: f32, right: f32) -> Refiner {
+    pub(crate) fn tiny(left: f32, right: f32) -> RefineCascade {
         let mut leaves = vec![left; SHAPE_DIM];
         leaves.extend(std::iter::repeat_n(right, SHAPE_DIM));
-        Refiner {
+        RefineCascade {
             crop_size: 112,
             depth: 1,
             mean: dan_mean_shape(),

@@ -1,5 +1,5 @@
 //! Training the refinement cascade, pure: in-memory crops with DAN's start shapes and the ground truth
-//! in, a [`Refiner`] out; no IO, no clock. Deterministic for a given seed whatever the thread count
+//! in, a [`RefineCascade`] out; no IO, no clock. Deterministic for a given seed whatever the thread count
 //! (every random stream is seeded from the seed and the stage/tree it serves; sums are merged in chunk
 //! order).
 //!
@@ -16,7 +16,8 @@
 //! - at the end of a stage every shape moves by the sum of its leaves, turned back into crop pixels.
 
 use super::{
-    REFINE_LANDMARKS, RefineStage, Refiner, RegressionTree, SHAPE_DIM, SplitTest, frame_of, read_features,
+    REFINE_LANDMARKS, RefineCascade, RefineStage, RegressionTree, SHAPE_DIM, SplitTest, frame_of,
+    read_features,
 };
 use crate::geometry::{Point2, Rect};
 use crate::metrics::nme68;
@@ -373,7 +374,7 @@ pub fn train(
     crop_size: usize,
     cfg: &RefineConfig,
     on_stage: &mut dyn FnMut(&StageReport, &RefineStage),
-) -> Result<Refiner, RefineTrainError> {
+) -> Result<RefineCascade, RefineTrainError> {
     if samples.is_empty() {
         return Err(RefineTrainError::NoSamples);
     }
@@ -462,7 +463,7 @@ pub fn train(
         );
         stages.push(stage);
     }
-    Ok(Refiner {
+    Ok(RefineCascade {
         crop_size,
         depth: cfg.depth,
         mean: *mean,
@@ -565,7 +566,7 @@ mod tests {
         }
         assert!(after < 0.6 * before, "held-out error {before} -> {after}");
         // The file round trip gives the same answers.
-        let back = Refiner::from_bytes(&model.to_bytes()).unwrap();
+        let back = RefineCascade::from_bytes(&model.to_bytes()).unwrap();
         let mut a = starts[0];
         let mut b = starts[0];
         model.refine(&crops[0], &mut a, &mut scratch).unwrap();

@@ -27,7 +27,7 @@ use holoface_models::crop::warp_bilinear;
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
 use holoface_models::metrics::{nme49, nme68, summarise};
 use holoface_models::refine::train::{RefineConfig, RefineSample, train};
-use holoface_models::refine::{RefineScratch, Refiner};
+use holoface_models::refine::{RefineCascade, RefineScratch};
 use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
 use serde::Serialize;
@@ -595,7 +595,7 @@ fn mean_nme68(val: &ValAnswers, shapes: &[[Point2; 68]]) -> f64 {
     sum / val.answered.len().max(1) as f64
 }
 
-fn validate(refiner: &Refiner, val: &ValAnswers) -> anyhow::Result<ValReport> {
+fn validate(refiner: &RefineCascade, val: &ValAnswers) -> anyhow::Result<ValReport> {
     let runner = val;
     let (faces, detected) = (val.faces, val.detected);
     // The figures below are over every validation face: missing answers are failures.
@@ -687,7 +687,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.evaluate {
         let val = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
         let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
-        let mut refiner = Refiner::from_bytes(&bytes)?;
+        let mut refiner = RefineCascade::from_bytes(&bytes)?;
         for (starts, mirror) in [(1, false), (args.starts, false), (1, true), (args.starts, true)] {
             refiner.starts = starts;
             refiner.mirror = mirror;
