@@ -6,7 +6,7 @@
 //!   a fake clock).
 //! * The engine ([`InferenceEngine`], [`OnnxEngine`]) lives in
 //!   `holoface-inference`, shared with the headset client.
-//! * [`server`]: the quinn driver: [`Server::bind`], [`Server::run`] with an
+//! * [`server`]: the quinn driver: [`AlignmentServer::bind`], [`AlignmentServer::run`] with an
 //!   injected shutdown future, [`run`], [`shutdown_signal`]. Split by
 //!   responsibility: `server/mod.rs` (the server, its shared state, transport
 //!   settings and the accept loop), `lifecycle.rs` (systemd readiness,
@@ -36,4 +36,4 @@ pub use batcher::{BatchPolicy, BatcherConfig, DynamicBatcher};
 pub use config::{ServerConfig, Settings};
 pub use holoface_inference::{InferenceEngine, ModelInfo, OnnxEngine};
 pub use holoface_quic::Fingerprint;
-pub use server::{Server, ServerError, run, shutdown_signal};
+pub use server::{AlignmentServer, ServerError, run, shutdown_signal};

@@ -1,7 +1,7 @@
 //! `holoface-server`: see `holoface-server --help` and deploy/server.example.toml.
 
 use anyhow::Context as _;
-use holoface_alignment_server::{Server, ServerConfig, config::ConfigError, shutdown_signal};
+use holoface_alignment_server::{AlignmentServer, ServerConfig, config::ConfigError, shutdown_signal};
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
@@ -11,7 +11,7 @@ async fn main() -> anyhow::Result<()> {
         Err(e) => return Err(e).context("configuration"),
     };
     holoface_alignment_server::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
-    let server = Server::bind(settings)
+    let server = AlignmentServer::bind(settings)
         .await
         .context("starting the alignment server")?;
     // One machine-readable line for scripts and the loopback benchmark.

@@ -149,7 +149,7 @@ fn target(args: &Args, rt: &tokio::runtime::Runtime) -> anyhow::Result<Target> {
         s.batch.max_batch = args.server_max_batch;
         s.engine.max_batch = args.server_max_batch;
         s.max_clients = s.max_clients.max(args.clients);
-        let server = rt.block_on(holoface_alignment_server::Server::bind(s))?;
+        let server = rt.block_on(holoface_alignment_server::AlignmentServer::bind(s))?;
         let (addr, fingerprint) = (server.local_addr()?, server.fingerprint());
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = rt.spawn(server.run(async move {

@@ -45,7 +45,9 @@ fn start(dir: &Path, listen: SocketAddr) -> (Killable, SocketAddr, String) {
         .enable_all()
         .build()
         .unwrap();
-    let server = rt.block_on(holoface_alignment_server::Server::bind(s)).unwrap();
+    let server = rt
+        .block_on(holoface_alignment_server::AlignmentServer::bind(s))
+        .unwrap();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint().to_string());
     rt.spawn(server.run(std::future::pending()));
     (Killable { rt }, addr, fp)

@@ -200,7 +200,9 @@ fn headsets_stop_sending_on_the_servers_goaway() {
         .enable_all()
         .build()
         .unwrap();
-    let server = rt.block_on(holoface_alignment_server::Server::bind(s)).unwrap();
+    let server = rt
+        .block_on(holoface_alignment_server::AlignmentServer::bind(s))
+        .unwrap();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint());
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let task = rt.spawn(server.run(async move {

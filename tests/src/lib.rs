@@ -18,7 +18,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::{Bytes, BytesMut};
-use holoface_alignment_server::Server;
+use holoface_alignment_server::AlignmentServer;
 use holoface_alignment_server::config::Settings;
 use holoface_alignment_server::metrics::Metrics;
 use holoface_headset_client::link::connection::{self, Control, ReplyReader};
@@ -160,14 +160,14 @@ pub struct RunningServer {
 }
 
 impl RunningServer {
-    /// Loads the engine, binds and spawns [`Server::run`].
+    /// Loads the engine, binds and spawns [`AlignmentServer::run`].
     pub async fn start(settings: Settings) -> Result<Self, holoface_alignment_server::ServerError> {
-        let server = Server::bind(settings).await?;
+        let server = AlignmentServer::bind(settings).await?;
         Ok(Self::spawn(server))
     }
 
     /// Spawns an already bound server.
-    pub fn spawn(server: Server) -> Self {
+    pub fn spawn(server: AlignmentServer) -> Self {
         let addr = server
             .local_addr()
             .unwrap_or_else(|_| SocketAddr::from(([127, 0, 0, 1], 0)));

@@ -202,7 +202,7 @@ async fn a_missing_or_corrupt_refiner_model_is_a_clear_start_up_error() {
     ] {
         let mut s = settings();
         s.refine_model = Some(dir.join(file));
-        let e = holoface_alignment_server::Server::bind(s)
+        let e = holoface_alignment_server::AlignmentServer::bind(s)
             .await
             .unwrap_err()
             .to_string();

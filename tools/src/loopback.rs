@@ -47,7 +47,7 @@ impl LoopbackServer {
             .worker_threads(1)
             .enable_all()
             .build()?;
-        let server = rt.block_on(holoface_alignment_server::Server::bind(settings))?;
+        let server = rt.block_on(holoface_alignment_server::AlignmentServer::bind(settings))?;
         let (addr, fingerprint) = (server.local_addr()?, server.fingerprint());
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let task = rt.spawn(server.run(async move {

@@ -119,7 +119,7 @@ struct Shared {
 
 /// A bound, not yet running, alignment server.
 #[derive(Debug)]
-pub struct Server {
+pub struct AlignmentServer {
     endpoint: quinn::Endpoint,
     fingerprint: Fingerprint,
     metrics: Arc<Metrics>,
@@ -129,12 +129,15 @@ pub struct Server {
     settings: Settings,
 }
 
-/// Loads the engine and binds; then [`Server::run`] until `shutdown`.
+/// Loads the engine and binds; then [`AlignmentServer::run`] until `shutdown`.
 pub async fn run(config: ServerConfig, shutdown: impl Future<Output = ()>) -> Result<(), ServerError> {
-    Server::bind(config.resolve()?).await?.run(shutdown).await
+    AlignmentServer::bind(config.resolve()?)
+        .await?
+        .run(shutdown)
+        .await
 }
 
-impl Server {
+impl AlignmentServer {
     /// Loads the ONNX engine (validating the model) and binds the endpoint.
     pub async fn bind(settings: Settings) -> Result<Self, ServerError> {
         let opts = settings.engine.clone();

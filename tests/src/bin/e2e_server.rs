@@ -7,7 +7,7 @@
 use std::io::{BufRead, Write};
 use std::net::SocketAddr;
 
-use holoface_alignment_server::Server;
+use holoface_alignment_server::AlignmentServer;
 use holoface_alignment_server::config::TlsSource;
 use holoface_tests::loopback_settings;
 
@@ -27,7 +27,7 @@ fn main() -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     rt.block_on(async move {
-        let server = Server::bind(settings).await?;
+        let server = AlignmentServer::bind(settings).await?;
         let addr = server.local_addr()?;
         let mut out = std::io::stdout();
         writeln!(out, "ready {addr} {}", server.fingerprint())?;
