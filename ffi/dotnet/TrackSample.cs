@@ -127,6 +127,28 @@ static class TrackSample
             Check(withId0 >= 25, "several-face tracker: " + withId0 + " of 30 frames with exactly face #0");
         }
 
+        // Every further setting, as in Python and the CLI: the landmark filter off gives the raw landmarks.
+        Expect<InvalidOperationException>("detectTiles 99", () =>
+        {
+            using (new FaceTracker(configure: st => { st.detectTiles = 99; return st; })) { }
+        }, "detect_tiles");
+        Expect<InvalidOperationException>("a crop encoding that does not exist", () =>
+        {
+            using (new FaceTracker(cropEncoding: "webp")) { }
+        }, "crop_encoding");
+        using (var raw = new FaceTracker(configure: st => { st.steady = 0; st.detectTiles = 2; return st; }))
+        {
+            int same = 0;
+            for (int i = 0; i < 10; i++)
+            {
+                var f = raw.Process(px, w, h, (ulong)i * 33333, cam, pose);
+                bool equal = f.hasFace == 1;
+                for (int k = 0; equal && k < 136; k++) equal = f.landmarksPx[k] == f.rawLandmarksPx[k];
+                if (equal) same++;
+            }
+            Check(same >= 8, "steady = 0: " + same + " of 10 frames with landmarks equal to the raw ones");
+        }
+
         // A path the app passes wins over the environment; a missing one names the asset, the path and why.
         Expect<InvalidOperationException>("missing model file (passed by the app)", () =>
         {

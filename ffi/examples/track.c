@@ -112,7 +112,30 @@ int main(int argc, char **argv) {
     }
     printf("several-face tracker: %d of 30 frames with exactly face #0\n", with_id0);
     hf_tracker_free(multi);
+
+    /* Every setting (the names and defaults of Python's TrackerOptions and the CLI's flags): the landmark
+     * filter off, so the steadied landmarks are the raw ones, and 2 x 2 detector tiles. */
+    HfSettings set;
+    set.struct_size = sizeof(HfSettings);
+    if (hf_settings_default(&set) != HF_STATUS_OK) return 3;
+    set.steady = 0;
+    set.detect_tiles = 2;
+    HfTracker *raw = NULL;
+    if (hf_tracker_new_with(&opts, &set, &raw) != HF_STATUS_OK) {
+        fprintf(stderr, "hf_tracker_new_with failed: %s\n", hf_last_error());
+        return 1;
+    }
+    int unfiltered = 0;
+    for (int i = 0; i < 10; i++) {
+        if (hf_tracker_process(raw, px, w, h, w, (uint64_t)i * 33333u, &cam, pose, &r) != HF_STATUS_OK) return 1;
+        unfiltered += r.has_face && memcmp(r.landmarks_px, r.raw_landmarks_px, sizeof r.landmarks_px) == 0;
+    }
+    printf("steady = 0: %d of 10 frames with landmarks equal to the raw ones\n", unfiltered);
+    hf_tracker_free(raw);
+    set.detect_tiles = 99;
+    if (hf_tracker_new_with(&opts, &set, &raw) != HF_STATUS_INVALID_ARGUMENT) return 3;
+    printf("detect_tiles 99 rejected: %s\n", hf_last_error());
     free(px);
     printf("%d of 30 frames with a face\n", faces);
-    return (s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25 && with_id0 >= 25) ? 0 : 1;
+    return (s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25 && with_id0 >= 25 && unfiltered >= 8) ? 0 : 1;
 }

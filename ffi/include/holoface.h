@@ -210,6 +210,72 @@ typedef struct HfOptions {
 } HfOptions;
 
 /**
+ * The tracker's further settings (`hf_tracker_new_with`): faces, detector, crop encoding and the landmark
+ * filter, under the names and with the defaults of Python's `TrackerOptions` and the `holoface` CLI's flags.
+ * Versioned by size: set `struct_size = sizeof(HfSettings)`, call `hf_settings_default`, then override fields.
+ */
+typedef struct HfSettings {
+  /**
+   * `sizeof(HfSettings)`, set by the caller before `hf_settings_default` (a library with another layout
+   * refuses the struct instead of reading or writing past it).
+   */
+  uint32_t struct_size;
+  /**
+   * Faces tracked at once, 1..=`HF_MAX_FACES` (default 1).
+   */
+  uint32_t max_faces;
+  /**
+   * While some but fewer than `max_faces` faces are tracked, the detector runs every this many frames
+   * (at least 1; default 10).
+   */
+  uint32_t detect_every;
+  /**
+   * Detector tiles per side besides the whole frame (1..=32); 0 = automatic: 1 for one face, 3 for several.
+   */
+  uint32_t detect_tiles;
+  /**
+   * Crop encoding on the wire: "raw", "png", "jpeg" or "jpeg:Q" (NUL-terminated); NULL = "jpeg:75".
+   */
+  const char *crop_encoding;
+  /**
+   * 1 = steady the landmarks over time (One-Euro in the face's frame; default), 0 = raw landmarks.
+   */
+  uint8_t steady;
+  /**
+   * The local aligner's answers: shape cut-off at rest, Hz (default 1).
+   */
+  double steady_shape_cutoff_hz;
+  /**
+   * The local aligner's answers: shape speed coefficient (default 10).
+   */
+  double steady_shape_beta;
+  /**
+   * The local aligner's answers: placement cut-off at rest, Hz (default 3).
+   */
+  double steady_rigid_cutoff_hz;
+  /**
+   * The local aligner's answers: placement speed coefficient (default 2).
+   */
+  double steady_rigid_beta;
+  /**
+   * The server's answers: shape cut-off at rest, Hz (default 3).
+   */
+  double steady_precise_shape_cutoff_hz;
+  /**
+   * The server's answers: shape speed coefficient (default 10).
+   */
+  double steady_precise_shape_beta;
+  /**
+   * The server's answers: placement cut-off at rest, Hz (default 20).
+   */
+  double steady_precise_rigid_cutoff_hz;
+  /**
+   * The server's answers: placement speed coefficient (default 5).
+   */
+  double steady_precise_rigid_beta;
+} HfSettings;
+
+/**
  * Pinhole camera intrinsics in pixels.
  */
 typedef struct HfCamera {
@@ -372,6 +438,15 @@ extern "C" {
 enum HfStatus hf_options_default(struct HfOptions *out);
 
 /**
+ * Fills `out` with the defaults (one face, detection every 10 frames, automatic tiles, JPEG q75 crops, the
+ * landmark filter on with its default settings). Set `out->struct_size = sizeof(HfSettings)` first.
+ *
+ * # Safety
+ * `out` is NULL or points to writable memory for one `HfSettings` whose `struct_size` is initialised.
+ */
+enum HfStatus hf_settings_default(struct HfSettings *out);
+
+/**
  * Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`. It follows one face;
  * `hf_tracker_new_faces` follows several.
  *
@@ -393,6 +468,19 @@ enum HfStatus hf_tracker_new(const struct HfOptions *options,
 enum HfStatus hf_tracker_new_faces(const struct HfOptions *options,
                                    uint32_t max_faces,
                                    struct HfTracker **out);
+
+/**
+ * Creates a tracker with every setting: `options` as for `hf_tracker_new`, `settings` (NULL = the defaults of
+ * `hf_settings_default`) for the faces, the detector, the crop encoding and the landmark filter. Read a
+ * several-face tracker with `hf_tracker_process_faces`.
+ *
+ * # Safety
+ * As `hf_tracker_new`; `settings` is NULL or points to an `HfSettings` whose `struct_size` is initialised and
+ * whose `crop_encoding` is NULL or NUL-terminated.
+ */
+enum HfStatus hf_tracker_new_with(const struct HfOptions *options,
+                                  const struct HfSettings *settings,
+                                  struct HfTracker **out);
 
 /**
  * Processes one gray8 frame. `world_from_camera` is a row-major 4x4 camera-to-world matrix (16 floats) or

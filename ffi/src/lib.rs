@@ -21,7 +21,9 @@ use holoface_headset_client::Frame;
 use holoface_headset_client::GrayView;
 use holoface_headset_client::Intrinsics;
 use holoface_headset_client::Pose;
-use holoface_headset_client::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions};
+use holoface_headset_client::{
+    AlignerChoice, FaceTracker, RunningMode, SteadySettings, TrackerOptions, defaults,
+};
 use holoface_headset_client::{FaceResult, FaceUpdate, NoFaceReason};
 use holoface_headset_client::{FailureKind, LinkInfo, LinkState, RemoteOptions, RemoteOptionsError};
 
@@ -89,6 +91,114 @@ pub struct HfOptions {
     pub lookahead_ms: f32,
     /// 1 = compensate headset motion when initialising from the previous frame.
     pub motion_compensation: u8,
+}
+
+/// The tracker's further settings (`hf_tracker_new_with`): faces, detector, crop encoding and the landmark
+/// filter, under the names and with the defaults of Python's `TrackerOptions` and the `holoface` CLI's flags.
+/// Versioned by size: set `struct_size = sizeof(HfSettings)`, call `hf_settings_default`, then override fields.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct HfSettings {
+    /// `sizeof(HfSettings)`, set by the caller before `hf_settings_default` (a library with another layout
+    /// refuses the struct instead of reading or writing past it).
+    pub struct_size: u32,
+    /// Faces tracked at once, 1..=`HF_MAX_FACES` (default 1).
+    pub max_faces: u32,
+    /// While some but fewer than `max_faces` faces are tracked, the detector runs every this many frames
+    /// (at least 1; default 10).
+    pub detect_every: u32,
+    /// Detector tiles per side besides the whole frame (1..=32); 0 = automatic: 1 for one face, 3 for several.
+    pub detect_tiles: u32,
+    /// Crop encoding on the wire: "raw", "png", "jpeg" or "jpeg:Q" (NUL-terminated); NULL = "jpeg:75".
+    pub crop_encoding: *const c_char,
+    /// 1 = steady the landmarks over time (One-Euro in the face's frame; default), 0 = raw landmarks.
+    pub steady: u8,
+    /// The local aligner's answers: shape cut-off at rest, Hz (default 1).
+    pub steady_shape_cutoff_hz: f64,
+    /// The local aligner's answers: shape speed coefficient (default 10).
+    pub steady_shape_beta: f64,
+    /// The local aligner's answers: placement cut-off at rest, Hz (default 3).
+    pub steady_rigid_cutoff_hz: f64,
+    /// The local aligner's answers: placement speed coefficient (default 2).
+    pub steady_rigid_beta: f64,
+    /// The server's answers: shape cut-off at rest, Hz (default 3).
+    pub steady_precise_shape_cutoff_hz: f64,
+    /// The server's answers: shape speed coefficient (default 10).
+    pub steady_precise_shape_beta: f64,
+    /// The server's answers: placement cut-off at rest, Hz (default 20).
+    pub steady_precise_rigid_cutoff_hz: f64,
+    /// The server's answers: placement speed coefficient (default 5).
+    pub steady_precise_rigid_beta: f64,
+}
+
+impl HfSettings {
+    fn defaults() -> Self {
+        let st = SteadySettings::default();
+        Self {
+            struct_size: size_of::<Self>() as u32,
+            max_faces: defaults::MAX_FACES as u32,
+            detect_every: defaults::DETECT_EVERY,
+            detect_tiles: 0,
+            crop_encoding: std::ptr::null(),
+            steady: u8::from(st.enabled),
+            steady_shape_cutoff_hz: st.shape_cutoff_hz,
+            steady_shape_beta: st.shape_beta,
+            steady_rigid_cutoff_hz: st.rigid_cutoff_hz,
+            steady_rigid_beta: st.rigid_beta,
+            steady_precise_shape_cutoff_hz: st.precise_shape_cutoff_hz,
+            steady_precise_shape_beta: st.precise_shape_beta,
+            steady_precise_rigid_cutoff_hz: st.precise_rigid_cutoff_hz,
+            steady_precise_rigid_beta: st.precise_rigid_beta,
+        }
+    }
+
+    /// Applies the settings (the crop encoding is applied with the remote options).
+    fn apply(&self, t: &mut TrackerOptions) -> Result<(), HfStatus> {
+        if self.max_faces == 0 || self.max_faces as usize > HF_MAX_FACES {
+            return Err(fail(
+                HfStatus::InvalidArgument,
+                format!("max_faces {} must be within 1..={HF_MAX_FACES}", self.max_faces),
+            ));
+        }
+        t.session.max_faces = self.max_faces as usize;
+        t.session.detect_every = self.detect_every;
+        t.detector.tiles = (self.detect_tiles != 0).then_some(self.detect_tiles as usize);
+        t.session.steady = SteadySettings {
+            enabled: self.steady != 0,
+            shape_cutoff_hz: self.steady_shape_cutoff_hz,
+            shape_beta: self.steady_shape_beta,
+            rigid_cutoff_hz: self.steady_rigid_cutoff_hz,
+            rigid_beta: self.steady_rigid_beta,
+            precise_shape_cutoff_hz: self.steady_precise_shape_cutoff_hz,
+            precise_shape_beta: self.steady_precise_shape_beta,
+            precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
+            precise_rigid_beta: self.steady_precise_rigid_beta,
+        }
+        .params();
+        let bad = |e: &dyn std::fmt::Display| fail(HfStatus::InvalidArgument, e.to_string());
+        t.session.validate().map_err(|e| bad(&e))?;
+        t.detector.validate().map_err(|e| bad(&e))
+    }
+}
+
+/// Reads the `struct_size` a caller set in a size-versioned struct and refuses any size but this library's.
+///
+/// # Safety
+/// `p` is non-NULL and its first 4 bytes are readable.
+unsafe fn check_struct_size<T>(what: &str, name: &str, p: *const T) -> Result<(), HfStatus> {
+    // SAFETY: per the contract; read alone, so a caller with a smaller struct is refused before more is touched.
+    let size = unsafe { std::ptr::read_unaligned(p.cast::<u32>()) };
+    let ours = size_of::<T>();
+    if size as usize == ours {
+        return Ok(());
+    }
+    Err(fail(
+        HfStatus::InvalidArgument,
+        format!(
+            "{what}: {name}.struct_size is {size}, this library's {name} is {ours} bytes (set struct_size = \
+             sizeof({name}); rebuild against this library's holoface.h)"
+        ),
+    ))
 }
 
 /// Pinhole camera intrinsics in pixels.
@@ -364,7 +474,28 @@ pub unsafe extern "C" fn hf_options_default(out: *mut HfOptions) -> HfStatus {
     })
 }
 
-fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
+/// Fills `out` with the defaults (one face, detection every 10 frames, automatic tiles, JPEG q75 crops, the
+/// landmark filter on with its default settings). Set `out->struct_size = sizeof(HfSettings)` first.
+///
+/// # Safety
+/// `out` is NULL or points to writable memory for one `HfSettings` whose `struct_size` is initialised.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_settings_default(out: *mut HfSettings) -> HfStatus {
+    guard(|| {
+        if out.is_null() {
+            return fail(HfStatus::NullPointer, "hf_settings_default: out is NULL");
+        }
+        // SAFETY: non-NULL; the caller initialised `struct_size`.
+        if let Err(s) = unsafe { check_struct_size("hf_settings_default", "HfSettings", out) } {
+            return s;
+        }
+        // SAFETY: checked non-NULL and of this library's size; the caller guarantees it is writable.
+        unsafe { out.write(HfSettings::defaults()) };
+        HfStatus::Ok
+    })
+}
+
+fn options_from(o: &HfOptions, crop_encoding: Option<&str>) -> Result<TrackerOptions, HfStatus> {
     let mode = match o.mode {
         0 => RunningMode::Image,
         1 => RunningMode::Video,
@@ -409,7 +540,7 @@ fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
             fingerprint.as_deref(),
             &token,
             u64::from(o.deadline_ms),
-            None,
+            crop_encoding,
         )
         .map_err(|e| {
             // The same checks as every front end, named as this ABI's fields are.
@@ -436,7 +567,7 @@ fn options_from(o: &HfOptions) -> Result<TrackerOptions, HfStatus> {
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn hf_tracker_new(options: *const HfOptions, out: *mut *mut HfTracker) -> HfStatus {
     // SAFETY: the caller's contract is `new_tracker`'s.
-    guard(|| unsafe { new_tracker("hf_tracker_new", options, 1, out) })
+    guard(|| unsafe { new_tracker("hf_tracker_new", options, Settings::MaxFaces(1), out) })
 }
 
 /// Creates a tracker that follows up to `max_faces` faces at once (1..=`HF_MAX_FACES`), each with a stable id;
@@ -459,8 +590,51 @@ pub unsafe extern "C" fn hf_tracker_new_faces(
             );
         }
         // SAFETY: the caller's contract is `new_tracker`'s.
-        unsafe { new_tracker("hf_tracker_new_faces", options, max_faces as usize, out) }
+        unsafe {
+            new_tracker(
+                "hf_tracker_new_faces",
+                options,
+                Settings::MaxFaces(max_faces as usize),
+                out,
+            )
+        }
     })
+}
+
+/// Creates a tracker with every setting: `options` as for `hf_tracker_new`, `settings` (NULL = the defaults of
+/// `hf_settings_default`) for the faces, the detector, the crop encoding and the landmark filter. Read a
+/// several-face tracker with `hf_tracker_process_faces`.
+///
+/// # Safety
+/// As `hf_tracker_new`; `settings` is NULL or points to an `HfSettings` whose `struct_size` is initialised and
+/// whose `crop_encoding` is NULL or NUL-terminated.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_new_with(
+    options: *const HfOptions,
+    settings: *const HfSettings,
+    out: *mut *mut HfTracker,
+) -> HfStatus {
+    guard(|| {
+        let settings = if settings.is_null() {
+            HfSettings::defaults()
+        } else {
+            // SAFETY: non-NULL; the caller initialised `struct_size`.
+            if let Err(s) = unsafe { check_struct_size("hf_tracker_new_with", "HfSettings", settings) } {
+                return s;
+            }
+            // SAFETY: of this library's size and initialised, per the contract.
+            unsafe { settings.read_unaligned() }
+        };
+        // SAFETY: the caller's contract is `new_tracker`'s.
+        unsafe { new_tracker("hf_tracker_new_with", options, Settings::Full(settings), out) }
+    })
+}
+
+/// How a tracker's settings come: `hf_tracker_new` and `hf_tracker_new_faces` give the face count only,
+/// `hf_tracker_new_with` every setting.
+enum Settings {
+    MaxFaces(usize),
+    Full(HfSettings),
 }
 
 /// # Safety
@@ -468,23 +642,38 @@ pub unsafe extern "C" fn hf_tracker_new_faces(
 unsafe fn new_tracker(
     what: &str,
     options: *const HfOptions,
-    max_faces: usize,
+    settings: Settings,
     out: *mut *mut HfTracker,
 ) -> HfStatus {
     if out.is_null() {
         return fail(HfStatus::NullPointer, format!("{what}: out is NULL"));
     }
-    let opts = if options.is_null() {
-        Ok(TrackerOptions::default())
-    } else {
-        // SAFETY: non-NULL and initialised per the contract.
-        options_from(unsafe { &*options })
-    };
-    let mut opts = match opts {
+    let opts = (|| -> Result<TrackerOptions, HfStatus> {
+        let crop = match &settings {
+            // SAFETY: the C API documents `crop_encoding` as NULL or a NUL-terminated string.
+            Settings::Full(s) => unsafe { opt_str(s.crop_encoding, "crop_encoding") }?,
+            Settings::MaxFaces(_) => None,
+        };
+        if let Some(c) = crop.as_deref() {
+            c.parse::<holoface_headset_client::CropCodec>()
+                .map_err(|e| fail(HfStatus::InvalidArgument, format!("crop_encoding: {e}")))?;
+        }
+        let mut opts = if options.is_null() {
+            TrackerOptions::default()
+        } else {
+            // SAFETY: non-NULL and initialised per the contract.
+            options_from(unsafe { &*options }, crop.as_deref())?
+        };
+        match &settings {
+            Settings::MaxFaces(n) => opts.session.max_faces = *n,
+            Settings::Full(s) => s.apply(&mut opts)?,
+        }
+        Ok(opts)
+    })();
+    let opts = match opts {
         Ok(o) => o,
         Err(s) => return s,
     };
-    opts.session.max_faces = max_faces;
     match FaceTracker::new(opts) {
         Ok(inner) => {
             let ptr = Box::into_raw(Box::new(HfTracker { inner }));
@@ -671,18 +860,10 @@ pub unsafe extern "C" fn hf_tracker_process_faces(
                 "hf_tracker_process_faces: out must not be NULL",
             );
         }
-        // SAFETY: non-NULL; the caller initialised `struct_size`, the first field (read alone, so a caller with
-        // a smaller struct is refused before anything is written).
-        let size = unsafe { std::ptr::read_unaligned(out.cast::<u32>()) };
-        let ours = size_of::<HfFaces>();
-        if size as usize != ours {
-            return fail(
-                HfStatus::InvalidArgument,
-                format!(
-                    "hf_tracker_process_faces: HfFaces.struct_size is {size}, this library's HfFaces is {ours} bytes \
-                     (set struct_size = sizeof(HfFaces); rebuild against this library's holoface.h)"
-                ),
-            );
+        // SAFETY: non-NULL; the caller initialised `struct_size`.
+        if let Err(s) = unsafe { check_struct_size("hf_tracker_process_faces", "HfFaces", out.cast_const()) }
+        {
+            return s;
         }
         // SAFETY: the caller's contract is `process_frame`'s.
         let r = match unsafe {
@@ -700,7 +881,7 @@ pub unsafe extern "C" fn hf_tracker_process_faces(
             Err(status) => return status,
         };
         // SAFETY: the sizes agree, so `out` is one writable `HfFaces` (written whole, never read).
-        unsafe { out.write(faces_to_c(&r, size)) };
+        unsafe { out.write(faces_to_c(&r, size_of::<HfFaces>() as u32)) };
         HfStatus::Ok
     })
 }
@@ -949,6 +1130,99 @@ mod tests {
         // SAFETY: valid pointers.
         assert_eq!(unsafe { hf_tracker_new(&o, &mut t) }, HfStatus::InvalidArgument);
         assert!(last_error().contains("server_fingerprint"));
+    }
+
+    #[test]
+    fn settings_are_size_checked_defaulted_and_validated() {
+        // A caller built against another layout is refused before anything is written.
+        let mut st = std::mem::MaybeUninit::<HfSettings>::zeroed();
+        // SAFETY: valid, zeroed (struct_size 0) memory.
+        assert_eq!(
+            unsafe { hf_settings_default(st.as_mut_ptr()) },
+            HfStatus::InvalidArgument
+        );
+        assert!(
+            last_error().contains("HfSettings.struct_size is 0"),
+            "{}",
+            last_error()
+        );
+        // SAFETY: writable; the first field is the size.
+        unsafe {
+            st.as_mut_ptr()
+                .cast::<u32>()
+                .write(size_of::<HfSettings>() as u32)
+        };
+        // SAFETY: valid pointer with its size set.
+        assert_eq!(unsafe { hf_settings_default(st.as_mut_ptr()) }, HfStatus::Ok);
+        // SAFETY: initialised by hf_settings_default.
+        let good = unsafe { st.assume_init() };
+        assert_eq!(
+            (good.max_faces, good.detect_every, good.detect_tiles, good.steady),
+            (1, 10, 0, 1)
+        );
+        assert!(good.crop_encoding.is_null());
+        // The runtime's defaults, the same as Python's and the CLI's.
+        assert_eq!(
+            good.steady_shape_cutoff_hz,
+            SteadySettings::default().shape_cutoff_hz
+        );
+        assert_eq!(
+            good.steady_precise_rigid_beta,
+            SteadySettings::default().precise_rigid_beta
+        );
+        let bad_crop = c"webp";
+        let cases: [(HfSettings, &str); 5] = [
+            (
+                HfSettings {
+                    detect_tiles: 33,
+                    ..good
+                },
+                "detect_tiles",
+            ),
+            (
+                HfSettings {
+                    detect_every: 0,
+                    ..good
+                },
+                "detect_every",
+            ),
+            (HfSettings { max_faces: 0, ..good }, "max_faces"),
+            (
+                HfSettings {
+                    steady_rigid_cutoff_hz: f64::NAN,
+                    ..good
+                },
+                "steady",
+            ),
+            (
+                HfSettings {
+                    crop_encoding: bad_crop.as_ptr(),
+                    ..good
+                },
+                "crop_encoding",
+            ),
+        ];
+        for (bad, words) in cases {
+            let mut t = std::ptr::null_mut();
+            // SAFETY: valid pointers; the settings are checked before any asset is loaded.
+            let s = unsafe { hf_tracker_new_with(std::ptr::null(), &bad, &mut t) };
+            assert_eq!(s, HfStatus::InvalidArgument, "{words}");
+            assert!(
+                t.is_null() && last_error().contains(words),
+                "{words}: {}",
+                last_error()
+            );
+        }
+        let small = HfSettings {
+            struct_size: 8,
+            ..good
+        };
+        let mut t = std::ptr::null_mut();
+        // SAFETY: valid pointers.
+        assert_eq!(
+            unsafe { hf_tracker_new_with(std::ptr::null(), &small, &mut t) },
+            HfStatus::InvalidArgument
+        );
     }
 
     #[test]

@@ -18,6 +18,21 @@ namespace HoloFace
         public byte motionCompensation;
     }
 
+    /// <summary>Every further setting (hf_tracker_new_with), with the names and defaults of Python's
+    /// TrackerOptions and the CLI's flags; structSize must be Marshal.SizeOf(HfSettings) before hf_settings_default.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct HfSettings
+    {
+        public uint structSize;
+        public uint maxFaces;          // 1..HfFaces.MaxFaces (default 1)
+        public uint detectEvery;       // default 10
+        public uint detectTiles;       // 0 = automatic (1 for one face, 3 for several)
+        public IntPtr cropEncoding;    // UTF-8 "raw", "png", "jpeg", "jpeg:Q", or IntPtr.Zero = "jpeg:75"
+        public byte steady;            // 1 = steadied landmarks (default), 0 = raw
+        public double steadyShapeCutoffHz, steadyShapeBeta, steadyRigidCutoffHz, steadyRigidBeta;
+        public double steadyPreciseShapeCutoffHz, steadyPreciseShapeBeta, steadyPreciseRigidCutoffHz, steadyPreciseRigidBeta;
+    }
+
     [StructLayout(LayoutKind.Sequential)]
     public struct HfCamera { public double fx, fy, cx, cy; }
 
@@ -96,6 +111,8 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_new_faces(ref HfOptions options, uint maxFaces, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_process_faces(IntPtr tracker, byte[] pixels, uint width, uint height,
             uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, ref HfFaces faces);
+        [DllImport(Lib)] public static extern HfStatus hf_settings_default(ref HfSettings settings);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_new_with(ref HfOptions options, ref HfSettings settings, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_link_status(IntPtr tracker, out HfLinkStatus status);
         [DllImport(Lib)] static extern IntPtr hf_last_error();
@@ -114,18 +131,28 @@ namespace HoloFace
         /// <param name="detectorModel">face_detection_front_128x128.onnx (BlazeFace).</param>
         /// <param name="krfwsModel">krfws.bin (the local aligner).</param>
         /// <param name="candide">The CANDIDE-3 .wfm (head pose and expressions).</param>
+        /// <param name="configure">Changes the further settings (detector, crop encoding, landmark filter) after
+        /// hf_settings_default filled them; maxFaces is set from the argument above.</param>
+        /// <param name="cropEncoding">Crop encoding on the wire ("raw", "png", "jpeg", "jpeg:Q"); null: "jpeg:75".</param>
         public FaceTracker(string server = null, string fingerprint = null, string token = null, uint maxFaces = 1,
-            string ortDylib = null, string detectorModel = null, string krfwsModel = null, string candide = null)
+            string ortDylib = null, string detectorModel = null, string krfwsModel = null, string candide = null,
+            Func<HfSettings, HfSettings> configure = null, string cropEncoding = null)
         {
             Native.hf_options_default(out var o);
-            var strings = new[] { server, fingerprint, token, ortDylib, detectorModel, krfwsModel, candide };
+            var settings = new HfSettings { structSize = (uint)Marshal.SizeOf(typeof(HfSettings)) };
+            var d = Native.hf_settings_default(ref settings);
+            if (d != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {d}: {Native.LastError()}");
+            if (configure != null) settings = configure(settings);
+            settings.maxFaces = maxFaces;
+            var strings = new[] { server, fingerprint, token, ortDylib, detectorModel, krfwsModel, candide, cropEncoding };
             var ptrs = new IntPtr[strings.Length];
             try
             {
                 for (int i = 0; i < strings.Length; i++) ptrs[i] = strings[i] == null ? IntPtr.Zero : Marshal.StringToCoTaskMemUTF8(strings[i]);
                 o.server = ptrs[0]; o.serverFingerprint = ptrs[1]; o.token = ptrs[2];
                 o.ortDylib = ptrs[3]; o.detectorModel = ptrs[4]; o.krfwsModel = ptrs[5]; o.candide = ptrs[6];
-                var s = maxFaces == 1 ? Native.hf_tracker_new(ref o, out handle) : Native.hf_tracker_new_faces(ref o, maxFaces, out handle);
+                settings.cropEncoding = ptrs[7];
+                var s = Native.hf_tracker_new_with(ref o, ref settings, out handle);
                 if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             }
             finally

@@ -18,7 +18,7 @@ pub enum CropCodec {
 }
 
 impl Default for CropCodec {
-    /// JPEG q75: within 3.3 KB per frame on the wire with QUIC overhead, at +1 % relative NME (BENCHMARKS.md).
+    /// [`crate::defaults::CROP_ENCODING`]: JPEG q75.
     fn default() -> Self {
         Self::Jpeg { quality: 75 }
     }
@@ -104,6 +104,12 @@ impl std::fmt::Display for CropCodec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_default_is_the_documented_default() {
+        assert_eq!(crate::defaults::CROP_ENCODING.parse::<CropCodec>(), Ok(CropCodec::default()));
+        assert_eq!(CropCodec::default().to_string(), crate::defaults::CROP_ENCODING);
+    }
 
     fn pattern() -> Vec<u8> {
         (0..112 * 112)

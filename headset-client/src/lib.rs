@@ -70,6 +70,27 @@ tools_modules! {
     tracker;
 }
 
+/// The defaults of every binding, defined once: [`TrackerOptions::default`], the C ABI's
+/// `hf_options_default`/`hf_settings_default`, Python's `TrackerOptions()` and the `holoface` CLI's flags all
+/// take them from here. The landmark filter's defaults are [`SteadyParams::default`].
+pub mod defaults {
+    /// Per-frame deadline for the alignment server, ms: one frame interval at 30 fps, so a missed frame is
+    /// still answered (deadline + the local aligner) well within two intervals.
+    pub const DEADLINE_MS: u64 = 33;
+    /// How far ahead the displayed position is predicted, ms (HoloFace: 120).
+    pub const LOOKAHEAD_MS: f64 = 120.0;
+    /// Crop encoding on the wire: JPEG q75, within 3.3 KB per frame at +1 % relative NME (BENCHMARKS.md).
+    pub const CROP_ENCODING: &str = "jpeg:75";
+    /// Faces tracked at once.
+    pub const MAX_FACES: usize = 1;
+    /// While some but fewer than `max_faces` faces are tracked, the detector runs every this many frames.
+    pub const DETECT_EVERY: u32 = 10;
+    /// Headset-motion compensation of each frame's initial shape.
+    pub const MOTION_COMPENSATION: bool = true;
+    /// The landmark filter is on.
+    pub const STEADY: bool = true;
+}
+
 // The app-facing API.
 pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
 pub use assets::{
@@ -84,7 +105,7 @@ pub use link::{
 };
 pub use session::{
     FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, NoFaceReason, OneEuroParams,
-    SessionOptions, SessionOptionsError, SteadyParams, TrackedFace,
+    SessionOptions, SessionOptionsError, SteadyParams, SteadySettings, TrackedFace,
 };
 pub use tracker::{
     AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,

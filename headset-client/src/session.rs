@@ -66,13 +66,74 @@ impl Default for SessionOptions {
                 ..FitOptions::default()
             },
             kalman: KalmanParams::default(),
-            lookahead_s: 0.12,
+            lookahead_s: crate::defaults::LOOKAHEAD_MS / 1e3,
             attributes: AttributeThresholds::default(),
-            motion_compensation: true,
-            max_faces: 1,
-            detect_every: 10,
-            steady: Some(SteadyParams::default()),
+            motion_compensation: crate::defaults::MOTION_COMPENSATION,
+            max_faces: crate::defaults::MAX_FACES,
+            detect_every: crate::defaults::DETECT_EVERY,
+            steady: crate::defaults::STEADY.then(SteadyParams::default),
         }
+    }
+}
+
+/// The landmark filter's settings as every binding offers them, flat and by name (the CLI's `--no-steady` and
+/// `--steady-*` flags, Python's `steady*` options, C's `HfSettings.steady*`): the One-Euro cut-off at rest and
+/// speed coefficient of the face's shape and of its placement (translation, scale, rotation), for the local
+/// aligner's noisy answers and for the server's precise ones. [`SteadySettings::params`] turns them into
+/// [`SessionOptions::steady`]; the defaults are [`SteadyParams::default`]'s.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SteadySettings {
+    /// The filter is on ([`crate::defaults::STEADY`]).
+    pub enabled: bool,
+    /// Local aligner's answers: shape cut-off at rest, Hz.
+    pub shape_cutoff_hz: f64,
+    /// Local aligner's answers: shape speed coefficient (per eye distance per second).
+    pub shape_beta: f64,
+    /// Local aligner's answers: placement cut-off at rest, Hz.
+    pub rigid_cutoff_hz: f64,
+    /// Local aligner's answers: placement speed coefficient.
+    pub rigid_beta: f64,
+    /// The server's (and DAN's) answers: shape cut-off at rest, Hz.
+    pub precise_shape_cutoff_hz: f64,
+    /// The server's answers: shape speed coefficient.
+    pub precise_shape_beta: f64,
+    /// The server's answers: placement cut-off at rest, Hz.
+    pub precise_rigid_cutoff_hz: f64,
+    /// The server's answers: placement speed coefficient.
+    pub precise_rigid_beta: f64,
+}
+
+impl Default for SteadySettings {
+    fn default() -> Self {
+        let p = SteadyParams::default();
+        Self {
+            enabled: crate::defaults::STEADY,
+            shape_cutoff_hz: p.noisy.shape.min_cutoff_hz,
+            shape_beta: p.noisy.shape.beta,
+            rigid_cutoff_hz: p.noisy.rigid.min_cutoff_hz,
+            rigid_beta: p.noisy.rigid.beta,
+            precise_shape_cutoff_hz: p.precise.shape.min_cutoff_hz,
+            precise_shape_beta: p.precise.shape.beta,
+            precise_rigid_cutoff_hz: p.precise.rigid.min_cutoff_hz,
+            precise_rigid_beta: p.precise.rigid.beta,
+        }
+    }
+}
+
+impl SteadySettings {
+    /// [`SessionOptions::steady`]: `None` when off; the other settings (speed cut-offs, fade, gap) are the
+    /// defaults'. [`SessionOptions::validate`] checks the values.
+    pub fn params(&self) -> Option<SteadyParams> {
+        let mut p = SteadyParams::default();
+        p.noisy.shape.min_cutoff_hz = self.shape_cutoff_hz;
+        p.noisy.shape.beta = self.shape_beta;
+        p.noisy.rigid.min_cutoff_hz = self.rigid_cutoff_hz;
+        p.noisy.rigid.beta = self.rigid_beta;
+        p.precise.shape.min_cutoff_hz = self.precise_shape_cutoff_hz;
+        p.precise.shape.beta = self.precise_shape_beta;
+        p.precise.rigid.min_cutoff_hz = self.precise_rigid_cutoff_hz;
+        p.precise.rigid.beta = self.precise_rigid_beta;
+        self.enabled.then_some(p)
     }
 }
 
@@ -95,6 +156,9 @@ pub enum SessionOptionsError {
     /// A landmark filter parameter is not finite or out of range.
     #[error("steady: cut-offs must be > 0 Hz, beta >= 0 and times >= 0 (finite)")]
     Steady,
+    /// `detect_every` is 0.
+    #[error("detect_every must be at least 1")]
+    DetectEvery,
     /// The detector's tiles per side are 0 or more than [`crate::tracker::MAX_DETECT_TILES`].
     #[error("detect_tiles {0} must be within 1..=32")]
     DetectTiles(usize),
@@ -111,6 +175,9 @@ impl SessionOptions {
         }
         if self.steady.is_some_and(|p| !p.is_valid()) {
             return Err(SessionOptionsError::Steady);
+        }
+        if self.detect_every == 0 {
+            return Err(SessionOptionsError::DetectEvery);
         }
         Ok(())
     }
@@ -697,6 +764,11 @@ mod tests {
         };
         assert_eq!(with(steady(Some(p))), Err(SessionOptionsError::Steady));
         assert_eq!(with(steady(None)), Ok(()));
+        let never = SessionOptions {
+            detect_every: 0,
+            ..SessionOptions::default()
+        };
+        assert_eq!(never.validate(), Err(SessionOptionsError::DetectEvery));
     }
 
     /// The aligner's noisy answers stay available raw; what the session shows (and fits) is steadied,

@@ -42,6 +42,22 @@ class TrackerOptions:
     motion_compensation: bool
     max_faces: int
     """Most faces tracked at once (1..=64), each with a stable id."""
+    detect_every: int
+    """While some but fewer than max_faces faces are tracked, run the detector every this many frames (>= 1)."""
+    detect_tiles: Optional[int]
+    """Detector tiles per side besides the whole frame (1..=32); None: 1 for one face, 3 for several."""
+    steady: bool
+    """Steady the landmarks over time (One-Euro in the face's frame); False: landmarks == raw_landmarks."""
+    steady_shape_cutoff_hz: float
+    """Local aligner's answers: shape cut-off at rest, Hz (the CLI's --steady-shape-cutoff-hz)."""
+    steady_shape_beta: float
+    steady_rigid_cutoff_hz: float
+    steady_rigid_beta: float
+    steady_precise_shape_cutoff_hz: float
+    """The server's answers: shape cut-off at rest, Hz (the CLI's --steady-precise-shape-cutoff-hz)."""
+    steady_precise_shape_beta: float
+    steady_precise_rigid_cutoff_hz: float
+    steady_precise_rigid_beta: float
     ort_dylib: Optional[str]
     detector_model: Optional[str]
     krfws_model: Optional[str]
@@ -58,6 +74,17 @@ class TrackerOptions:
         lookahead_ms: float = 120.0,
         motion_compensation: bool = True,
         max_faces: int = 1,
+        detect_every: int = 10,
+        detect_tiles: Optional[int] = None,
+        steady: bool = True,
+        steady_shape_cutoff_hz: float = 1.0,
+        steady_shape_beta: float = 10.0,
+        steady_rigid_cutoff_hz: float = 3.0,
+        steady_rigid_beta: float = 2.0,
+        steady_precise_shape_cutoff_hz: float = 3.0,
+        steady_precise_shape_beta: float = 10.0,
+        steady_precise_rigid_cutoff_hz: float = 20.0,
+        steady_precise_rigid_beta: float = 5.0,
         ort_dylib: Optional[_Path] = None,
         detector_model: Optional[_Path] = None,
         krfws_model: Optional[_Path] = None,

@@ -17,7 +17,7 @@ use holoface_headset_client::AnsweredBy;
 use holoface_headset_client::FaceUpdate;
 use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
 use holoface_headset_client::{Frame, FrameSource, OwnedFrame, default_intrinsics};
-use holoface_headset_client::{LinkState, RemoteOptions};
+use holoface_headset_client::{LinkState, RemoteOptions, SteadySettings, defaults};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::{Pose, Quat, Vec3};
@@ -84,6 +84,28 @@ struct PyTrackerOptions {
     motion_compensation: bool,
     /// Most faces tracked at once (1..=64), each with a stable id.
     max_faces: usize,
+    /// While some but fewer than max_faces faces are tracked, run the detector every this many frames (>= 1).
+    detect_every: u32,
+    /// Detector tiles per side besides the whole frame (1..=32); None: 1 for one face, 3 for several.
+    detect_tiles: Option<usize>,
+    /// Steady the landmarks over time (One-Euro in the face's frame); False: landmarks == raw_landmarks.
+    steady: bool,
+    /// Local aligner's answers: shape cut-off at rest, Hz.
+    steady_shape_cutoff_hz: f64,
+    /// Local aligner's answers: shape speed coefficient.
+    steady_shape_beta: f64,
+    /// Local aligner's answers: placement cut-off at rest, Hz.
+    steady_rigid_cutoff_hz: f64,
+    /// Local aligner's answers: placement speed coefficient.
+    steady_rigid_beta: f64,
+    /// The server's answers: shape cut-off at rest, Hz.
+    steady_precise_shape_cutoff_hz: f64,
+    /// The server's answers: shape speed coefficient.
+    steady_precise_shape_beta: f64,
+    /// The server's answers: placement cut-off at rest, Hz.
+    steady_precise_rigid_cutoff_hz: f64,
+    /// The server's answers: placement speed coefficient.
+    steady_precise_rigid_beta: f64,
     /// ONNX Runtime shared library (default: $ORT_DYLIB_PATH, then the `onnxruntime` package's).
     ort_dylib: Option<PathBuf>,
     /// BlazeFace ONNX model (default: $HOLOFACE_DETECTOR_MODEL, then the wheel's own copy).
@@ -96,11 +118,22 @@ struct PyTrackerOptions {
 
 #[pymethods]
 impl PyTrackerOptions {
+    // The defaults are the runtime's (`holoface_headset_client::defaults`, `SteadySettings::default`), as in
+    // C's `hf_options_default`/`hf_settings_default` and the CLI's flags.
     #[new]
     #[pyo3(signature = (*, mode = "video".to_owned(), server = None, fingerprint = None, token = String::new(),
-        deadline_ms = 33, crop_encoding = "jpeg:75".to_owned(), lookahead_ms = 120.0,
-        motion_compensation = true, max_faces = 1, ort_dylib = None, detector_model = None, krfws_model = None,
-        candide = None))]
+        deadline_ms = defaults::DEADLINE_MS, crop_encoding = defaults::CROP_ENCODING.to_owned(),
+        lookahead_ms = defaults::LOOKAHEAD_MS, motion_compensation = defaults::MOTION_COMPENSATION,
+        max_faces = defaults::MAX_FACES, detect_every = defaults::DETECT_EVERY, detect_tiles = None,
+        steady = defaults::STEADY, steady_shape_cutoff_hz = SteadySettings::default().shape_cutoff_hz,
+        steady_shape_beta = SteadySettings::default().shape_beta,
+        steady_rigid_cutoff_hz = SteadySettings::default().rigid_cutoff_hz,
+        steady_rigid_beta = SteadySettings::default().rigid_beta,
+        steady_precise_shape_cutoff_hz = SteadySettings::default().precise_shape_cutoff_hz,
+        steady_precise_shape_beta = SteadySettings::default().precise_shape_beta,
+        steady_precise_rigid_cutoff_hz = SteadySettings::default().precise_rigid_cutoff_hz,
+        steady_precise_rigid_beta = SteadySettings::default().precise_rigid_beta,
+        ort_dylib = None, detector_model = None, krfws_model = None, candide = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         mode: String,
@@ -112,6 +145,17 @@ impl PyTrackerOptions {
         lookahead_ms: f64,
         motion_compensation: bool,
         max_faces: usize,
+        detect_every: u32,
+        detect_tiles: Option<usize>,
+        steady: bool,
+        steady_shape_cutoff_hz: f64,
+        steady_shape_beta: f64,
+        steady_rigid_cutoff_hz: f64,
+        steady_rigid_beta: f64,
+        steady_precise_shape_cutoff_hz: f64,
+        steady_precise_shape_beta: f64,
+        steady_precise_rigid_cutoff_hz: f64,
+        steady_precise_rigid_beta: f64,
         ort_dylib: Option<PathBuf>,
         detector_model: Option<PathBuf>,
         krfws_model: Option<PathBuf>,
@@ -127,6 +171,17 @@ impl PyTrackerOptions {
             lookahead_ms,
             motion_compensation,
             max_faces,
+            detect_every,
+            detect_tiles,
+            steady,
+            steady_shape_cutoff_hz,
+            steady_shape_beta,
+            steady_rigid_cutoff_hz,
+            steady_rigid_beta,
+            steady_precise_shape_cutoff_hz,
+            steady_precise_shape_beta,
+            steady_precise_rigid_cutoff_hz,
+            steady_precise_rigid_beta,
             ort_dylib,
             detector_model,
             krfws_model,
@@ -137,29 +192,44 @@ impl PyTrackerOptions {
     fn __repr__(&self) -> String {
         format!(
             "TrackerOptions(mode={:?}, server={:?}, deadline_ms={}, lookahead_ms={}, motion_compensation={}, \
-             max_faces={})",
+             max_faces={}, detect_every={}, detect_tiles={:?}, steady={})",
             self.mode,
             self.server,
             self.deadline_ms,
             self.lookahead_ms,
             self.motion_compensation,
-            self.max_faces
+            self.max_faces,
+            self.detect_every,
+            self.detect_tiles,
+            self.steady
         )
     }
 }
 
 impl Default for PyTrackerOptions {
     fn default() -> Self {
+        let st = SteadySettings::default();
         Self::new(
             "video".to_owned(),
             None,
             None,
             String::new(),
-            33,
-            "jpeg:75".to_owned(),
-            120.0,
-            true,
-            1,
+            defaults::DEADLINE_MS,
+            defaults::CROP_ENCODING.to_owned(),
+            defaults::LOOKAHEAD_MS,
+            defaults::MOTION_COMPENSATION,
+            defaults::MAX_FACES,
+            defaults::DETECT_EVERY,
+            None,
+            st.enabled,
+            st.shape_cutoff_hz,
+            st.shape_beta,
+            st.rigid_cutoff_hz,
+            st.rigid_beta,
+            st.precise_shape_cutoff_hz,
+            st.precise_shape_beta,
+            st.precise_rigid_cutoff_hz,
+            st.precise_rigid_beta,
             None,
             None,
             None,
@@ -186,6 +256,23 @@ impl PyTrackerOptions {
         o.session.lookahead_s = self.lookahead_ms / 1e3;
         o.session.motion_compensation = self.motion_compensation;
         o.session.max_faces = self.max_faces;
+        o.session.detect_every = self.detect_every;
+        o.session.steady = SteadySettings {
+            enabled: self.steady,
+            shape_cutoff_hz: self.steady_shape_cutoff_hz,
+            shape_beta: self.steady_shape_beta,
+            rigid_cutoff_hz: self.steady_rigid_cutoff_hz,
+            rigid_beta: self.steady_rigid_beta,
+            precise_shape_cutoff_hz: self.steady_precise_shape_cutoff_hz,
+            precise_shape_beta: self.steady_precise_shape_beta,
+            precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
+            precise_rigid_beta: self.steady_precise_rigid_beta,
+        }
+        .params();
+        o.detector.tiles = self.detect_tiles;
+        o.detector
+            .validate()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         o.session
             .validate()
             .map_err(|e| PyValueError::new_err(e.to_string()))?;

@@ -212,6 +212,27 @@ def test_max_faces_gives_ids_and_is_checked(clip):
     assert ids == [[0]] * len(frames), "one person in the clip: one face, one id throughout"
 
 
+def test_the_detector_and_steadying_options_match_the_cli(clip):
+    defaults = holoface.TrackerOptions()
+    assert (defaults.deadline_ms, defaults.crop_encoding, defaults.lookahead_ms) == (33, "jpeg:75", 120.0)
+    assert (defaults.detect_every, defaults.detect_tiles, defaults.steady) == (10, None, True)
+    # The stub shows the runtime's defaults (SteadySettings::default()).
+    steady = {k: getattr(defaults, k) for k in dir(defaults) if k.startswith("steady_")}
+    assert steady == dict(steady_shape_cutoff_hz=1.0, steady_shape_beta=10.0, steady_rigid_cutoff_hz=3.0,
+                          steady_rigid_beta=2.0, steady_precise_shape_cutoff_hz=3.0, steady_precise_shape_beta=10.0,
+                          steady_precise_rigid_cutoff_hz=20.0, steady_precise_rigid_beta=5.0)
+    for bad, words in [(dict(detect_tiles=0), "detect_tiles"), (dict(detect_every=0), "detect_every"),
+                       (dict(steady_shape_cutoff_hz=0.0), "steady")]:
+        with pytest.raises(ValueError, match=words):
+            holoface.FaceTracker(holoface.TrackerOptions(**bad))
+    frames = list(holoface.FrameSource(clip))[:5]
+    with holoface.FaceTracker(holoface.TrackerOptions(steady=False, detect_tiles=2)) as tracker:
+        for frame in frames:
+            r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
+            for face in r.faces:
+                assert np.array_equal(face.landmarks, face.raw_landmarks), "steady=False: landmarks are the raw ones"
+
+
 def test_the_wheel_works_outside_the_checkout(tmp_path, clip, cli_lines):
     """The wheel `make python-test` built, installed into a fresh venv in a temporary folder with its pinned
     onnxruntime, every HOLOFACE_* and ORT_* variable unset, HOME elsewhere: after install_candide, the first

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use holoface_headset_client::{
-    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, SessionOptions, TrackerOptions, home,
+    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, SessionOptions, SteadySettings, TrackerOptions, home,
 };
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 use holoface_models::steady::SteadyParams;
@@ -148,44 +148,47 @@ pub struct SteadyArgs {
     /// Turn the landmark filter off (the steadied landmarks then equal the aligner's raw ones).
     #[arg(long)]
     pub no_steady: bool,
-    /// KRFWS's answers: One-Euro cut-off at rest of the shape in the face's frame, Hz.
-    #[arg(long, default_value_t = SteadyParams::default().noisy.shape.min_cutoff_hz)]
+    /// Local aligner's (KRFWS's) answers: One-Euro cut-off at rest of the shape in the face's frame, Hz.
+    #[arg(long, default_value_t = SteadySettings::default().shape_cutoff_hz)]
     pub steady_shape_cutoff_hz: f64,
-    /// KRFWS's answers: One-Euro speed coefficient of the shape (per eye distance per second).
-    #[arg(long, default_value_t = SteadyParams::default().noisy.shape.beta)]
+    /// Local aligner's answers: One-Euro speed coefficient of the shape (per eye distance per second).
+    #[arg(long, default_value_t = SteadySettings::default().shape_beta)]
     pub steady_shape_beta: f64,
-    /// KRFWS's answers: One-Euro cut-off at rest of the face's placement (translation, scale, rotation), Hz.
-    #[arg(long, default_value_t = SteadyParams::default().noisy.rigid.min_cutoff_hz)]
+    /// Local aligner's answers: One-Euro cut-off at rest of the face's placement (translation, scale,
+    /// rotation), Hz.
+    #[arg(long, default_value_t = SteadySettings::default().rigid_cutoff_hz)]
     pub steady_rigid_cutoff_hz: f64,
-    /// KRFWS's answers: One-Euro speed coefficient of the placement.
-    #[arg(long, default_value_t = SteadyParams::default().noisy.rigid.beta)]
+    /// Local aligner's answers: One-Euro speed coefficient of the placement.
+    #[arg(long, default_value_t = SteadySettings::default().rigid_beta)]
     pub steady_rigid_beta: f64,
     /// DAN's (and the server's) answers: shape cut-off at rest, Hz.
-    #[arg(long, default_value_t = SteadyParams::default().precise.shape.min_cutoff_hz)]
+    #[arg(long, default_value_t = SteadySettings::default().precise_shape_cutoff_hz)]
     pub steady_precise_shape_cutoff_hz: f64,
     /// DAN's answers: shape speed coefficient.
-    #[arg(long, default_value_t = SteadyParams::default().precise.shape.beta)]
+    #[arg(long, default_value_t = SteadySettings::default().precise_shape_beta)]
     pub steady_precise_shape_beta: f64,
     /// DAN's answers: placement cut-off at rest, Hz.
-    #[arg(long, default_value_t = SteadyParams::default().precise.rigid.min_cutoff_hz)]
+    #[arg(long, default_value_t = SteadySettings::default().precise_rigid_cutoff_hz)]
     pub steady_precise_rigid_cutoff_hz: f64,
     /// DAN's answers: placement speed coefficient.
-    #[arg(long, default_value_t = SteadyParams::default().precise.rigid.beta)]
+    #[arg(long, default_value_t = SteadySettings::default().precise_rigid_beta)]
     pub steady_precise_rigid_beta: f64,
 }
 
 impl SteadyArgs {
     /// The session's `steady` setting.
     pub fn params(&self) -> Option<SteadyParams> {
-        let mut p = SteadyParams::default();
-        p.noisy.shape.min_cutoff_hz = self.steady_shape_cutoff_hz;
-        p.noisy.shape.beta = self.steady_shape_beta;
-        p.noisy.rigid.min_cutoff_hz = self.steady_rigid_cutoff_hz;
-        p.noisy.rigid.beta = self.steady_rigid_beta;
-        p.precise.shape.min_cutoff_hz = self.steady_precise_shape_cutoff_hz;
-        p.precise.shape.beta = self.steady_precise_shape_beta;
-        p.precise.rigid.min_cutoff_hz = self.steady_precise_rigid_cutoff_hz;
-        p.precise.rigid.beta = self.steady_precise_rigid_beta;
-        (!self.no_steady).then_some(p)
+        SteadySettings {
+            enabled: !self.no_steady,
+            shape_cutoff_hz: self.steady_shape_cutoff_hz,
+            shape_beta: self.steady_shape_beta,
+            rigid_cutoff_hz: self.steady_rigid_cutoff_hz,
+            rigid_beta: self.steady_rigid_beta,
+            precise_shape_cutoff_hz: self.steady_precise_shape_cutoff_hz,
+            precise_shape_beta: self.steady_precise_shape_beta,
+            precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
+            precise_rigid_beta: self.steady_precise_rigid_beta,
+        }
+        .params()
     }
 }

@@ -30,9 +30,7 @@ pub struct LinkOptions {
 impl Default for LinkOptions {
     fn default() -> Self {
         Self {
-            // One frame interval at 30 fps: a missed frame is still answered (deadline + local aligner)
-            // well within two intervals.
-            deadline: Duration::from_millis(33),
+            deadline: Duration::from_millis(crate::defaults::DEADLINE_MS),
             codec: CropCodec::default(),
             policy: PolicyConfig::default(),
         }

@@ -54,10 +54,10 @@ pub struct Args {
     #[arg(long, default_value_t = 120)]
     pub cut_frames: usize,
     /// Per-frame deadline for the server's answer, milliseconds (one frame interval at 30 fps).
-    #[arg(long, default_value_t = 33)]
+    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
-    #[arg(long, default_value = "jpeg:75")]
+    #[arg(long, default_value = holoface_headset_client::defaults::CROP_ENCODING)]
     pub crop_encoding: CropCodec,
     /// ONNX Runtime threads of the in-process server.
     #[arg(long, default_value_t = 1)]

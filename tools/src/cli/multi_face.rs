@@ -56,7 +56,7 @@ pub struct Args {
     #[arg(long, default_value_t = 4.0)]
     pub headset_yaw_deg: f64,
     /// While fewer than N faces are tracked, run the detector every this many frames.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = holoface_headset_client::defaults::DETECT_EVERY)]
     pub detect_every: u32,
     /// Horizontal spacing of the pictures' rest positions, centimetres. At the default the pictures touch
     /// and their motion makes them cover each other at times; five fill the 640-px view.
@@ -80,7 +80,7 @@ pub struct Args {
     pub snapshots: Option<PathBuf>,
     /// With `--aligner remote`: how long a frame waits for the server's replies before KRFWS answers the
     /// faces it missed, ms.
-    #[arg(long, default_value_t = 33)]
+    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Deliver frames at `--fps`, as a live camera does (otherwise as fast as they are processed).
     #[arg(long)]

@@ -47,7 +47,7 @@ pub struct Args {
     #[command(flatten)]
     pub steady: crate::args::SteadyArgs,
     /// Per-frame deadline for the server's answer, milliseconds (`remote`).
-    #[arg(long, default_value_t = 33)]
+    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Intra-op threads of the in-process server (`remote`).
     #[arg(long, default_value_t = 1)]
