@@ -39,8 +39,7 @@
 
 /// Declares modules public with the `tools` feature and private without it.
 macro_rules! tools_modules {
-    ($($(#[$attr:meta])* $name:ident;)*) => {$(
-        $(#[$attr])*
+    ($($name:ident;)*) => {$(
         #[cfg(feature = "tools")]
         pub mod $name;
         #[cfg(not(feature = "tools"))]
@@ -50,23 +49,14 @@ macro_rules! tools_modules {
 }
 
 tools_modules! {
-    /// Aligners: the trait, KRFWS, in-process DAN.
     align;
-    /// Asset paths and loading.
     assets;
-    /// Crop encodings on the wire.
     crop_codec;
-    /// Face detection.
     detect;
-    /// Frame types.
     frame;
-    /// One frame's step.
     frame_step;
-    /// The remote link with its local fallback.
     link;
-    /// The tracker state machine.
     session;
-    /// The embedding API.
     tracker;
 }
 

@@ -21,7 +21,7 @@
 //!
 //! Layout:
 //!
-//! * this module: [`Server`], [`ServerError`], [`run`], the state shared by
+//! * this module: [`AlignmentServer`], [`ServerError`], [`run`], the state shared by
 //!   every connection, the QUIC transport configuration and the accept loop;
 //! * `lifecycle`: systemd readiness notification and [`shutdown_signal`];
 //! * `auth`: reading the `ClientHello`, the version and token checks;

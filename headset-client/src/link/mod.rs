@@ -5,6 +5,8 @@
 //!   connection up (reconnecting with exponential backoff) and gives the frame loop a blocking API:
 //!   [`RemoteLink::send`] and [`RemoteLink::wait_until`] with a deadline.
 //! * [`policy`]: the IO-free fallback state machine (misses, hold-off, hysteresis).
+//! * [`supervisor`]: the IO-free reconnection state machine (backoff, giving up, which failures to warn
+//!   about); the link thread below only does what it says.
 //! * [`LinkedAligner`]: an [`crate::align::Aligner`] that asks the server first and answers the **same
 //!   frame** with the local aligner when the reply misses its deadline or the link is down.
 //! * [`CropCodec`] (from [`crate::crop_codec`]): raw / PNG / JPEG crops.
@@ -14,6 +16,7 @@ mod aligner;
 pub mod connection;
 pub mod policy;
 mod remote;
+pub mod supervisor;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, mpsc};
@@ -377,9 +380,8 @@ impl Drop for RemoteLink {
     }
 }
 
-/// The link thread: connect, serve, reconnect with backoff, until shut down or until a failure that
-/// retrying cannot fix. Returns the final status. Failures are logged at warn level when their kind changes
-/// (a link that keeps failing the same way is not logged on every retry).
+/// The link thread: connect, serve, reconnect, until shut down or until a failure that retrying cannot fix
+/// ([`supervisor::Supervisor`] decides; this function does the IO and the logging). Returns the final status.
 async fn supervise(
     cfg: ConnectConfig,
     backoff: Backoff,
@@ -388,6 +390,7 @@ async fn supervise(
     shared: &Shared,
     mut shutdown: oneshot::Receiver<()>,
 ) -> LinkInfo {
+    let mut sup = supervisor::Supervisor::new(backoff);
     let endpoint = match connection::client_endpoint(&cfg) {
         Ok(e) => e,
         Err(e) => {
@@ -396,26 +399,26 @@ async fn supervise(
                 format!("cannot open the client endpoint: {e}"),
             );
             tracing::warn!(server = %cfg.server, error = %failure, "alignment server link failed; answering locally");
-            return LinkInfo::Failed(failure);
+            sup.cannot_start(failure);
+            return sup.status().clone();
         }
     };
-    let mut delay = backoff.initial;
-    let mut last_kind = None;
-    let stopped = loop {
+    let mut gave_up = false;
+    loop {
         let attempt = tokio::select! {
-            _ = &mut shutdown => break LinkInfo::Stopped,
+            _ = &mut shutdown => break,
             r = connection::connect(&endpoint, &cfg) => r,
         };
-        let failure = match attempt {
+        let (failure, established) = match attempt {
             Ok(s) => {
-                delay = backoff.initial;
                 shared.counters.connects.fetch_add(1, Ordering::Relaxed);
                 let (conn, welcome, control, replies) = s.split();
                 tracing::info!(server = %cfg.server, model = %holoface_protocol::untrusted(&welcome.model_version), encoding = ?welcome.encoding, "link up");
                 // Frames queued while down are stale.
                 while frames.try_recv().is_ok() {}
                 *shared.current.lock().unwrap_or_else(PoisonError::into_inner) = Some(conn.clone());
-                shared.set(LinkInfo::Up(Arc::new(welcome)));
+                sup.connected(Arc::new(welcome));
+                shared.set(sup.status().clone());
                 let end = serve(
                     &conn,
                     control,
@@ -440,60 +443,46 @@ async fn supervise(
                     .counters
                     .udp_rx_bytes
                     .fetch_add(stats.udp_rx.bytes, Ordering::Relaxed);
-                match end {
-                    None => {
-                        conn.close(CloseCode::NoError.as_u32().into(), b"client shutting down");
-                        break LinkInfo::Stopped;
-                    }
-                    Some(failure) => {
-                        tracing::warn!(server = %cfg.server, error = %failure, "link down; answering locally");
-                        let _ = events.send(LinkEvent::Down(Instant::now(), failure.clone()));
-                        last_kind = Some(failure.kind);
-                        failure
-                    }
-                }
+                let Some(failure) = end else {
+                    conn.close(CloseCode::NoError.as_u32().into(), b"client shutting down");
+                    break;
+                };
+                let _ = events.send(LinkEvent::Down(Instant::now(), failure.clone()));
+                (failure, true)
             }
             Err(e) => {
                 shared.counters.connect_failures.fetch_add(1, Ordering::Relaxed);
-                let failure = LinkFailure::from(&e);
-                if last_kind == Some(failure.kind) {
-                    tracing::debug!(error = %failure, retry_in = ?delay, "connect failed again");
-                } else {
-                    tracing::warn!(server = %cfg.server, error = %failure, retry_in = ?delay,
-                        "cannot connect to the alignment server; answering locally");
-                }
-                last_kind = Some(failure.kind);
-                failure
+                (LinkFailure::from(&e), false)
             }
         };
-        if failure.kind.is_permanent() {
+        let decision = sup.failed(Instant::now(), failure.clone());
+        let supervisor::Next::RetryAt { at, after } = decision.next else {
             tracing::warn!(server = %cfg.server, error = %failure,
                 "giving up on the alignment server: retrying cannot fix this; answering locally");
-            break LinkInfo::Failed(failure);
+            gave_up = true;
+            break;
+        };
+        if established {
+            tracing::warn!(server = %cfg.server, error = %failure, "link down; answering locally");
+        } else if decision.repeated {
+            tracing::debug!(error = %failure, retry_in = ?after, "connect failed again");
+        } else {
+            tracing::warn!(server = %cfg.server, error = %failure, retry_in = ?after,
+                "cannot connect to the alignment server; answering locally");
         }
-        shared.set(LinkInfo::Connecting {
-            last_error: Some(failure),
-        });
+        shared.set(sup.status().clone());
         tokio::select! {
-            _ = &mut shutdown => break LinkInfo::Stopped,
-            () = tokio::time::sleep(delay) => {}
+            _ = &mut shutdown => break,
+            () = tokio::time::sleep_until(at.into()) => {}
         }
-        delay = (delay * 2).min(backoff.max);
         while frames.try_recv().is_ok() {}
-    };
+    }
+    if !gave_up {
+        sup.stopped();
+    }
     // Let the close frame go out.
     let _ = tokio::time::timeout(Duration::from_millis(200), endpoint.wait_idle()).await;
-    stopped
-}
-
-/// How an established connection ended: a timeout here is the connection going silent (idle timeout), not
-/// an unreachable server.
-fn established_failure(e: LinkError) -> LinkFailure {
-    let mut f = LinkFailure::from(e);
-    if f.kind == FailureKind::Unreachable {
-        f.kind = FailureKind::ConnectionLost;
-    }
-    f
+    sup.status().clone()
 }
 
 /// Serves one connection. `None` = shut down by us; `Some(failure)` = the connection ended.
@@ -515,7 +504,7 @@ async fn serve(
                         return LinkFailure::new(FailureKind::Local, "frame loop gone");
                     }
                 }
-                Err(e) => return established_failure(e),
+                Err(e) => return supervisor::established_failure(e),
             }
         }
     });
@@ -540,8 +529,8 @@ async fn serve(
             r = &mut reader => break Some(r.unwrap_or_else(|e| {
                 LinkFailure::new(FailureKind::Local, format!("reply reader failed: {e}"))
             })),
-            c = control.next() => if let Err(e) = c { break Some(established_failure(e)) },
-            e = conn.closed() => break Some(established_failure(LinkError::from(e))),
+            c = control.next() => if let Err(e) = c { break Some(supervisor::established_failure(e)) },
+            e = conn.closed() => break Some(supervisor::established_failure(LinkError::from(e))),
         }
     };
     reader.abort();
