@@ -630,6 +630,17 @@ pub unsafe extern "C" fn hf_tracker_new_with(
     })
 }
 
+/// This ABI's names for the files a tracker loads, in its messages.
+const C_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
+    (holoface_headset_client::home::ORT_LIBRARY, "HfOptions.ort_dylib"),
+    (
+        holoface_headset_client::home::DETECTOR,
+        "HfOptions.detector_model",
+    ),
+    (holoface_headset_client::home::KRFWS, "HfOptions.krfws_model"),
+    (holoface_headset_client::home::CANDIDE, "HfOptions.candide"),
+];
+
 /// How a tracker's settings come: `hf_tracker_new` and `hf_tracker_new_faces` give the face count only,
 /// `hf_tracker_new_with` every setting.
 enum Settings {
@@ -686,10 +697,13 @@ unsafe fn new_tracker(
             unsafe { out.write(ptr) };
             HfStatus::Ok
         }
-        Err(e @ holoface_headset_client::TrackerError::Options(_)) => {
-            fail(HfStatus::InvalidArgument, e.to_string())
-        }
-        Err(e) => fail(HfStatus::AssetError, e.to_string()),
+        Err(
+            e @ (holoface_headset_client::TrackerError::Options(_)
+            | holoface_headset_client::TrackerError::Link(
+                holoface_headset_client::RemoteStartError::Options(_),
+            )),
+        ) => fail(HfStatus::InvalidArgument, e.to_string()),
+        Err(e) => fail(HfStatus::AssetError, e.given_by(C_OPTIONS).to_string()),
     }
 }
 

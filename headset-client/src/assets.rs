@@ -8,14 +8,12 @@ use std::path::{Path, PathBuf};
 
 pub use holoface_inference::ORT_DYLIB_ENV;
 pub use holoface_inference::home;
-pub use holoface_inference::home::{Asset, HOME_ENV, data_dir};
+pub use holoface_inference::home::{Asset, HOME_ENV, MissingAsset, data_dir};
 
 /// Environment variable naming the BlazeFace model.
 pub const DETECTOR_ENV: &str = home::DETECTOR.env;
 /// Environment variable naming the KRFWS model.
 pub const KRFWS_ENV: &str = home::KRFWS.env;
-/// Environment variable naming the DAN model (in-process DAN, tools only).
-pub const DAN_ENV: &str = home::DAN.env;
 /// Environment variable naming the CANDIDE-3 `.wfm`.
 pub const CANDIDE_ENV: &str = home::CANDIDE.env;
 
@@ -48,13 +46,8 @@ impl Default for AssetPaths {
 #[non_exhaustive]
 pub enum AssetError {
     /// The file does not exist: the message says why that path was looked at and what installs the asset.
-    #[error("{}", asset.not_found(path))]
-    Missing {
-        /// Which asset.
-        asset: Asset,
-        /// Where it was looked for.
-        path: PathBuf,
-    },
+    #[error(transparent)]
+    Missing(#[from] MissingAsset),
     /// The file could not be read (missing, unreadable).
     #[error("reading {asset} {}: {source}", path.display())]
     Read {
@@ -78,13 +71,21 @@ pub enum AssetError {
     },
 }
 
-fn read_asset(asset: Asset, path: &Path) -> Result<Vec<u8>, AssetError> {
+impl AssetError {
+    /// Names the front end's setting of a missing asset (see [`MissingAsset::given_by`]).
+    #[must_use]
+    pub fn given_by(self, options: &[(Asset, &str)]) -> Self {
+        match self {
+            Self::Missing(m) => Self::Missing(m.given_by(options)),
+            other => other,
+        }
+    }
+}
+
+fn read_asset(asset: &'static Asset, path: &Path) -> Result<Vec<u8>, AssetError> {
     use holoface_inference::files::{FileError, read_bounded};
     let bytes = read_bounded(path, asset.max_bytes, asset.name).map_err(|e| match e {
-        FileError::Missing { .. } => AssetError::Missing {
-            asset,
-            path: path.to_owned(),
-        },
+        FileError::Missing { .. } => AssetError::Missing(asset.missing(path)),
         FileError::Io { source, .. } => AssetError::Read {
             asset: asset.name,
             path: path.to_owned(),
@@ -107,7 +108,7 @@ fn invalid(asset: &'static str, path: &Path, reason: impl std::fmt::Display) -> 
 
 /// Loads the CANDIDE-3 face model from a `.wfm` file.
 pub fn load_face_model(path: &Path) -> Result<holoface_models::candide::FaceModel, AssetError> {
-    parse_face_model(&read_asset(home::CANDIDE, path)?, path)
+    parse_face_model(&read_asset(&home::CANDIDE, path)?, path)
 }
 
 /// Parses a CANDIDE-3 `.wfm` already read from `path` (named in errors).
@@ -121,6 +122,6 @@ pub fn parse_face_model(text: &[u8], path: &Path) -> Result<holoface_models::can
 /// Loads the KRFWS model file.
 pub fn load_krfws(path: &Path) -> Result<holoface_models::krfws::Krfws, AssetError> {
     const ASSET: &str = home::KRFWS.name;
-    let bytes = read_asset(home::KRFWS, path)?;
+    let bytes = read_asset(&home::KRFWS, path)?;
     holoface_models::krfws::Krfws::from_bytes(&bytes).map_err(|e| invalid(ASSET, path, e))
 }

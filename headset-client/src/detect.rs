@@ -16,12 +16,9 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 #[non_exhaustive]
 pub enum DetectError {
-    /// The model file does not exist.
-    #[error("{}", holoface_inference::home::DETECTOR.not_found(path))]
-    ModelMissing {
-        /// Path tried.
-        path: PathBuf,
-    },
+    /// The model file or the ONNX Runtime library is not where it was looked for.
+    #[error(transparent)]
+    Missing(#[from] holoface_inference::home::MissingAsset),
     /// The ONNX Runtime library does not exist or failed to load.
     #[error("{detail}")]
     Runtime {
@@ -114,13 +111,14 @@ impl BlazeFace {
     /// Runtime's intra-op thread count.
     pub fn load(model: &Path, ort_dylib: &Path, threads: usize) -> Result<Self, DetectError> {
         if !model.is_file() {
-            return Err(DetectError::ModelMissing {
-                path: model.to_path_buf(),
-            });
+            return Err(holoface_inference::home::DETECTOR.missing(model).into());
         }
-        let env = holoface_inference::load_runtime(ort_dylib).map_err(|e| DetectError::Runtime {
-            path: ort_dylib.to_path_buf(),
-            detail: e.to_string(),
+        let env = holoface_inference::load_runtime(ort_dylib).map_err(|e| match e {
+            holoface_inference::EngineError::Missing(m) => DetectError::Missing(m),
+            e => DetectError::Runtime {
+                path: ort_dylib.to_path_buf(),
+                detail: e.to_string(),
+            },
         })?;
         let bad = |detail: String| DetectError::BadModel {
             path: model.to_path_buf(),

@@ -84,14 +84,15 @@ pub mod defaults {
 // The app-facing API.
 pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
 pub use assets::{
-    AssetError, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home,
-    parse_face_model,
+    Asset, AssetError, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, MissingAsset,
+    ORT_DYLIB_ENV, home, parse_face_model,
 };
 pub use crop_codec::CropCodec;
 pub use frame::{Frame, FrameSource, OwnedFrame, SourceError, default_intrinsics};
 pub use frame_step::Timings;
 pub use link::{
     FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,
+    RemoteStartError,
 };
 pub use session::{
     FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, NoFaceReason, OneEuroParams,

@@ -81,6 +81,20 @@ pub struct TrackerOptions {
     pub detector: DetectorOptions,
 }
 
+impl TrackerError {
+    /// Names the front end's setting of a missing asset in the message (`options`: each asset with the name
+    /// the front end gives its path: `--krfws-model`, `HfOptions.krfws_model`, ...). Each front end names its
+    /// own; the runtime names none.
+    #[must_use]
+    pub fn given_by(self, options: &[(crate::assets::Asset, &str)]) -> Self {
+        match self {
+            Self::Asset(e) => Self::Asset(e.given_by(options)),
+            Self::Detect(DetectError::Missing(m)) => Self::Detect(DetectError::Missing(m.given_by(options))),
+            other => other,
+        }
+    }
+}
+
 impl From<StepError> for TrackerError {
     fn from(e: StepError) -> Self {
         match e {
@@ -100,9 +114,12 @@ pub enum TrackerError {
     /// A setting is out of its range.
     #[error(transparent)]
     Options(#[from] crate::session::SessionOptionsError),
-    /// The link thread could not start.
+    /// The remote aligner could not start (an option out of range, or its thread).
     #[error("starting the link: {0}")]
-    Link(#[from] std::io::Error),
+    Link(#[from] crate::link::RemoteStartError),
+    /// [`LiveTracker`]'s worker thread could not be started.
+    #[error("starting the live tracker's thread: {0}")]
+    Worker(std::io::Error),
     /// Face detection failed.
     #[error(transparent)]
     Detect(#[from] DetectError),
@@ -384,7 +401,8 @@ impl LiveTracker {
                     };
                     on_result(tracker.process(&frame.view()));
                 }
-            })?;
+            })
+            .map_err(TrackerError::Worker)?;
         Ok(Self {
             slot,
             worker: Some(worker),

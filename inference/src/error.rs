@@ -6,12 +6,9 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum EngineError {
-    /// The ONNX Runtime shared library is not where the config says.
-    #[error("{}", crate::home::ORT_LIBRARY.not_found(path))]
-    RuntimeMissing {
-        /// The path that was tried.
-        path: PathBuf,
-    },
+    /// An asset (the ONNX Runtime library, the DAN model, the refiner) is not where it was looked for.
+    #[error(transparent)]
+    Missing(#[from] crate::home::MissingAsset),
     /// A directory was given where the ONNX Runtime library belongs.
     #[error("ONNX Runtime library path {path} is a directory, not libonnxruntime.so")]
     RuntimeIsDirectory {
@@ -27,15 +24,9 @@ pub enum EngineError {
         detail: String,
     },
     /// A directory was given where the model file belongs.
-    #[error("model path {path} is a directory, not an .onnx file (set engine.model / --model to the file)")]
+    #[error("DAN model path {path} is a directory, not an .onnx file: give the model file itself")]
     ModelIsDirectory {
         /// The path that was given.
-        path: PathBuf,
-    },
-    /// The model file does not exist.
-    #[error("{}", crate::home::DAN.not_found(path))]
-    ModelMissing {
-        /// The path that was tried.
         path: PathBuf,
     },
     /// A model file is not the file it should be (its checksum or its recorded release disagree).
@@ -101,19 +92,15 @@ pub enum EngineError {
     /// The model's outputs are missing or shaped against its declaration (landmark count, batch).
     #[error("model output contradicts its declaration: {0}")]
     BadOutput(String),
-    /// The refinement cascade's model file is missing, unreadable, damaged or does not fit the DAN model.
-    #[error("refiner model {path}: {detail} (set refine.model / --refine-model, or refine.enabled = false)")]
-    LoadedCascade {
+    /// The refinement cascade's model file is unreadable, damaged or does not fit the DAN model.
+    #[error("refiner model {path}: {detail} (another file{}, or DAN alone)", option.as_ref().map(|o| format!(" in {o}")).unwrap_or_default())]
+    Cascade {
         /// The file.
         path: PathBuf,
         /// What is wrong.
         detail: String,
-    },
-    /// The refinement cascade's model file does not exist.
-    #[error("{}", crate::home::REFINER.not_found(path))]
-    RefinerMissing {
-        /// The path that was tried.
-        path: PathBuf,
+        /// The front end's name for the refiner's setting ([`EngineError::given_by`]).
+        option: Option<String>,
     },
     /// The refinement cascade refused an input.
     #[error("refinement: {0}")]
@@ -121,6 +108,25 @@ pub enum EngineError {
     /// ONNX Runtime reported an error.
     #[error("ONNX Runtime: {0}")]
     Ort(String),
+}
+
+impl EngineError {
+    /// Names the front end's setting of a missing asset (see [`crate::home::MissingAsset::given_by`]).
+    #[must_use]
+    pub fn given_by(self, options: &[(crate::home::Asset, &str)]) -> Self {
+        match self {
+            Self::Missing(m) => Self::Missing(m.given_by(options)),
+            Self::Cascade { path, detail, .. } => Self::Cascade {
+                path,
+                detail,
+                option: options
+                    .iter()
+                    .find(|(a, _)| *a == crate::home::REFINER)
+                    .map(|(_, o)| (*o).to_owned()),
+            },
+            other => other,
+        }
+    }
 }
 
 impl From<ort::Error> for EngineError {

@@ -48,9 +48,6 @@ pub struct Asset {
     pub env: &'static str,
     /// Its file name in the data folder.
     pub file: &'static str,
-    /// Where it can be given explicitly, for messages: the CLI option, the server's config key, the
-    /// `HfOptions` / `TrackerOptions` field.
-    pub option: &'static str,
     /// The command that puts it into the data folder.
     pub setup: &'static str,
     /// The largest file of its kind that is read (checked before reading: `/dev/zero` or a huge file named
@@ -66,7 +63,6 @@ pub const ORT_LIBRARY: Asset = Asset {
     name: "ONNX Runtime library",
     env: "ORT_DYLIB_PATH",
     file: "libonnxruntime.so.1.31.1",
-    option: "--ort-dylib / engine.ort_dylib / ort_dylib",
     setup: SETUP,
     max_bytes: 256 << 20,
 };
@@ -75,7 +71,6 @@ pub const DETECTOR: Asset = Asset {
     name: "face detector model",
     env: "HOLOFACE_DETECTOR_MODEL",
     file: "face_detection_front_128x128.onnx",
-    option: "--detector / detector_model",
     setup: SETUP,
     max_bytes: 64 << 20,
 };
@@ -84,7 +79,6 @@ pub const KRFWS: Asset = Asset {
     name: "KRFWS model",
     env: "HOLOFACE_KRFWS_MODEL",
     file: "krfws.bin",
-    option: "--krfws-model / krfws_model",
     setup: SETUP,
     max_bytes: 256 << 20,
 };
@@ -93,7 +87,6 @@ pub const DAN: Asset = Asset {
     name: "DAN model",
     env: "HOLOFACE_DAN_MODEL",
     file: "dan.onnx",
-    option: "--dan-model / --model / engine.model",
     setup: SETUP,
     max_bytes: 1 << 30,
 };
@@ -102,7 +95,6 @@ pub const REFINER: Asset = Asset {
     name: "refinement cascade model",
     env: "HOLOFACE_REFINE_MODEL",
     file: "refiner.bin",
-    option: "--refine-model / refine.model",
     setup: SETUP,
     max_bytes: 512 << 20,
 };
@@ -111,7 +103,6 @@ pub const CANDIDE: Asset = Asset {
     name: "CANDIDE-3 model",
     env: "HOLOFACE_CANDIDE",
     file: "candide3.wfm",
-    option: "--candide / candide",
     setup: "holoface setup --candide /path/to/candide3.wfm",
     max_bytes: 16 << 20,
 };
@@ -120,7 +111,6 @@ pub const SAMPLE: Asset = Asset {
     name: "demo sample image",
     env: "HOLOFACE_SAMPLE",
     file: "astronaut.png",
-    option: "--sample",
     setup: SETUP,
     max_bytes: 256 << 20,
 };
@@ -141,22 +131,46 @@ impl Asset {
         Path::new("$HOLOFACE_HOME").join(self.file)
     }
 
+    /// The error for this asset missing at `path` (no front end's option named yet: see
+    /// [`MissingAsset::given_by`]).
+    pub fn missing(&'static self, path: &Path) -> MissingAsset {
+        MissingAsset {
+            asset: self,
+            path: path.to_path_buf(),
+            option: None,
+        }
+    }
+
     /// The message for a missing `path`: the asset, the path, why it was looked for there (the environment
-    /// variable, the data folder, or given explicitly) and the command that fixes it.
-    pub fn not_found(&self, path: &Path) -> String {
-        self.not_found_in(path, std::env::var_os(self.env), data_dir())
+    /// variable, the data folder, or given explicitly with `option`, the front end's name for it) and the
+    /// command that fixes it.
+    fn not_found(&self, path: &Path, option: Option<&str>) -> String {
+        self.not_found_in(path, option, std::env::var_os(self.env), data_dir())
     }
 
     /// [`Asset::not_found`] with the variable's value and the data folder given.
-    fn not_found_in(&self, path: &Path, from_env: Option<OsString>, data: Option<PathBuf>) -> String {
+    fn not_found_in(
+        &self,
+        path: &Path,
+        option: Option<&str>,
+        from_env: Option<OsString>,
+        data: Option<PathBuf>,
+    ) -> String {
         let Self {
             name,
             env,
             file,
-            option,
             setup,
             max_bytes: _,
         } = *self;
+        let neither = match option {
+            Some(o) => format!("neither {o} nor ${env} names it"),
+            None => format!("no option and no ${env} names it"),
+        };
+        let given = match option {
+            Some(o) => format!("the path given with {o}"),
+            None => "the path given".to_owned(),
+        };
         let shown = path.display();
         let from_env = from_env.filter(|v| !v.is_empty());
         if from_env.as_deref() == Some(path.as_os_str()) {
@@ -168,19 +182,46 @@ impl Asset {
         let folder = "$HOLOFACE_HOME, else $XDG_DATA_HOME/holoface, else ~/.local/share/holoface";
         match data {
             Some(dir) if dir.join(file) == path => format!(
-                "{name} not found at {shown}: neither {option} nor ${env} names it, so it is looked for in the \
-                 holoface data folder {} ({folder}); run `{setup}` to put it there, or set ${env}",
+                "{name} not found at {shown}: {neither}, so it is looked for in the holoface data folder {} \
+                 ({folder}); run `{setup}` to put it there, or set ${env}",
                 dir.display()
             ),
             None if from_env.is_none() && path.starts_with("$HOLOFACE_HOME") => format!(
-                "{name} not found: neither {option} nor ${env} names it and there is no data folder \
-                 ({HOME_ENV}, XDG_DATA_HOME and HOME are unset); set {HOME_ENV} and run `{setup}`, or set ${env}"
+                "{name} not found: {neither} and there is no data folder ({HOME_ENV}, XDG_DATA_HOME and HOME \
+                 are unset); set {HOME_ENV} and run `{setup}`, or set ${env}"
             ),
             _ => format!(
-                "{name} not found at {shown} (the path given with {option}); give the right path, or leave it \
-                 out to use ${env} or else the data folder's copy ({folder}), which `{setup}` installs"
+                "{name} not found at {shown} ({given}); give the right path, or leave it out to use ${env} or \
+                 else the data folder's copy ({folder}), which `{setup}` installs"
             ),
         }
+    }
+}
+
+/// An asset that is not where it was looked for: the one "missing asset" error of every crate (the runtime's
+/// `AssetError` and `DetectError`, [`crate::EngineError`]). The message names the asset, the path, why that
+/// path (given explicitly, named by its environment variable, or the data folder's default) and the command
+/// that fixes it.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{}", asset.not_found(path, option.as_deref()))]
+pub struct MissingAsset {
+    /// Which asset (one of this module's constants).
+    pub asset: &'static Asset,
+    /// Where it was looked for.
+    pub path: PathBuf,
+    /// The front end's name for the setting that gives its path (`--dan-model`, `engine.model`,
+    /// `HfOptions.krfws_model`), when the front end said: each front end names its own.
+    pub option: Option<String>,
+}
+
+impl MissingAsset {
+    /// Names the front end's setting for this asset, when `options` (asset, name) lists it.
+    #[must_use]
+    pub fn given_by(mut self, options: &[(Asset, &str)]) -> Self {
+        if let Some((_, name)) = options.iter().find(|(a, _)| a == self.asset) {
+            self.option = Some((*name).to_owned());
+        }
+        self
     }
 }
 
@@ -232,30 +273,43 @@ mod tests {
     fn a_missing_asset_says_why_that_path_and_what_fixes_it() {
         let data = Some(PathBuf::from("/d"));
         // Named by the variable.
-        let m = KRFWS.not_found_in(Path::new("/e/k.bin"), Some("/e/k.bin".into()), data.clone());
+        let m = KRFWS.not_found_in(Path::new("/e/k.bin"), None, Some("/e/k.bin".into()), data.clone());
         assert!(
             m.starts_with("KRFWS model not found at /e/k.bin (named by $HOLOFACE_KRFWS_MODEL)"),
             "{m}"
         );
         assert!(m.contains("unset it and run `holoface setup`"), "{m}");
         // The data folder's default.
-        let m = KRFWS.not_found_in(Path::new("/d/krfws.bin"), None, data.clone());
+        let m = KRFWS.not_found_in(Path::new("/d/krfws.bin"), None, None, data.clone());
         assert!(m.contains("looked for in the holoface data folder /d"), "{m}");
         assert!(m.contains("run `holoface setup` to put it there"), "{m}");
-        // Given explicitly.
-        let m = DAN.not_found_in(Path::new("/x/dan.onnx"), Some("/other".into()), data.clone());
+        // Given explicitly: the front end names its own setting, never another front end's.
+        let m = DAN.not_found_in(
+            Path::new("/x/dan.onnx"),
+            Some("--dan-model"),
+            Some("/other".into()),
+            data.clone(),
+        );
+        assert!(m.contains("(the path given with --dan-model)"), "{m}");
+        let m = DAN.not_found_in(Path::new("/x/dan.onnx"), None, None, data.clone());
+        assert!(m.contains("(the path given)"), "{m}");
+        let named = DAN
+            .missing(Path::new("/x/dan.onnx"))
+            .given_by(&[(KRFWS, "--krfws-model"), (DAN, "engine.model")]);
+        assert_eq!(named.option.as_deref(), Some("engine.model"));
+        let m = KRFWS.not_found_in(Path::new("/d/krfws.bin"), Some("krfws_model"), None, data.clone());
         assert!(
-            m.contains("(the path given with --dan-model / --model / engine.model)"),
+            m.contains("neither krfws_model nor $HOLOFACE_KRFWS_MODEL names it"),
             "{m}"
         );
         // CANDIDE-3 is the user's to install.
-        let m = CANDIDE.not_found_in(Path::new("/d/candide3.wfm"), None, data);
+        let m = CANDIDE.not_found_in(Path::new("/d/candide3.wfm"), None, None, data);
         assert!(
             m.contains("holoface setup --candide /path/to/candide3.wfm"),
             "{m}"
         );
         // No data folder at all.
-        let m = SAMPLE.not_found_in(&SAMPLE.placeholder(), None, None);
+        let m = SAMPLE.not_found_in(&SAMPLE.placeholder(), None, None, None);
         assert!(
             m.contains("there is no data folder") && m.contains("set HOLOFACE_HOME"),
             "{m}"

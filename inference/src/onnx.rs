@@ -87,9 +87,7 @@ impl OnnxEngine {
             });
         }
         if !opts.model.is_file() {
-            return Err(EngineError::ModelMissing {
-                path: opts.model.clone(),
-            });
+            return Err(crate::home::DAN.missing(&opts.model).into());
         }
         // The file is read once, checked, and the session made from those very bytes.
         let bytes = read_model(&opts.model)?;
@@ -147,9 +145,7 @@ impl OnnxEngine {
 /// Reads a model file whole, refusing one too large to be a model (or not a file at all) before reading it.
 fn read_model(path: &std::path::Path) -> Result<Vec<u8>, EngineError> {
     crate::files::read_bounded(path, crate::home::DAN.max_bytes, crate::home::DAN.name).map_err(|e| match e {
-        crate::files::FileError::Missing { .. } => EngineError::ModelMissing {
-            path: path.to_path_buf(),
-        },
+        crate::files::FileError::Missing { .. } => crate::home::DAN.missing(path).into(),
         other => EngineError::Damaged {
             path: path.to_path_buf(),
             detail: other.to_string(),
@@ -322,7 +318,7 @@ mod tests {
         };
         let e = OnnxEngine::load(&opts).unwrap_err().to_string();
         assert!(
-            e.contains("DAN model not found at /nonexistent/dan.onnx") && e.contains("engine.model"),
+            e.contains("DAN model not found at /nonexistent/dan.onnx (the path given)"),
             "{e}"
         );
         let e = load_runtime(Path::new("/nonexistent/libonnxruntime.so"))

@@ -25,9 +25,10 @@ pub struct LoadedCascade {
 impl LoadedCascade {
     /// Loads and validates a refiner model file.
     pub fn load(path: &Path) -> Result<Self, EngineError> {
-        let err = |detail: String| EngineError::LoadedCascade {
+        let err = |detail: String| EngineError::Cascade {
             path: path.to_path_buf(),
             detail,
+            option: None,
         };
         if path.is_dir() {
             return Err(err("is a directory, not a refiner model file".into()));
@@ -35,9 +36,7 @@ impl LoadedCascade {
         let bytes =
             crate::files::read_bounded(path, crate::home::REFINER.max_bytes, crate::home::REFINER.name)
                 .map_err(|e| match e {
-                    crate::files::FileError::Missing { .. } => EngineError::RefinerMissing {
-                        path: path.to_path_buf(),
-                    },
+                    crate::files::FileError::Missing { .. } => crate::home::REFINER.missing(path).into(),
                     other => err(other.to_string()),
                 })?;
         crate::integrity::verify_sidecar(path, &bytes)?;
@@ -276,9 +275,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            missing.contains("nope.bin") && missing.contains("refine.model"),
+            missing.contains("not found at") && missing.contains("nope.bin (the path given)"),
             "{missing}"
         );
+        // The front end names its own setting.
+        let named = LoadedCascade::load(&dir.join("nope.bin"))
+            .unwrap_err()
+            .given_by(&[(crate::home::REFINER, "refine.model")])
+            .to_string();
+        assert!(named.contains("(the path given with refine.model)"), "{named}");
         let corrupt = dir.join("corrupt.bin");
         let mut bytes = shift_by_one();
         bytes[30] ^= 0xff;

@@ -33,9 +33,7 @@ pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, Engin
         });
     }
     if !dylib.is_file() {
-        return Err(EngineError::RuntimeMissing {
-            path: dylib.to_path_buf(),
-        });
+        return Err(crate::home::ORT_LIBRARY.missing(dylib).into());
     }
     let mut slot = ENVIRONMENT
         .lock()

@@ -581,6 +581,20 @@ fn gray_array<'a, 'py>(image: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, 
         .map_err(|_| PyTypeError::new_err("image must be a uint8 array"))
 }
 
+/// This module's names for the files a tracker loads, in its messages.
+const PY_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
+    (
+        holoface_headset_client::home::ORT_LIBRARY,
+        "TrackerOptions.ort_dylib",
+    ),
+    (
+        holoface_headset_client::home::DETECTOR,
+        "TrackerOptions.detector_model",
+    ),
+    (holoface_headset_client::home::KRFWS, "TrackerOptions.krfws_model"),
+    (holoface_headset_client::home::CANDIDE, "TrackerOptions.candide"),
+];
+
 fn tracker_error(e: TrackerError) -> PyErr {
     match e {
         TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
@@ -611,6 +625,7 @@ impl PyFaceTracker {
         let opts = options.unwrap_or_default().to_rust(py)?;
         let inner = py
             .detach(|| tracker::FaceTracker::new(opts))
+            .map_err(|e| e.given_by(PY_OPTIONS))
             .map_err(|e| match e {
                 TrackerError::Detect(_) | TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
                 other => tracker_error(other),

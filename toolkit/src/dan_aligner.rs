@@ -2,35 +2,33 @@
 //! headset would send, one ONNX Runtime call, the landmarks mapped back. A headset never runs DAN itself (it
 //! asks the alignment server), so this lives here and not in the runtime.
 
-use anyhow::Context;
 use holoface_headset_client::align::{
     AlignError, Aligner, Alignment, Candidate, Neighbours, crop_from_image, landmarks_from_crop,
 };
 use holoface_inference::{
-    BatchTensor, CascadeEngine, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine, OnnxOptions,
+    BatchTensor, CascadeEngine, EngineError, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine,
+    OnnxOptions,
 };
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayView;
 
 /// DAN alone, in this process (`engine`: CPU, batch 1).
-pub fn dan_alone(engine: &OnnxOptions) -> anyhow::Result<DanAligner<OnnxEngine>> {
-    let dan =
-        OnnxEngine::load(engine).with_context(|| format!("loading DAN model {}", engine.model.display()))?;
-    Ok(DanAligner::new(dan)?)
+pub fn dan_alone(engine: &OnnxOptions) -> Result<DanAligner<OnnxEngine>, EngineError> {
+    DanAligner::new(OnnxEngine::load(engine)?).map_err(|e| EngineError::BadOutput(e.to_string()))
 }
 
 /// The alignment server's pipeline in this process: the crop through the wire's default encoding (JPEG q75)
 /// and back, DAN, then the refinement cascade at `refiner` ([`CascadeEngine`], the type the server's engine
-/// threads run).
+/// threads run). The errors name the files (the front end names its settings: `EngineError::given_by`).
 pub fn server_pipeline(
     engine: &OnnxOptions,
     refiner: &std::path::Path,
-) -> anyhow::Result<DanAligner<CascadeEngine<OnnxEngine>>> {
+) -> Result<DanAligner<CascadeEngine<OnnxEngine>>, EngineError> {
     let refiner = LoadedCascade::load(refiner)?;
-    let dan =
-        OnnxEngine::load(engine).with_context(|| format!("loading DAN model {}", engine.model.display()))?;
-    let mut aligner = DanAligner::new(CascadeEngine::new(dan, refiner)?)?;
+    let dan = OnnxEngine::load(engine)?;
+    let mut aligner = DanAligner::new(CascadeEngine::new(dan, refiner)?)
+        .map_err(|e| EngineError::BadOutput(e.to_string()))?;
     aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
     Ok(aligner)
 }

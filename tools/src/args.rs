@@ -6,13 +6,39 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use holoface_headset_client::{
-    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, SessionOptions, SteadySettings, TrackerOptions, home,
+    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, FaceTracker, KRFWS_ENV, SessionOptions, SteadySettings,
+    TrackerError, TrackerOptions, home,
 };
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
 use holoface_models::steady::SteadyParams;
 
 use crate::dan_aligner::DanAligner;
 use holoface_headset_client::align::KrfwsAligner;
+use holoface_headset_client::detect::DetectError;
+
+/// The command line's names for the files it loads, in the runtime's messages (each front end names its own).
+pub const CLI_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
+    (home::ORT_LIBRARY, "--ort-dylib"),
+    (home::DETECTOR, "--detector"),
+    (home::KRFWS, "--krfws-model"),
+    (home::CANDIDE, "--candide"),
+    (home::DAN, "--dan-model"),
+    (home::REFINER, "--refine-model"),
+];
+
+/// [`FaceTracker::new`], its errors naming the command line's options.
+pub fn tracker(opts: TrackerOptions) -> Result<FaceTracker, TrackerError> {
+    FaceTracker::new(opts).map_err(|e| e.given_by(CLI_OPTIONS))
+}
+
+/// [`FaceTracker::with_aligner`], its errors naming the command line's options.
+pub fn tracker_with<A: holoface_headset_client::align::Aligner + ?Sized>(
+    opts: &TrackerOptions,
+    aligner: Box<A>,
+    link: Option<holoface_headset_client::link::LinkWatch>,
+) -> Result<FaceTracker<A>, TrackerError> {
+    FaceTracker::with_aligner(opts, aligner, link).map_err(|e| e.given_by(CLI_OPTIONS))
+}
 
 /// Paths and threads of the runtime assets: each path is the option, else its environment variable, else its
 /// file in the holoface data folder, which `holoface setup` fills (`holoface_headset_client::assets::home`).
@@ -62,6 +88,8 @@ impl RuntimeArgs {
     /// DAN alone in this process.
     pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
         holoface_toolkit::dan_aligner::dan_alone(&self.dan_options())
+            .map_err(|e| e.given_by(CLI_OPTIONS))
+            .with_context(|| format!("loading DAN model {}", self.dan_model.display()))
     }
 
     /// The server's pipeline in this process (`holoface_toolkit::dan_aligner::server_pipeline`).
@@ -69,6 +97,8 @@ impl RuntimeArgs {
         &self,
     ) -> anyhow::Result<DanAligner<holoface_inference::CascadeEngine<OnnxEngine>>> {
         holoface_toolkit::dan_aligner::server_pipeline(&self.dan_options(), &self.refine_model)
+            .map_err(|e| e.given_by(CLI_OPTIONS))
+            .with_context(|| format!("loading DAN model {} and the refiner", self.dan_model.display()))
     }
 
     /// The tracker options of a video with these assets, the CANDIDE-3 model of `candide`, `session`'s settings,
@@ -89,14 +119,18 @@ impl RuntimeArgs {
     /// BlazeFace through ONNX Runtime (1 thread).
     pub fn detector(&self) -> anyhow::Result<holoface_headset_client::detect::BlazeFace> {
         holoface_headset_client::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
+            .map_err(|e| match e {
+                DetectError::Missing(m) => DetectError::Missing(m.given_by(CLI_OPTIONS)),
+                e => e,
+            })
             .with_context(|| format!("loading the face detector {}", self.detector.display()))
     }
 
     /// KRFWS from its model file.
     pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
-        Ok(KrfwsAligner::new(holoface_headset_client::assets::load_krfws(
-            &self.krfws_model,
-        )?))
+        let model = holoface_headset_client::assets::load_krfws(&self.krfws_model)
+            .map_err(|e| e.given_by(CLI_OPTIONS))?;
+        Ok(KrfwsAligner::new(model))
     }
 }
 
@@ -111,7 +145,8 @@ pub struct CandideArg {
 impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
-        Ok(holoface_headset_client::assets::load_face_model(&self.candide)?)
+        Ok(holoface_headset_client::assets::load_face_model(&self.candide)
+            .map_err(|e| e.given_by(CLI_OPTIONS))?)
     }
 }
 

@@ -70,6 +70,27 @@ fn a_damaged_dan_model_is_refused_naming_the_file_and_the_fix() {
         text.contains("dan.onnx is damaged") && text.contains("holoface setup"),
         "{text}"
     );
+    // A missing file: the message names this command's own options, not the server's or another tool's.
+    let gone = d.join("gone.onnx");
+    let (ok, text) = run(&eval_args(&d, "dan", &["--dan-model", gone.to_str().unwrap()]));
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("DAN model not found at") && text.contains("(the path given with --dan-model)"),
+        "{text}"
+    );
+    assert!(
+        !text.contains("engine.model") && !text.contains("--model /"),
+        "{text}"
+    );
+    let (ok, text) = run(&eval_args(
+        &d,
+        "krfws",
+        &["--krfws-model", gone.to_str().unwrap()],
+    ));
+    assert!(
+        !ok && text.contains("(the path given with --krfws-model)"),
+        "{text}"
+    );
 }
 
 /// Finding 4: a truncated ONNX Runtime library killed the process with SIGBUS (exit 135, no message).

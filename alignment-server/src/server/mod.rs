@@ -143,9 +143,22 @@ impl AlignmentServer {
         let opts = settings.engine.clone();
         let instances = settings.engine_instances.max(1);
         let refine_path = settings.refine_model.clone();
+        // The server's own names for the files it loads, in its messages.
+        const OPTIONS: &[(holoface_inference::home::Asset, &str)] = &[
+            (holoface_inference::home::DAN, "engine.model / --model"),
+            (
+                holoface_inference::home::ORT_LIBRARY,
+                "engine.ort_dylib / --ort-dylib",
+            ),
+            (holoface_inference::home::REFINER, "refine.model / --refine-model"),
+        ];
         let engines = tokio::task::spawn_blocking(move || {
             // One refiner, shared by every instance; a missing or damaged file stops the start here.
-            let refiner = refine_path.as_deref().map(LoadedCascade::load).transpose()?;
+            let refiner = refine_path
+                .as_deref()
+                .map(LoadedCascade::load)
+                .transpose()
+                .map_err(|e| e.given_by(OPTIONS))?;
             (0..instances)
                 .map(|_| {
                     let dan = OnnxEngine::load(&opts)?;
@@ -158,6 +171,7 @@ impl AlignmentServer {
                     })
                 })
                 .collect::<Result<Vec<_>, EngineError>>()
+                .map_err(|e| e.given_by(OPTIONS))
         })
         .await
         .map_err(|e| ServerError::EngineThread(e.to_string()))??;

@@ -29,7 +29,7 @@ pub use crate::crop_codec::CropCodec;
 pub use aligner::{FrameReport, LinkOptions, LinkedAligner};
 pub use connection::{ConnectConfig, FailureKind, LinkError, LinkFailure};
 pub use policy::{FallbackPolicy, Mode, PolicyConfig, Route};
-pub use remote::{MAX_DEADLINE, RemoteOptions, RemoteOptionsError};
+pub use remote::{MAX_DEADLINE, RemoteOptions, RemoteOptionsError, RemoteStartError};
 
 /// Reconnection backoff: `initial`, doubling up to `max`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -56,6 +56,18 @@ pub enum RemoteOptionsError {
     CropEncoding(String),
 }
 
+/// Why a remote aligner could not start.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RemoteStartError {
+    /// An option is out of range ([`RemoteOptions::check`]).
+    #[error(transparent)]
+    Options(#[from] RemoteOptionsError),
+    /// The link's thread or its runtime could not be started.
+    #[error("starting the link thread: {0}")]
+    Thread(#[from] std::io::Error),
+}
+
 impl RemoteOptions {
     /// Options with the default deadline (one frame interval at 30 fps) and crop encoding.
     pub fn new(server: SocketAddr, fingerprint: Fingerprint, token: impl Into<String>) -> Self {
@@ -113,14 +125,13 @@ impl RemoteOptions {
     /// Starts connecting in the background (retrying with the default backoff) and returns the aligner that
     /// sends each frame's crops to the server and lets `local` answer what misses the deadline or arrives
     /// while the link is down. `max_faces` crops (one per tracked face) may be in flight at once. Options
-    /// out of range ([`Self::check`]) are an `InvalidInput` error.
+    /// out of range ([`Self::check`]) are refused.
     pub fn start<A: crate::align::Aligner>(
         &self,
         local: A,
         max_faces: usize,
-    ) -> std::io::Result<LinkedAligner<A>> {
-        self.check()
-            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+    ) -> Result<LinkedAligner<A>, RemoteStartError> {
+        self.check()?;
         let mut cfg = ConnectConfig::new(self.server, self.fingerprint, self.token.clone());
         cfg.client_name.clone_from(&self.client_name);
         cfg.encodings = vec![self.codec.encoding()];

@@ -32,7 +32,7 @@ use holoface_headset_client::assets::home;
 use holoface_headset_client::detect::{FaceDetector, shape_from_detection};
 use holoface_headset_client::frame::Frame;
 use holoface_headset_client::link::{CropCodec, RemoteOptions};
-use holoface_headset_client::{FaceResult, FaceTracker, SessionOptions};
+use holoface_headset_client::{FaceResult, SessionOptions};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -126,7 +126,12 @@ fn reference_landmarks(args: &Args, photo: &GrayImage) -> anyhow::Result<[Point2
 
 fn load_scene(args: &Args) -> anyhow::Result<PlanarScene> {
     if !args.sample.exists() {
-        bail!("{}", home::SAMPLE.not_found(&args.sample));
+        bail!(
+            "{}",
+            home::SAMPLE
+                .missing(&args.sample)
+                .given_by(&[(home::SAMPLE, "--sample")])
+        );
     }
     let photo = holoface_sources::images::read_gray(&args.sample)
         .with_context(|| format!("reading the sample {}", args.sample.display()))?;
@@ -180,7 +185,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let opts = args
         .runtime
         .tracker_options(&args.candide, SessionOptions::default());
-    let mut tracker = FaceTracker::with_aligner(&opts, Box::new(linked), Some(watch))?;
+    let mut tracker = crate::args::tracker_with(&opts, Box::new(linked), Some(watch))?;
 
     let log_path = args.out.join("frames.jsonl");
     let mut log = Output::create(&log_path)?;

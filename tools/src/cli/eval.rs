@@ -198,11 +198,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // Initial shapes, shared by all aligners.
     let mut inits: Vec<Option<[Point2; 68]>> = Vec::with_capacity(samples.len());
     let mut detector = match args.init {
-        Init::Detector => Some(BlazeFace::load(
-            &args.runtime.detector_model(),
-            &args.runtime.ort_dylib(),
-            1,
-        )?),
+        Init::Detector => Some(args.runtime.detector()?),
         Init::GtBox => None,
     };
     let mean = dan_mean_shape();

@@ -35,7 +35,7 @@ use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
 use holoface_headset_client::align::Aligner;
 use holoface_headset_client::frame::Frame;
-use holoface_headset_client::{FaceTracker, SessionOptions, TrackedFace};
+use holoface_headset_client::{SessionOptions, TrackedFace};
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -319,7 +319,7 @@ fn track(
     let mut opts = args.runtime.tracker_options(&args.candide, session);
     // The same detector for the scene and for each face alone: the several-face settings.
     opts.detector.several_faces = Some(true);
-    let mut tracker = FaceTracker::with_aligner(&opts, aligner, None)?;
+    let mut tracker = crate::args::tracker_with(&opts, aligner, None)?;
     let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
     let mut run = Run {
         tallies: vec![FaceTally::default(); which.len()],

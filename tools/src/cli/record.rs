@@ -67,9 +67,7 @@ impl CropCutter {
         Ok(Self {
             codec,
             // The local tracker an app runs (KRFWS).
-            tracker: holoface_headset_client::FaceTracker::new(
-                args.runtime.tracker_options(&args.candide, Default::default()),
-            )?,
+            tracker: crate::args::tracker(args.runtime.tracker_options(&args.candide, Default::default()))?,
             mean,
             crop: holoface_models::crop::Crop112::default(),
         })

@@ -170,7 +170,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 StabilityAligner::Krfws => "krfws",
                 StabilityAligner::Remote => "remote",
             },
-            tracker: FaceTracker::new(TrackerOptions {
+            tracker: crate::args::tracker(TrackerOptions {
                 aligner,
                 ..opts.clone()
             })?,

@@ -10,7 +10,7 @@ use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_headset_client::{
-    AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
+    AlignerChoice, AnsweredBy, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
 };
 use holoface_sources::source::open_source;
 
@@ -142,12 +142,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.detector.tiles = args.detect_tiles.map(usize::from);
     // KRFWS and the remote aligner as an app runs them; DAN in-process is the tools' own aligner.
     let mut tracker = match args.aligner {
-        AlignerKind::Krfws => FaceTracker::new(opts)?,
-        AlignerKind::Remote => FaceTracker::new(TrackerOptions {
+        AlignerKind::Krfws => crate::args::tracker(opts)?,
+        AlignerKind::Remote => crate::args::tracker(TrackerOptions {
             aligner: AlignerChoice::Remote(remote_options(&args)?),
             ..opts
         })?,
-        AlignerKind::Dan => FaceTracker::with_aligner(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
+        AlignerKind::Dan => crate::args::tracker_with(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
     };
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
     // The lines appear at --out only when every frame was tracked: a failed run leaves no file.

@@ -329,8 +329,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         };
         let opts = args.runtime.tracker_options(&args.candide, opts);
         let tracker = match args.aligner {
-            AlignerKind::Dan => FaceTracker::with_aligner(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
-            _ => FaceTracker::new(opts)?,
+            AlignerKind::Dan => crate::args::tracker_with(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
+            _ => crate::args::tracker(opts)?,
         };
         runners.push(Runner {
             tracker,
