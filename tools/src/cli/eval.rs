@@ -181,6 +181,144 @@ pub fn initial_shape(
         .and_then(|d| shape_from_detection(mean, d, &mut out).then_some(out)))
 }
 
+/// One face to evaluate on: its name (`subset/stem`), ground truth and initial shape (`None`: the detector
+/// missed it).
+#[derive(Clone, Copy, Debug)]
+struct Case<'a> {
+    name: &'a str,
+    gt: [Point2; 68],
+    init: Option<[Point2; 68]>,
+}
+
+/// Aligns every case from its initial shape (the aligner's detection path: both initialisations are boxes)
+/// and scores it against the ground truth: NME and its summaries over every face, per subset and over the
+/// `hardest` faces, and the time per face over `repeat` runs. Computes only: `image(i)` gives case `i`'s
+/// image, nothing is printed or written. The report's aligner and init are the caller's to fill.
+fn evaluate(
+    aligner: &mut dyn Aligner,
+    cases: &[Case<'_>],
+    image: impl Fn(usize) -> anyhow::Result<holoface_models::image::GrayImage>,
+    repeat: usize,
+    hardest: &[usize],
+) -> anyhow::Result<AlignerReport> {
+    let mut per_image = Vec::with_capacity(cases.len());
+    let (mut e68, mut e49) = (Vec::new(), Vec::new());
+    let mut aligned = 0usize;
+    let mut align_time = std::time::Duration::ZERO;
+    for (i, c) in cases.iter().enumerate() {
+        let Some(init) = &c.init else {
+            per_image.push(PerImage {
+                name: c.name.to_owned(),
+                detected: false,
+                nme68: None,
+                nme49: None,
+                confidence: None,
+                accepted: false,
+            });
+            e68.push(f64::INFINITY);
+            e49.push(f64::INFINITY);
+            continue;
+        };
+        let image = image(i)?;
+        let t0 = Instant::now();
+        let a = aligner
+            .align_detection(&image.view(), init)
+            .with_context(|| format!("aligning {}", c.name))?;
+        for _ in 1..repeat {
+            std::hint::black_box(aligner.align_detection(&image.view(), init)?);
+        }
+        align_time += t0.elapsed();
+        aligned += 1;
+        let n68 = match a.set {
+            holoface_headset_client::LandmarkSet::Ibug68 => nme68(&a.landmarks, &c.gt),
+            holoface_headset_client::LandmarkSet::Inner51 => None,
+        };
+        let n49 = nme49(&a.landmarks, &c.gt);
+        e68.push(n68.unwrap_or(f64::INFINITY));
+        e49.push(n49.unwrap_or(f64::INFINITY));
+        per_image.push(PerImage {
+            name: c.name.to_owned(),
+            detected: true,
+            nme68: n68,
+            nme49: n49,
+            confidence: Some(a.confidence),
+            accepted: a.accepted,
+        });
+    }
+    let has68 = per_image.iter().any(|p| p.nme68.is_some());
+    let names: Vec<&str> = cases.iter().map(|c| c.name).collect();
+    let pick = |e: &[f64]| hardest.iter().map(|&i| e[i]).collect::<Vec<_>>();
+    Ok(AlignerReport {
+        aligner: "",
+        init: Init::GtBox,
+        images: cases.len(),
+        detected: aligned,
+        nme68: has68.then(|| summarise(&e68).into()),
+        nme49: summarise(&e49).into(),
+        ms_per_face: align_time.as_secs_f64() * 1e3 / (aligned * repeat.max(1)).max(1) as f64,
+        subsets: by_subset(&names, &e68, &e49, has68),
+        hardest_fifth: SubsetReport {
+            images: hardest.len(),
+            nme68: has68.then(|| summarise(&pick(&e68)).into()),
+            nme49: summarise(&pick(&e49)).into(),
+        },
+        crop_encoding: None,
+        mean_request_bytes: None,
+        per_image,
+    })
+}
+
+/// Prints a report's summary lines (all faces, each subset, the hardest fifth).
+fn say_report(r: &AlignerReport) {
+    let with68 = |s: &Option<SummaryJson>, fail: bool| {
+        s.as_ref().map_or_else(String::new, |s| {
+            if fail {
+                format!(
+                    " NME68={:.2}% AUC68={:.2} fail68={:.2}%",
+                    100.0 * s.mean,
+                    100.0 * s.auc,
+                    100.0 * s.failure_rate
+                )
+            } else {
+                format!(" NME68={:.2}%", 100.0 * s.mean)
+            }
+        })
+    };
+    crate::say!(
+        "{:<6} init={:?} images={} detected={} NME49={:.2}% AUC49={:.2} fail49={:.2}%{}",
+        r.aligner,
+        r.init,
+        r.images,
+        r.detected,
+        100.0 * r.nme49.mean,
+        100.0 * r.nme49.auc,
+        100.0 * r.nme49.failure_rate,
+        with68(&r.nme68, true)
+    );
+    for (sub, s) in &r.subsets {
+        crate::say!(
+            "{:<6}   {sub:<6} images={} NME49={:.2}%{}",
+            r.aligner,
+            s.images,
+            100.0 * s.nme49.mean,
+            with68(&s.nme68, false)
+        );
+    }
+    let hard = &r.hardest_fifth;
+    crate::say!(
+        "{:<6}   hardest fifth (largest yaw) images={} NME49={:.2}% fail49={:.2}%{}",
+        r.aligner,
+        hard.images,
+        100.0 * hard.nme49.mean,
+        100.0 * hard.nme49.failure_rate,
+        hard.nme68.as_ref().map_or_else(String::new, |s| format!(
+            " NME68={:.2}% fail68={:.2}%",
+            100.0 * s.mean,
+            100.0 * s.failure_rate
+        ))
+    );
+}
+
 /// Runs `holoface eval`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let data = args
@@ -217,6 +355,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .collect::<anyhow::Result<_>>()?;
     let gt_refs: Vec<&[Point2]> = gts.iter().map(|g| &g[..]).collect();
     let hardest = largest_yaw(&gt_refs, 0.2);
+    let cases: Vec<Case<'_>> = samples
+        .iter()
+        .zip(&gts)
+        .zip(&inits)
+        .map(|((s, gt), init)| Case {
+            name: &s.name,
+            gt: *gt,
+            init: *init,
+        })
+        .collect();
     let mut reports = Vec::new();
     let mut curves = Vec::new();
     for which in &args.aligner {
@@ -242,132 +390,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 k
             }
         };
-        let mut per_image = Vec::with_capacity(samples.len());
-        let (mut e68, mut e49) = (Vec::new(), Vec::new());
-        let mut aligned = 0usize;
-        let mut align_time = std::time::Duration::ZERO;
-        for (s, init) in samples.iter().zip(&inits) {
-            let gt = s.landmarks.context("annotation missing")?;
-            let Some(init) = init else {
-                per_image.push(PerImage {
-                    name: s.name.clone(),
-                    detected: false,
-                    nme68: None,
-                    nme49: None,
-                    confidence: None,
-                    accepted: false,
-                });
-                e68.push(f64::INFINITY);
-                e49.push(f64::INFINITY);
-                continue;
-            };
-            let image = s.image()?;
-            // Both initialisations are boxes, so the aligner's detection path (KRFWS: several starts).
-            let t0 = Instant::now();
-            let a = aligner
-                .align_detection(&image.view(), init)
-                .with_context(|| format!("aligning {}", s.name))?;
-            for _ in 1..args.repeat {
-                std::hint::black_box(aligner.align_detection(&image.view(), init)?);
-            }
-            align_time += t0.elapsed();
-            aligned += 1;
-            let n68 = match a.set {
-                holoface_headset_client::align::LandmarkSet::Ibug68 => nme68(&a.landmarks, &gt),
-                holoface_headset_client::align::LandmarkSet::Inner51 => None,
-            };
-            let n49 = nme49(&a.landmarks, &gt);
-            e68.push(n68.unwrap_or(f64::INFINITY));
-            e49.push(n49.unwrap_or(f64::INFINITY));
-            per_image.push(PerImage {
-                name: s.name.clone(),
-                detected: true,
-                nme68: n68,
-                nme49: n49,
-                confidence: Some(a.confidence),
-                accepted: a.accepted,
-            });
-        }
-        let ms = align_time.as_secs_f64() * 1e3 / (aligned * args.repeat.max(1)).max(1) as f64;
-        let has68 = per_image.iter().any(|p| p.nme68.is_some());
-        let s49 = summarise(&e49);
-        crate::say!(
-            "{:<6} init={:?} images={} detected={} NME49={:.2}% AUC49={:.2} fail49={:.2}%{}",
-            which.label(),
-            args.init,
-            samples.len(),
-            aligned,
-            100.0 * s49.mean,
-            100.0 * s49.auc,
-            100.0 * s49.failure_rate,
-            if has68 {
-                let s = summarise(&e68);
-                format!(
-                    " NME68={:.2}% AUC68={:.2} fail68={:.2}%",
-                    100.0 * s.mean,
-                    100.0 * s.auc,
-                    100.0 * s.failure_rate
-                )
-            } else {
-                String::new()
-            }
-        );
-        let names: Vec<&str> = samples.iter().map(|s| s.name.as_str()).collect();
-        let subsets = by_subset(&names, &e68, &e49, has68);
-        for (sub, r) in &subsets {
-            crate::say!(
-                "{:<6}   {sub:<6} images={} NME49={:.2}%{}",
-                which.label(),
-                r.images,
-                100.0 * r.nme49.mean,
-                r.nme68
-                    .as_ref()
-                    .map_or_else(String::new, |s| format!(" NME68={:.2}%", 100.0 * s.mean))
-            );
-        }
-        let pick = |e: &[f64]| hardest.iter().map(|&i| e[i]).collect::<Vec<_>>();
-        let hard = SubsetReport {
-            images: hardest.len(),
-            nme68: has68.then(|| summarise(&pick(&e68)).into()),
-            nme49: summarise(&pick(&e49)).into(),
+        let mut report = evaluate(aligner, &cases, |i| samples[i].image(), args.repeat, &hardest)?;
+        report.aligner = which.label();
+        report.init = args.init;
+        report.crop_encoding = match (&dan, &remote) {
+            (Some(_), _) => args.crop_encoding.map(|c| c.to_string()),
+            (_, Some(_)) => Some(args.crop_encoding.unwrap_or_default().to_string()),
+            _ => None,
         };
-        crate::say!(
-            "{:<6}   hardest fifth (largest yaw) images={} NME49={:.2}% fail49={:.2}%{}",
-            which.label(),
-            hard.images,
-            100.0 * hard.nme49.mean,
-            100.0 * hard.nme49.failure_rate,
-            hard.nme68.as_ref().map_or_else(String::new, |s| format!(
-                " NME68={:.2}% fail68={:.2}%",
-                100.0 * s.mean,
-                100.0 * s.failure_rate
-            ))
-        );
+        report.mean_request_bytes = dan
+            .as_ref()
+            .and_then(|d| d.mean_request_bytes())
+            .or_else(|| remote.as_ref().and_then(|r| r.mean_request_bytes()));
+        say_report(&report);
         curves.push(Curve {
             label: which.label().to_owned(),
-            errors: e49.clone(),
+            errors: report
+                .per_image
+                .iter()
+                .map(|p| p.nme49.unwrap_or(f64::INFINITY))
+                .collect(),
         });
-        reports.push(AlignerReport {
-            aligner: which.label(),
-            init: args.init,
-            images: samples.len(),
-            detected: inits.iter().filter(|i| i.is_some()).count(),
-            nme68: has68.then(|| summarise(&e68).into()),
-            nme49: s49.into(),
-            ms_per_face: ms,
-            subsets,
-            hardest_fifth: hard,
-            crop_encoding: match (&dan, &remote) {
-                (Some(_), _) => args.crop_encoding.map(|c| c.to_string()),
-                (_, Some(_)) => Some(args.crop_encoding.unwrap_or_default().to_string()),
-                _ => None,
-            },
-            mean_request_bytes: dan
-                .as_ref()
-                .and_then(|d| d.mean_request_bytes())
-                .or_else(|| remote.as_ref().and_then(|r| r.mean_request_bytes())),
-            per_image,
-        });
+        reports.push(report);
     }
     if reports.is_empty() {
         bail!("no aligner selected");
@@ -388,6 +432,86 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use holoface_headset_client::align::{AlignError, Alignment};
+    use holoface_headset_client::{AnsweredBy, LandmarkSet};
+    use holoface_models::image::{GrayImage, GrayView};
+
+    /// Answers its initial shape moved `dx` pixels to the right.
+    struct Shifted(f32);
+
+    impl Aligner for Shifted {
+        fn name(&self) -> &'static str {
+            "shifted"
+        }
+        fn align(&mut self, _: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+            Ok(Alignment {
+                landmarks: init.map(|p| Point2::new(p.x + self.0, p.y)),
+                set: LandmarkSet::Ibug68,
+                confidence: Confidence::FaceProbability(1.0),
+                accepted: true,
+                answered_by: AnsweredBy::LocalDan,
+            })
+        }
+    }
+
+    #[test]
+    fn evaluate_scores_every_face_without_printing_or_writing() {
+        let mut gt = dan_mean_shape();
+        for p in &mut gt {
+            *p = Point2::new(100.0 + 2.0 * p.x, 100.0 + 2.0 * p.y);
+        }
+        let cases = [
+            Case {
+                name: "afw/a",
+                gt,
+                init: Some(gt),
+            },
+            Case {
+                name: "lfpw/b",
+                gt,
+                init: Some(gt),
+            },
+            Case {
+                name: "lfpw/c",
+                gt,
+                init: None,
+            },
+        ];
+        let images = std::cell::Cell::new(0);
+        let r = evaluate(
+            &mut Shifted(2.0),
+            &cases,
+            |_| {
+                images.set(images.get() + 1);
+                Ok(GrayImage::zeros(320, 320))
+            },
+            1,
+            &[1],
+        )
+        .unwrap();
+        assert_eq!(images.get(), 2, "the missed face's image is never read");
+        assert_eq!((r.images, r.detected), (3, 2));
+        let want = 2.0 / f64::from(gt[36].dist(gt[45]));
+        for p in &r.per_image[..2] {
+            assert!((p.nme68.unwrap() - want).abs() < 1e-6, "{p:?}");
+            assert!((p.nme49.unwrap() - want).abs() < 1e-6, "{p:?}");
+        }
+        assert!(!r.per_image[2].detected && r.per_image[2].nme49.is_none());
+        assert_eq!(r.subsets.len(), 2);
+        assert_eq!(r.subsets["lfpw"].images, 2);
+        assert_eq!(r.hardest_fifth.images, 1);
+        assert!((r.hardest_fifth.nme49.mean - want).abs() < 1e-6);
+        // The same aligner unshifted: no error.
+        let exact = evaluate(
+            &mut Shifted(0.0),
+            &cases[..2],
+            |_| Ok(GrayImage::zeros(320, 320)),
+            1,
+            &[],
+        )
+        .unwrap();
+        assert!(exact.per_image.iter().all(|p| p.nme68 == Some(0.0)));
+    }
 
     #[test]
     fn subsets_split_the_errors_by_folder() {
