@@ -130,6 +130,138 @@ fn pct(s: Option<Summary>, f: impl Fn(&Summary) -> f64) -> String {
     s.map_or_else(|| "-".to_owned(), |s| format!("{:.2} %", 100.0 * f(&s)))
 }
 
+/// Tracks the clip's frames (at most `max_frames`) with every run's tracker, recording each run's raw and
+/// steadied landmarks, who answered and the re-detections; `paced` replays at the clip's own rate. Returns
+/// the frame count.
+fn track_clip(
+    runs: &mut [Run],
+    source: &mut dyn holoface_headset_client::FrameSource,
+    max_frames: usize,
+    paced: bool,
+) -> anyhow::Result<usize> {
+    let mut frames = 0usize;
+    let mut clock: Option<(std::time::Instant, u64)> = None;
+    while frames < max_frames {
+        let Some(sf) = source.next_frame()? else {
+            break;
+        };
+        if paced {
+            let (t0, ts0) = *clock.get_or_insert((std::time::Instant::now(), sf.timestamp_us));
+            let due = t0 + Duration::from_micros(sf.timestamp_us.saturating_sub(ts0));
+            std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
+        }
+        let frame = sf.view();
+        for r in runs.iter_mut() {
+            let step = r
+                .tracker
+                .process_step(&frame)
+                .with_context(|| format!("frame {} ({})", sf.index, r.name))?;
+            let face = step.faces.faces.first().map(|f| f.update);
+            r.raw.push(face.map(|u| u.raw_landmarks));
+            r.steady.push(face.map(|u| u.landmarks));
+            r.by.push(face.map(|u| u.answered_by));
+            r.detections += usize::from(face.is_some_and(|u| u.init == InitSource::Detection));
+        }
+        frames += 1;
+    }
+    Ok(frames)
+}
+
+/// Prints the table: one line per aligner (and its switch jumps), then the peer's.
+fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option<Summary>) {
+    crate::say!(
+        "{:<8} {:>7} {:>6} {:>9} {:>14} {:>14} {:>14} {:>13} {:>13}",
+        "aligner",
+        "faces",
+        "redet",
+        "remote",
+        "raw jitter49",
+        "steady jit49",
+        "steady p95",
+        "vs peer raw",
+        "vs peer st."
+    );
+    for r in reports {
+        crate::say!(
+            "{:<8} {:>7} {:>6} {:>9} {:>14} {:>14} {:>14} {:>13} {:>13}",
+            r.aligner,
+            r.faces_found,
+            r.redetections,
+            r.remote_answers,
+            pct(r.raw_jitter49, |s| s.mean),
+            pct(r.steadied_jitter49, |s| s.mean),
+            pct(r.steadied_jitter49, |s| s.p95),
+            pct(r.raw_vs_peer_nme49, |s| s.mean),
+            pct(r.steadied_vs_peer_nme49, |s| s.mean),
+        );
+        if r.switches > 0 {
+            crate::say!(
+                "         {} remote/local switches; largest jump raw {}, steadied {}",
+                r.switches,
+                r.largest_switch_jump_raw
+                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
+                r.largest_switch_jump_steadied
+                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
+            );
+        }
+    }
+    if let Some(p) = peer {
+        crate::say!(
+            "{:<8} {:>7} {:>6} {:>9} {:>14} (per frame, its own detector; p95 {})",
+            "dlib",
+            p.iter().filter(|l| l.is_some()).count(),
+            "-",
+            "-",
+            pct(peer_jitter, |s| s.mean),
+            pct(peer_jitter, |s| s.p95),
+        );
+    }
+}
+
+/// The jitter of every run's landmarks over the clip (a 15-frame running mean) as a PNG plot.
+fn write_plot(
+    plot: &std::path::Path,
+    runs: &[Run],
+    peer: Option<&[Landmarks]>,
+    steady: bool,
+) -> anyhow::Result<()> {
+    let running_mean = |v: Vec<Option<f64>>| -> Vec<(f64, f64)> {
+        (0..v.len())
+            .filter_map(|t| {
+                let w: Vec<f64> = v[t.saturating_sub(7)..(t + 8).min(v.len())]
+                    .iter()
+                    .flatten()
+                    .copied()
+                    .collect();
+                (!w.is_empty()).then(|| (t as f64, 100.0 * w.iter().sum::<f64>() / w.len() as f64))
+            })
+            .collect()
+    };
+    let mut series = Vec::new();
+    for r in runs {
+        series.push(crate::plot::Series {
+            label: format!("{} raw", r.name),
+            points: running_mean(jitter49(&r.raw)),
+        });
+        if steady {
+            series.push(crate::plot::Series {
+                label: format!("{} steadied", r.name),
+                points: running_mean(jitter49(&r.steady)),
+            });
+        }
+    }
+    if let Some(p) = peer {
+        series.push(crate::plot::Series {
+            label: "dlib per frame".into(),
+            points: running_mean(jitter49(p)),
+        });
+    }
+    write_atomic(
+        plot,
+        crate::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)"),
+    )
+}
+
 /// Runs `holoface stability`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     anyhow::ensure!(!args.aligners.is_empty(), "--aligners names none");
@@ -181,34 +313,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         });
     }
     let mut source = open_source(&args.source, args.fps, None)?;
-    let mut frames = 0usize;
     // With a server in the loop the frames come at the video's own rate, as from a camera: its deadline and
     // the link's health are measured against the wall clock.
     let paced = args.aligners.contains(&StabilityAligner::Remote);
-    let mut clock: Option<(std::time::Instant, u64)> = None;
-    while frames < args.max_frames {
-        let Some(sf) = source.next_frame()? else {
-            break;
-        };
-        if paced {
-            let (t0, ts0) = *clock.get_or_insert((std::time::Instant::now(), sf.timestamp_us));
-            let due = t0 + Duration::from_micros(sf.timestamp_us.saturating_sub(ts0));
-            std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
-        }
-        let frame = sf.view();
-        for r in &mut runs {
-            let step = r
-                .tracker
-                .process_step(&frame)
-                .with_context(|| format!("frame {} of {} ({})", sf.index, args.source.display(), r.name))?;
-            let face = step.faces.faces.first().map(|f| f.update);
-            r.raw.push(face.map(|u| u.raw_landmarks));
-            r.steady.push(face.map(|u| u.landmarks));
-            r.by.push(face.map(|u| u.answered_by));
-            r.detections += usize::from(face.is_some_and(|u| u.init == InitSource::Detection));
-        }
-        frames += 1;
-    }
+    let frames = track_clip(&mut runs, &mut *source, args.max_frames, paced)
+        .with_context(|| args.source.display().to_string())?;
     anyhow::ensure!(frames > 0, "{} has no frames", args.source.display());
     if let Some(p) = &peer
         && p.len() != frames
@@ -221,53 +330,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let reports: Vec<Report> = runs.iter().map(|r| report(r, peer.as_deref())).collect();
     let peer_jitter = peer.as_deref().and_then(|p| summarise(&jitter49(p)));
     crate::say!("{}: {frames} frames", args.source.display());
-    crate::say!(
-        "{:<8} {:>7} {:>6} {:>9} {:>14} {:>14} {:>14} {:>13} {:>13}",
-        "aligner",
-        "faces",
-        "redet",
-        "remote",
-        "raw jitter49",
-        "steady jit49",
-        "steady p95",
-        "vs peer raw",
-        "vs peer st."
-    );
-    for r in &reports {
-        crate::say!(
-            "{:<8} {:>7} {:>6} {:>9} {:>14} {:>14} {:>14} {:>13} {:>13}",
-            r.aligner,
-            r.faces_found,
-            r.redetections,
-            r.remote_answers,
-            pct(r.raw_jitter49, |s| s.mean),
-            pct(r.steadied_jitter49, |s| s.mean),
-            pct(r.steadied_jitter49, |s| s.p95),
-            pct(r.raw_vs_peer_nme49, |s| s.mean),
-            pct(r.steadied_vs_peer_nme49, |s| s.mean),
-        );
-        if r.switches > 0 {
-            crate::say!(
-                "         {} remote/local switches; largest jump raw {}, steadied {}",
-                r.switches,
-                r.largest_switch_jump_raw
-                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
-                r.largest_switch_jump_steadied
-                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
-            );
-        }
-    }
-    if let Some(p) = &peer {
-        crate::say!(
-            "{:<8} {:>7} {:>6} {:>9} {:>14} (per frame, its own detector; p95 {})",
-            "dlib",
-            p.iter().filter(|l| l.is_some()).count(),
-            "-",
-            "-",
-            pct(peer_jitter, |s| s.mean),
-            pct(peer_jitter, |s| s.p95),
-        );
-    }
+    say_table(&reports, peer.as_deref(), peer_jitter);
     let doc = json!({
         "source": args.source.display().to_string(),
         "frames": frames,
@@ -282,41 +345,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     write_atomic(&args.out, &serde_json::to_vec_pretty(&doc)?)?;
     crate::say!("wrote {}", args.out.display());
     if let Some(plot) = &args.plot {
-        let running_mean = |v: Vec<Option<f64>>| -> Vec<(f64, f64)> {
-            (0..v.len())
-                .filter_map(|t| {
-                    let w: Vec<f64> = v[t.saturating_sub(7)..(t + 8).min(v.len())]
-                        .iter()
-                        .flatten()
-                        .copied()
-                        .collect();
-                    (!w.is_empty()).then(|| (t as f64, 100.0 * w.iter().sum::<f64>() / w.len() as f64))
-                })
-                .collect()
-        };
-        let mut series = Vec::new();
-        for r in &runs {
-            series.push(crate::plot::Series {
-                label: format!("{} raw", r.name),
-                points: running_mean(jitter49(&r.raw)),
-            });
-            if !args.steady.no_steady {
-                series.push(crate::plot::Series {
-                    label: format!("{} steadied", r.name),
-                    points: running_mean(jitter49(&r.steady)),
-                });
-            }
-        }
-        if let Some(p) = &peer {
-            series.push(crate::plot::Series {
-                label: "dlib per frame".into(),
-                points: running_mean(jitter49(p)),
-            });
-        }
-        write_atomic(
-            plot,
-            crate::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)"),
-        )?;
+        write_plot(plot, &runs, peer.as_deref(), !args.steady.no_steady)?;
         crate::say!("wrote {}", plot.display());
     }
     if let Some(s) = server {
