@@ -114,9 +114,9 @@ setup-release:
 
 ## ---- main job -----------------------------------------------------------------------------------
 # Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
-# The demo reads and writes no video, so its binary is built without MP4/H.264 (OpenH264's C build is a fifth
-# of the build); that binary fills the data folder, then runs the demo. The other targets build `holoface`
-# with its default features.
+# The demo reads and writes no video and trains nothing, so its binary is built without MP4/H.264 (OpenH264's
+# C build is a fifth of the build) and without the trainers; that binary fills the data folder, then runs the
+# demo. The other targets build `holoface` with its default features.
 demo: setup-release
 	./target/release/holoface demo
 

@@ -11,6 +11,7 @@
 pub mod annotate;
 pub mod args;
 pub mod cli;
+#[cfg(feature = "train")]
 pub mod labels;
 pub mod loopback;
 pub mod render;

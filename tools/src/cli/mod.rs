@@ -9,10 +9,13 @@ pub mod record;
 pub mod setup;
 pub mod simulate;
 pub mod stability;
+#[cfg(feature = "train")]
 pub mod teacher_labels;
 pub mod track;
 pub mod tracking_losses;
+#[cfg(feature = "train")]
 pub mod train_krfws;
+#[cfg(feature = "train")]
 pub mod train_refiner;
 
 /// HoloFace: find, track and understand faces for AR headsets.
@@ -49,14 +52,17 @@ pub enum Command {
     Stability(stability::Args),
     /// Track faces over an image folder, an MP4 video or a recorded stream; one JSON line per frame.
     Track(track::Args),
+    #[cfg(feature = "train")]
     /// Label unannotated face photographs with dlib's predictor and our remote pipeline, keeping the faces
     /// they agree on (`--gt`: measure the teachers on annotated faces instead).
     TeacherLabels(teacher_labels::Args),
     /// Tracking losses with and without headset-motion compensation, on rendered sequences of the
     /// validation faces with a real aligner.
     TrackingLosses(tracking_losses::Args),
+    #[cfg(feature = "train")]
     /// Train the KRFWS local aligner and evaluate it on the validation split.
     TrainKrfws(train_krfws::Args),
+    #[cfg(feature = "train")]
     /// Train the server's refinement cascade on DAN's answers to augmented training crops.
     TrainRefiner(train_refiner::Args),
 }
@@ -76,9 +82,12 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Record(args) => record::run(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Stability(args) => stability::run(args),
+        #[cfg(feature = "train")]
         Command::TeacherLabels(args) => teacher_labels::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),
+        #[cfg(feature = "train")]
         Command::TrainKrfws(args) => train_krfws::run(args),
+        #[cfg(feature = "train")]
         Command::TrainRefiner(args) => train_refiner::run(args),
     }
 }
