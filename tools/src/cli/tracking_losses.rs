@@ -306,6 +306,66 @@ impl SequenceExport {
     }
 }
 
+/// Renders `frames` frames of one face's sequence (the headset and the head moving as `motion` says) and
+/// steps every runner's tracker through them, tallying against the rendered truth; `export` also writes the
+/// sequence. Computes only (the tallies are the runners').
+fn run_sequence(
+    runners: &mut [Runner],
+    scene: &PlanarScene,
+    motion: &Motion,
+    frames: usize,
+    fps: f64,
+    image: &mut GrayImage,
+    mut export: Option<&mut SequenceExport>,
+) -> anyhow::Result<()> {
+    for i in 0..frames {
+        let t = i as f64 / fps;
+        let cam = motion.headset(t);
+        let h = scene.homography(&SCENE_CAMERA, &cam, &motion.head(t));
+        scene.render(&h, image, 90)?;
+        let truth = scene.landmarks_in(&h);
+        let t_us = (t * 1e6).round() as u64;
+        let frame = Frame {
+            timestamp_us: t_us,
+            image: image.view(),
+            intrinsics: SCENE_CAMERA,
+            world_from_camera: cam,
+        };
+        for r in runners.iter_mut() {
+            r.step(&frame, &truth)?;
+        }
+        if let Some(e) = export.as_deref_mut() {
+            let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
+            e.push(i, t_us, image, &cam, &json!({"frame": i, "landmarks_px": lm}))?;
+        }
+    }
+    Ok(())
+}
+
+/// Prints the compensated / uncompensated table of a report.
+fn say_summary(report: &serde_json::Value) {
+    crate::say!("\n{:<26} {:>10} {:>14}", "", "compensated", "uncompensated");
+    for key in [
+        "losses",
+        "losses_per_minute",
+        "good_frames_pct",
+        "drifting_frames_pct",
+        "no_face_frames_pct",
+        "detector_runs",
+        "mean_nme49_pct",
+        "raw_mean_nme49_pct",
+        "lag_frames",
+        "raw_lag_frames",
+    ] {
+        let f = |v: &serde_json::Value| v[key].as_f64().unwrap_or(f64::NAN);
+        crate::say!(
+            "{key:<26} {:>10.2} {:>14.2}",
+            f(&report["motion_compensated"]),
+            f(&report["uncompensated"])
+        );
+    }
+}
+
 /// Runs `holoface tracking-losses`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let positive = |v: f64| v.is_finite() && v > 0.0;
@@ -359,29 +419,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             r.tally.was_good = false;
             r.tally.prev_truth = None;
         }
-        for i in 0..frames {
-            let t = i as f64 / args.fps;
-            let cam = motion.headset(t);
-            let h = scene.homography(&SCENE_CAMERA, &cam, &motion.head(t));
-            scene.render(&h, &mut image, 90)?;
-            let truth = scene.landmarks_in(&h);
-            let t_us = (t * 1e6).round() as u64;
-            let frame = Frame {
-                timestamp_us: t_us,
-                image: image.view(),
-                intrinsics: SCENE_CAMERA,
-                world_from_camera: cam,
-            };
-            for r in &mut runners {
-                r.step(&frame, &truth)?;
-            }
-            if n == 0
-                && let Some(e) = export.as_mut()
-            {
-                let lm: Vec<[f32; 2]> = truth.iter().map(|p| [p.x, p.y]).collect();
-                e.push(i, t_us, &image, &cam, &json!({"frame": i, "landmarks_px": lm}))?;
-            }
-        }
+        let export_this = if n == 0 { export.as_mut() } else { None };
+        run_sequence(
+            &mut runners,
+            &scene,
+            &motion,
+            frames,
+            args.fps,
+            &mut image,
+            export_this,
+        )?;
         if n == 0
             && let Some(e) = export.take()
         {
@@ -417,26 +464,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "uncompensated": runners[1].tally.summary(args.fps),
         "per_face": per_face,
     });
-    crate::say!("\n{:<26} {:>10} {:>14}", "", "compensated", "uncompensated");
-    for key in [
-        "losses",
-        "losses_per_minute",
-        "good_frames_pct",
-        "drifting_frames_pct",
-        "no_face_frames_pct",
-        "detector_runs",
-        "mean_nme49_pct",
-        "raw_mean_nme49_pct",
-        "lag_frames",
-        "raw_lag_frames",
-    ] {
-        let f = |v: &serde_json::Value| v[key].as_f64().unwrap_or(f64::NAN);
-        crate::say!(
-            "{key:<26} {:>10.2} {:>14.2}",
-            f(&report["motion_compensated"]),
-            f(&report["uncompensated"])
-        );
-    }
+    say_summary(&report);
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
