@@ -95,8 +95,9 @@ pub use link::{
     RemoteStartError,
 };
 pub use session::{
-    FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, NoFaceReason, OneEuroParams,
-    SessionOptions, SessionOptionsError, SteadyParams, SteadySettings, TrackedFace,
+    Blendshape, BlendshapeParams, Blendshapes, FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S,
+    MAX_TRACKED_FACES, NoFaceReason, OneEuroParams, SessionOptions, SessionOptionsError, SteadyParams,
+    SteadySettings, TrackedFace,
 };
 pub use tracker::{
     AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,

@@ -24,6 +24,8 @@ use holoface_models::pose::{
     AttributeThresholds, Attributes, WorldPose, compensate_headset_motion, world_pose,
 };
 use holoface_models::shape::OUTER_EYE_CORNERS;
+pub use holoface_models::blendshapes::{Blendshape, BlendshapeParams, Blendshapes};
+use holoface_models::blendshapes::BlendshapeEstimator;
 pub use holoface_models::steady::{FilterParams, OneEuroParams, SteadyParams};
 use holoface_models::steady::{LandmarkFilter, Source};
 use serde::Serialize;
@@ -56,6 +58,8 @@ pub struct SessionOptions {
     /// [`FaceUpdate::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
     /// `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
     pub steady: Option<SteadyParams>,
+    /// Blendshape coefficients: how many of a track's first frames calibrate the person's neutral.
+    pub blendshapes: BlendshapeParams,
 }
 
 impl Default for SessionOptions {
@@ -72,6 +76,7 @@ impl Default for SessionOptions {
             max_faces: crate::defaults::MAX_FACES,
             detect_every: crate::defaults::DETECT_EVERY,
             steady: crate::defaults::STEADY.then(SteadyParams::default),
+            blendshapes: BlendshapeParams::default(),
         }
     }
 }
@@ -268,6 +273,10 @@ pub struct FaceUpdate {
     pub display: (Vec3, Quat),
     /// Attributes from the expression weights.
     pub attributes: Attributes,
+    /// ARKit-named blendshape coefficients in [0, 1] ([`holoface_models::blendshapes`]), from the steadied
+    /// landmarks in the face's own frame against this person's neutral (calibrated on the track's first
+    /// [`SessionOptions::blendshapes`] frames; see [`crate::FaceTracker::recalibrate_blendshapes`]).
+    pub blendshapes: Blendshapes,
     /// Where the frame's initial shape came from.
     pub init: InitSource,
     /// Which aligner answered this frame.
@@ -310,6 +319,7 @@ struct Track {
     attributes: Attributes,
     denoiser: Denoiser,
     steady: Option<LandmarkFilter<68>>,
+    expressions: BlendshapeEstimator,
 }
 
 /// The tracker state machine. See the module documentation for the call order.
@@ -378,6 +388,14 @@ impl TrackerSession {
     /// How often the detector has run in this session.
     pub fn detector_runs(&self) -> u64 {
         self.detector_runs
+    }
+
+    /// Every tracked face calibrates its neutral expression again on its next frames (the person should be
+    /// at rest then).
+    pub fn recalibrate_blendshapes(&mut self) {
+        for t in &mut self.tracks {
+            t.expressions.recalibrate();
+        }
     }
 
     /// Forgets every tracked face (the next frame runs detection). Ids are not reused afterwards.
@@ -530,6 +548,10 @@ impl TrackerSession {
             return no_face(c.track, NoFaceReason::FitFailed);
         };
         let world = world_pose(&fitted, &frame.world_from_camera);
+        let mut expressions = index
+            .map(|i| self.tracks[i].expressions.clone())
+            .unwrap_or_else(|| BlendshapeEstimator::new(self.opts.blendshapes));
+        let blendshapes = expressions.update(&shown, a.set == LandmarkSet::Ibug68);
         let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
             Some(mut t) => {
                 let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;
@@ -561,6 +583,7 @@ impl TrackerSession {
             attributes,
             denoiser,
             steady,
+            expressions,
         };
         // Oldest first: a track keeps its place, a new one goes after every older one.
         let at = self.tracks.partition_point(|t| t.id < id);
@@ -577,6 +600,7 @@ impl TrackerSession {
                 predicted_position,
                 display,
                 attributes,
+                blendshapes,
                 init: c.source,
                 answered_by: a.answered_by,
             }),

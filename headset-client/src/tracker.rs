@@ -305,6 +305,12 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
         self.last_timestamp = None;
     }
 
+    /// Every tracked face calibrates its neutral expression again on its next frames (the blendshape
+    /// coefficients then read 0 for the face as it is during those frames; ask the person to rest).
+    pub fn recalibrate_blendshapes(&mut self) {
+        self.session.recalibrate_blendshapes();
+    }
+
     /// With [`AlignerChoice::Remote`]: the link's full status (the failure message included); `None` with
     /// the local aligner.
     pub fn link_status(&self) -> Option<LinkInfo> {

@@ -74,3 +74,28 @@ fn video_timestamps_must_increase_until_reset() {
     let again = tracker.process(&frame(&image, 0)).unwrap();
     assert!(again.detected && again.face().is_some(), "after reset: {again:?}");
 }
+
+#[test]
+fn blendshapes_are_named_bounded_and_a_face_at_rest_reads_near_zero_after_calibration() {
+    let image = sample();
+    let mut tracker = FaceTracker::new(TrackerOptions::default()).unwrap();
+    let mut last = None;
+    for i in 0..40u64 {
+        let r = tracker.process(&frame(&image, i * 33_333)).unwrap();
+        let face = r.face().expect("the sample's face");
+        assert!(
+            face.blendshapes.0.iter().all(|v| (0.0..=1.0).contains(v)),
+            "{:?}",
+            face.blendshapes
+        );
+        last = Some(face.blendshapes);
+    }
+    // The same photograph for 40 frames: after the first 30 calibrate the neutral, it is the neutral.
+    let rest = last.unwrap();
+    for (b, v) in rest.iter() {
+        assert!(v < 0.15, "{} = {v} at rest", b.arkit_name());
+    }
+    tracker.recalibrate_blendshapes();
+    let r = tracker.process(&frame(&image, 40 * 33_333)).unwrap();
+    assert!(r.face().is_some());
+}

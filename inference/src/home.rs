@@ -5,7 +5,7 @@
 //! the server ranks its environment variables above its config file, as for all its keys), else its
 //! environment variable ([`Asset::env`]), else its file in the data folder ([`data_dir`]: `$HOLOFACE_HOME`,
 //! else `$XDG_DATA_HOME/holoface`, else `~/.local/share/holoface`), which `holoface setup` fills. Nothing is relative to the working directory or to a checkout; in a checkout the Makefile
-//! points `HOLOFACE_HOME` at `.cache/holoface`. A missing asset's message ([`Asset::not_found`]) names the
+//! points `HOLOFACE_HOME` at `.cache/holoface`. A missing asset's message ([`MissingAsset`]) names the
 //! asset, the path, why that path was chosen and the command that fixes it.
 
 use std::ffi::OsString;

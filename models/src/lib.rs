@@ -7,6 +7,7 @@
 //! caller-provided buffers.
 #![deny(missing_docs)]
 
+pub mod blendshapes;
 pub mod camera;
 pub mod candide;
 pub mod crop;

@@ -125,6 +125,9 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
             "smile": u.attributes.smile, "brows_raised": u.attributes.brows_raised,
             "mouth_open": u.attributes.mouth_open,
         },
+        "blendshapes": u.blendshapes.iter()
+            .map(|(b, v)| (b.arkit_name().to_owned(), json!(v)))
+            .collect::<serde_json::Map<_, _>>(),
     })
 }
 

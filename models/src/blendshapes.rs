@@ -1,0 +1,686 @@
+//! Named blendshape coefficients in [0, 1], as ARKit, MediaPipe's Face Landmarker and avatar rigs (Unity,
+//! Unreal, VRM) take them, from 68 landmarks: every movement 68 landmarks can observe.
+//!
+//! **How.** Each frame's landmarks are brought into the face's own frame: the affine map that takes the
+//! face's rigid points (eye corners, nasion, nose wings) onto a fixed template, which removes the head's
+//! position, size, roll and, to first order, the foreshortening of yaw and pitch (a flat patch seen from
+//! any direction is an affine image of itself). There each coefficient is one displacement (a lid, a brow,
+//! a lip corner, the lip gap, ...) against the same person's **neutral**, in eye distances, divided by its
+//! full movement. The neutral is the per-feature median over the first [`BlendshapeParams::calibration_frames`]
+//! frames of tracking, so a resting face reads near 0 whoever it is (the person should be at rest then);
+//! until then, and for still images, it is a mean face's (the 300-W mean shape).
+//! [`BlendshapeEstimator::recalibrate`] starts over (a new person, or a calibration prompt). Without a jaw
+//! line (KRFWS's 51 points) the coefficients that read the chin (`jawLeft`, `jawRight`, `mouthClose`) are 0.
+//!
+//! The full movements of the five that CANDIDE-3 animates (jaw drop, lip stretcher, brow lowerer, lip-corner
+//! depressor, eyes closed) are CANDIDE's at weight 1, projected frontally; the others are set in eye distances
+//! (see [`Blendshape::full_movement`]). Names and sides follow ARKit: `Left` is the **subject's** left, which
+//! is the image's right for a face looking at the camera (iBUG points 42-47, 22-26, 54).
+//!
+//! Not covered (68 landmarks do not see them): the eight eye-look directions (no iris), `cheekPuff` (no cheek
+//! contour in depth), `jawForward` (depth) and `tongueOut`. Pure: no IO, no clock.
+
+use crate::geometry::Point2;
+
+/// One ARKit blendshape this module estimates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[allow(missing_docs)] // ARKit's own names say what each is
+pub enum Blendshape {
+    EyeBlinkLeft,
+    EyeBlinkRight,
+    EyeSquintLeft,
+    EyeSquintRight,
+    EyeWideLeft,
+    EyeWideRight,
+    BrowDownLeft,
+    BrowDownRight,
+    BrowInnerUp,
+    BrowOuterUpLeft,
+    BrowOuterUpRight,
+    CheekSquintLeft,
+    CheekSquintRight,
+    NoseSneerLeft,
+    NoseSneerRight,
+    JawOpen,
+    JawLeft,
+    JawRight,
+    MouthClose,
+    MouthFunnel,
+    MouthPucker,
+    MouthLeft,
+    MouthRight,
+    MouthSmileLeft,
+    MouthSmileRight,
+    MouthFrownLeft,
+    MouthFrownRight,
+    MouthStretchLeft,
+    MouthStretchRight,
+    MouthPressLeft,
+    MouthPressRight,
+    MouthRollUpper,
+    MouthRollLower,
+    MouthShrugUpper,
+    MouthShrugLower,
+    MouthUpperUpLeft,
+    MouthUpperUpRight,
+    MouthLowerDownLeft,
+    MouthLowerDownRight,
+}
+
+/// How many blendshapes are estimated.
+pub const N_BLENDSHAPES: usize = 39;
+
+/// ARKit's names of the blendshapes 68 landmarks cannot observe, and why.
+pub const NOT_COVERED: [(&str, &str); 13] = [
+    ("eyeLookDownLeft", "no iris landmarks"),
+    ("eyeLookDownRight", "no iris landmarks"),
+    ("eyeLookInLeft", "no iris landmarks"),
+    ("eyeLookInRight", "no iris landmarks"),
+    ("eyeLookOutLeft", "no iris landmarks"),
+    ("eyeLookOutRight", "no iris landmarks"),
+    ("eyeLookUpLeft", "no iris landmarks"),
+    ("eyeLookUpRight", "no iris landmarks"),
+    ("cheekPuff", "no cheek contour in depth"),
+    ("jawForward", "a movement in depth"),
+    ("tongueOut", "no tongue landmarks"),
+    (
+        "mouthDimpleLeft",
+        "no landmark on the cheek beside the lip corner",
+    ),
+    (
+        "mouthDimpleRight",
+        "no landmark on the cheek beside the lip corner",
+    ),
+];
+
+impl Blendshape {
+    /// Every estimated blendshape, in output order (the C ABI's and Python's array order).
+    pub const ALL: [Self; N_BLENDSHAPES] = [
+        Self::EyeBlinkLeft,
+        Self::EyeBlinkRight,
+        Self::EyeSquintLeft,
+        Self::EyeSquintRight,
+        Self::EyeWideLeft,
+        Self::EyeWideRight,
+        Self::BrowDownLeft,
+        Self::BrowDownRight,
+        Self::BrowInnerUp,
+        Self::BrowOuterUpLeft,
+        Self::BrowOuterUpRight,
+        Self::CheekSquintLeft,
+        Self::CheekSquintRight,
+        Self::NoseSneerLeft,
+        Self::NoseSneerRight,
+        Self::JawOpen,
+        Self::JawLeft,
+        Self::JawRight,
+        Self::MouthClose,
+        Self::MouthFunnel,
+        Self::MouthPucker,
+        Self::MouthLeft,
+        Self::MouthRight,
+        Self::MouthSmileLeft,
+        Self::MouthSmileRight,
+        Self::MouthFrownLeft,
+        Self::MouthFrownRight,
+        Self::MouthStretchLeft,
+        Self::MouthStretchRight,
+        Self::MouthPressLeft,
+        Self::MouthPressRight,
+        Self::MouthRollUpper,
+        Self::MouthRollLower,
+        Self::MouthShrugUpper,
+        Self::MouthShrugLower,
+        Self::MouthUpperUpLeft,
+        Self::MouthUpperUpRight,
+        Self::MouthLowerDownLeft,
+        Self::MouthLowerDownRight,
+    ];
+
+    /// ARKit's name (`ARFaceAnchor.BlendShapeLocation`, as MediaPipe spells it too).
+    pub const fn arkit_name(self) -> &'static str {
+        match self {
+            Self::EyeBlinkLeft => "eyeBlinkLeft",
+            Self::EyeBlinkRight => "eyeBlinkRight",
+            Self::EyeSquintLeft => "eyeSquintLeft",
+            Self::EyeSquintRight => "eyeSquintRight",
+            Self::EyeWideLeft => "eyeWideLeft",
+            Self::EyeWideRight => "eyeWideRight",
+            Self::BrowDownLeft => "browDownLeft",
+            Self::BrowDownRight => "browDownRight",
+            Self::BrowInnerUp => "browInnerUp",
+            Self::BrowOuterUpLeft => "browOuterUpLeft",
+            Self::BrowOuterUpRight => "browOuterUpRight",
+            Self::CheekSquintLeft => "cheekSquintLeft",
+            Self::CheekSquintRight => "cheekSquintRight",
+            Self::NoseSneerLeft => "noseSneerLeft",
+            Self::NoseSneerRight => "noseSneerRight",
+            Self::JawOpen => "jawOpen",
+            Self::JawLeft => "jawLeft",
+            Self::JawRight => "jawRight",
+            Self::MouthClose => "mouthClose",
+            Self::MouthFunnel => "mouthFunnel",
+            Self::MouthPucker => "mouthPucker",
+            Self::MouthLeft => "mouthLeft",
+            Self::MouthRight => "mouthRight",
+            Self::MouthSmileLeft => "mouthSmileLeft",
+            Self::MouthSmileRight => "mouthSmileRight",
+            Self::MouthFrownLeft => "mouthFrownLeft",
+            Self::MouthFrownRight => "mouthFrownRight",
+            Self::MouthStretchLeft => "mouthStretchLeft",
+            Self::MouthStretchRight => "mouthStretchRight",
+            Self::MouthPressLeft => "mouthPressLeft",
+            Self::MouthPressRight => "mouthPressRight",
+            Self::MouthRollUpper => "mouthRollUpper",
+            Self::MouthRollLower => "mouthRollLower",
+            Self::MouthShrugUpper => "mouthShrugUpper",
+            Self::MouthShrugLower => "mouthShrugLower",
+            Self::MouthUpperUpLeft => "mouthUpperUpLeft",
+            Self::MouthUpperUpRight => "mouthUpperUpRight",
+            Self::MouthLowerDownLeft => "mouthLowerDownLeft",
+            Self::MouthLowerDownRight => "mouthLowerDownRight",
+        }
+    }
+
+    /// The feature it reads and the feature's change (eye distances, in the face's frame; the sign says
+    /// which way is "more") at the full movement, coefficient 1.
+    const fn reading(self) -> (Feature, f64) {
+        use Feature as F;
+        match self {
+            // Eyes closed: CANDIDE-3's AUV6 at weight 1 closes the lids by about this much.
+            Self::EyeBlinkLeft => (F::LidGap(Side::Left), -EYE_CLOSE),
+            Self::EyeBlinkRight => (F::LidGap(Side::Right), -EYE_CLOSE),
+            Self::EyeSquintLeft => (F::LowerLid(Side::Left), -0.035),
+            Self::EyeSquintRight => (F::LowerLid(Side::Right), -0.035),
+            Self::EyeWideLeft => (F::LidGap(Side::Left), 0.06),
+            Self::EyeWideRight => (F::LidGap(Side::Right), 0.06),
+            // Brow lowerer: CANDIDE-3's AUV3 at weight 1.
+            Self::BrowDownLeft => (F::Brow(Side::Left), BROW_DOWN),
+            Self::BrowDownRight => (F::Brow(Side::Right), BROW_DOWN),
+            Self::BrowInnerUp => (F::InnerBrows, -0.12),
+            Self::BrowOuterUpLeft => (F::OuterBrow(Side::Left), -0.12),
+            Self::BrowOuterUpRight => (F::OuterBrow(Side::Right), -0.12),
+            Self::CheekSquintLeft => (F::LowerLid(Side::Left), -0.05),
+            Self::CheekSquintRight => (F::LowerLid(Side::Right), -0.05),
+            Self::NoseSneerLeft => (F::NoseWing(Side::Left), -0.05),
+            Self::NoseSneerRight => (F::NoseWing(Side::Right), -0.05),
+            // Jaw drop: CANDIDE-3's AUV11 at weight 1.
+            Self::JawOpen => (F::LipGap, JAW_OPEN),
+            Self::JawLeft => (F::ChinX, 0.12),
+            Self::JawRight => (F::ChinX, -0.12),
+            Self::MouthClose => (F::ClosedJawDrop, 0.15),
+            // The mouth narrowed, while open (funnel) or closed (pucker): see `BlendshapeEstimator::update`.
+            Self::MouthFunnel => (F::MouthWidth, -0.15),
+            Self::MouthPucker => (F::MouthWidth, -0.15),
+            Self::MouthLeft => (F::MouthX, 0.15),
+            Self::MouthRight => (F::MouthX, -0.15),
+            Self::MouthSmileLeft => (F::CornerY(Side::Left), -0.10),
+            Self::MouthSmileRight => (F::CornerY(Side::Right), -0.10),
+            // Lip-corner depressor: CANDIDE-3's AUV14 at weight 1.
+            Self::MouthFrownLeft => (F::CornerY(Side::Left), FROWN),
+            Self::MouthFrownRight => (F::CornerY(Side::Right), FROWN),
+            // Lip stretcher: CANDIDE-3's AUV2 at weight 1.
+            Self::MouthStretchLeft => (F::CornerOut(Side::Left), STRETCH),
+            Self::MouthStretchRight => (F::CornerOut(Side::Right), STRETCH),
+            Self::MouthPressLeft => (F::LipThickness(Side::Left), -0.05),
+            Self::MouthPressRight => (F::LipThickness(Side::Right), -0.05),
+            Self::MouthRollUpper => (F::UpperLipThickness, -0.07),
+            Self::MouthRollLower => (F::LowerLipThickness, -0.08),
+            Self::MouthShrugUpper => (F::UpperLipY, -0.06),
+            Self::MouthShrugLower => (F::LowerLipY, -0.08),
+            Self::MouthUpperUpLeft => (F::UpperLipSideY(Side::Left), -0.12),
+            Self::MouthUpperUpRight => (F::UpperLipSideY(Side::Right), -0.12),
+            Self::MouthLowerDownLeft => (F::LowerLipSideY(Side::Left), 0.20),
+            Self::MouthLowerDownRight => (F::LowerLipSideY(Side::Right), 0.20),
+        }
+    }
+
+    /// The feature change (eye distances) at coefficient 1, signed.
+    pub const fn full_movement(self) -> f64 {
+        self.reading().1
+    }
+}
+
+// Full movements measured on CANDIDE-3 (its animation units at weight 1, frontal, in eye distances of the
+// face's frame): `models/tests/blendshapes.rs` checks they read their weight.
+const EYE_CLOSE: f64 = 0.0601;
+const BROW_DOWN: f64 = 0.1096;
+const JAW_OPEN: f64 = 0.219;
+const FROWN: f64 = 0.140;
+const STRETCH: f64 = 0.0918;
+
+/// The subject's side.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum Side {
+    /// The subject's left: the image's right (iBUG 42-47, 22-26, 54).
+    Left,
+    /// The subject's right: the image's left (iBUG 36-41, 17-21, 48).
+    Right,
+}
+
+/// One measurement in the face's frame (eye distances; y down, x toward the subject's left).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum Feature {
+    LidGap(Side),
+    LowerLid(Side),
+    Brow(Side),
+    InnerBrows,
+    OuterBrow(Side),
+    NoseWing(Side),
+    LipGap,
+    ChinX,
+    ClosedJawDrop,
+    MouthWidth,
+    MouthX,
+    CornerY(Side),
+    CornerOut(Side),
+    LipThickness(Side),
+    UpperLipThickness,
+    LowerLipThickness,
+    UpperLipY,
+    LowerLipY,
+    UpperLipSideY(Side),
+    LowerLipSideY(Side),
+}
+
+/// The rigid points the face's frame is fitted on: eye corners, nasion, nose wings.
+const RIGID: [usize; 7] = [36, 39, 42, 45, 27, 31, 35];
+/// Their place in the face's frame (eye distance 1 between the outer corners, origin at the nasion, x
+/// toward the subject's left, y down): a mean face.
+const TEMPLATE: [(f64, f64); 7] = [
+    (-0.50, 0.04),
+    (-0.19, 0.06),
+    (0.19, 0.06),
+    (0.50, 0.04),
+    (0.0, 0.0),
+    (-0.13, 0.45),
+    (0.13, 0.45),
+];
+
+type P = (f64, f64);
+
+/// The landmarks in the face's frame: the least-squares affine map of the rigid points onto [`TEMPLATE`],
+/// applied to all 68. `None` for a degenerate shape (not finite, collapsed).
+fn face_frame(lm: &[Point2; 68]) -> Option<[P; 68]> {
+    // Solve [x y 1] · M = [u v] in least squares (3x3 normal equations, two right-hand sides).
+    let mut ata = [[0.0f64; 3]; 3];
+    let mut atb = [[0.0f64; 2]; 3];
+    for (k, &i) in RIGID.iter().enumerate() {
+        let p = lm[i];
+        let row = [f64::from(p.x), f64::from(p.y), 1.0];
+        for r in 0..3 {
+            for c in 0..3 {
+                ata[r][c] += row[r] * row[c];
+            }
+            atb[r][0] += row[r] * TEMPLATE[k].0;
+            atb[r][1] += row[r] * TEMPLATE[k].1;
+        }
+    }
+    let m = solve3(ata, atb)?;
+    let mut out = [(0.0, 0.0); 68];
+    for (o, p) in out.iter_mut().zip(lm) {
+        let (x, y) = (f64::from(p.x), f64::from(p.y));
+        *o = (
+            x * m[0][0] + y * m[1][0] + m[2][0],
+            x * m[0][1] + y * m[1][1] + m[2][1],
+        );
+    }
+    out.iter()
+        .all(|p| p.0.is_finite() && p.1.is_finite())
+        .then_some(out)
+}
+
+/// Solves `a · x = b` (3x3, two columns) by Gaussian elimination with partial pivoting.
+fn solve3(mut a: [[f64; 3]; 3], mut b: [[f64; 2]; 3]) -> Option<[[f64; 2]; 3]> {
+    for col in 0..3 {
+        let pivot = (col..3).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        let p = a[pivot][col];
+        if p.is_nan() || p.abs() <= 1e-12 {
+            return None;
+        }
+        a.swap(col, pivot);
+        b.swap(col, pivot);
+        let (ra, rb) = (a[col], b[col]);
+        for r in (0..3).filter(|&r| r != col) {
+            let f = a[r][col] / ra[col];
+            for (x, y) in a[r].iter_mut().zip(ra) {
+                *x -= f * y;
+            }
+            for (x, y) in b[r].iter_mut().zip(rb) {
+                *x -= f * y;
+            }
+        }
+    }
+    Some(std::array::from_fn(|r| [b[r][0] / a[r][r], b[r][1] / a[r][r]]))
+}
+
+/// Every feature of one frame (in [`Feature`] order of [`FEATURES`]).
+const FEATURES: [Feature; 26] = [
+    Feature::LidGap(Side::Left),
+    Feature::LidGap(Side::Right),
+    Feature::LowerLid(Side::Left),
+    Feature::LowerLid(Side::Right),
+    Feature::Brow(Side::Left),
+    Feature::Brow(Side::Right),
+    Feature::InnerBrows,
+    Feature::OuterBrow(Side::Left),
+    Feature::OuterBrow(Side::Right),
+    Feature::NoseWing(Side::Left),
+    Feature::NoseWing(Side::Right),
+    Feature::LipGap,
+    Feature::ChinX,
+    Feature::ClosedJawDrop,
+    Feature::MouthWidth,
+    Feature::MouthX,
+    Feature::CornerY(Side::Left),
+    Feature::CornerY(Side::Right),
+    Feature::CornerOut(Side::Left),
+    Feature::CornerOut(Side::Right),
+    Feature::LipThickness(Side::Left),
+    Feature::LipThickness(Side::Right),
+    Feature::UpperLipThickness,
+    Feature::LowerLipThickness,
+    Feature::UpperLipY,
+    Feature::LowerLipY,
+];
+
+/// Where `f` is in [`FEATURES`].
+fn slot(f: Feature) -> usize {
+    FEATURES.iter().position(|&g| g == f).unwrap_or(0)
+}
+
+type Features = [f64; FEATURES.len()];
+
+/// The features of landmarks in the face's frame. The lip-side features read the lip points nearest the
+/// side's corner; `ClosedJawDrop` is the chin's drop less the lips' opening.
+fn features(n: &[P; 68]) -> Features {
+    let y = |i: usize| n[i].1;
+    let x = |i: usize| n[i].0;
+    let mean_y = |is: &[usize]| is.iter().map(|&i| y(i)).sum::<f64>() / is.len() as f64;
+    // The subject's left is the image's right: iBUG's second eye, brow and corner.
+    let (eye_l, eye_r) = (([43, 44], [47, 46]), ([37, 38], [41, 40]));
+    let lid_gap = |(up, low): ([usize; 2], [usize; 2])| mean_y(&low) - mean_y(&up);
+    let gap = mean_y(&[65, 66, 67]) - mean_y(&[61, 62, 63]);
+    let width = x(54) - x(48);
+    let chin_drop = y(8) - y(33);
+    let mut f = [0.0; FEATURES.len()];
+    for (k, feat) in FEATURES.iter().enumerate() {
+        f[k] = match *feat {
+            Feature::LidGap(Side::Left) => lid_gap(eye_l),
+            Feature::LidGap(Side::Right) => lid_gap(eye_r),
+            Feature::LowerLid(Side::Left) => mean_y(&[46, 47]),
+            Feature::LowerLid(Side::Right) => mean_y(&[40, 41]),
+            Feature::Brow(Side::Left) => mean_y(&[22, 24, 26]),
+            Feature::Brow(Side::Right) => mean_y(&[17, 19, 21]),
+            Feature::InnerBrows => mean_y(&[21, 22]),
+            Feature::OuterBrow(Side::Left) => y(26),
+            Feature::OuterBrow(Side::Right) => y(17),
+            Feature::NoseWing(Side::Left) => y(35),
+            Feature::NoseWing(Side::Right) => y(31),
+            Feature::LipGap => gap,
+            Feature::ChinX => x(8),
+            Feature::ClosedJawDrop => chin_drop - gap,
+            Feature::MouthWidth => width,
+            Feature::MouthX => 0.5 * (x(51) + x(57)),
+            // Against the upper lip's centre, which the jaw does not move.
+            Feature::CornerY(Side::Left) => y(54) - y(51),
+            Feature::CornerY(Side::Right) => y(48) - y(51),
+            // Half the mouth's width on both sides: a corner pulled out also moves back along the face's
+            // curve, which a turned head shows as a sideways shift of one corner and not the other; the
+            // width cancels it (and so cannot tell a one-sided stretch from a symmetric one).
+            Feature::CornerOut(_) => 0.5 * width,
+            Feature::LipThickness(Side::Left) => (y(63) - y(52)) + (y(56) - y(65)),
+            Feature::LipThickness(Side::Right) => (y(61) - y(50)) + (y(58) - y(67)),
+            Feature::UpperLipThickness => y(62) - y(51),
+            Feature::LowerLipThickness => y(57) - y(66),
+            Feature::UpperLipY => y(51),
+            Feature::LowerLipY => y(57),
+            Feature::UpperLipSideY(_) | Feature::LowerLipSideY(_) => 0.0,
+        };
+    }
+    f
+}
+
+/// A feature's value, the lip-side ones computed on demand (they are not calibrated separately: they are
+/// the lip points next to each corner).
+fn value(f: &Features, n: &[P; 68], feat: Feature) -> f64 {
+    match feat {
+        Feature::UpperLipSideY(Side::Left) => n[52].1,
+        Feature::UpperLipSideY(Side::Right) => n[50].1,
+        Feature::LowerLipSideY(Side::Left) => n[56].1,
+        Feature::LowerLipSideY(Side::Right) => n[58].1,
+        other => f[slot(other)],
+    }
+}
+
+/// The coefficients of one face, in [`Blendshape::ALL`] order, each in [0, 1].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Blendshapes(pub [f32; N_BLENDSHAPES]);
+
+impl Default for Blendshapes {
+    fn default() -> Self {
+        Self([0.0; N_BLENDSHAPES])
+    }
+}
+
+impl Blendshapes {
+    /// One coefficient.
+    pub fn get(&self, b: Blendshape) -> f32 {
+        Blendshape::ALL
+            .iter()
+            .position(|&a| a == b)
+            .map_or(0.0, |i| self.0[i])
+    }
+
+    /// `(name, value)` pairs in output order.
+    pub fn iter(&self) -> impl Iterator<Item = (Blendshape, f32)> + '_ {
+        Blendshape::ALL.iter().copied().zip(self.0.iter().copied())
+    }
+}
+
+/// Settings of the estimator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BlendshapeParams {
+    /// Frames whose median is the person's neutral (the first frames of tracking): 1 s at 30 fps.
+    pub calibration_frames: usize,
+}
+
+impl Default for BlendshapeParams {
+    fn default() -> Self {
+        Self {
+            calibration_frames: 30,
+        }
+    }
+}
+
+/// One face's estimator: its neutral (being calibrated or done) and the last coefficients.
+#[derive(Clone, Debug)]
+pub struct BlendshapeEstimator {
+    params: BlendshapeParams,
+    /// The calibration frames' features (kept until calibrated).
+    seen: Vec<Features>,
+    /// The lip-side features' calibration, like `seen`.
+    seen_sides: Vec<[f64; 4]>,
+    neutral: Option<(Features, [f64; 4])>,
+}
+
+impl BlendshapeEstimator {
+    /// An estimator that calibrates on the first frames it sees.
+    pub fn new(params: BlendshapeParams) -> Self {
+        Self {
+            params,
+            seen: Vec::new(),
+            seen_sides: Vec::new(),
+            neutral: None,
+        }
+    }
+
+    /// Whether the neutral is calibrated.
+    pub fn is_calibrated(&self) -> bool {
+        self.neutral.is_some()
+    }
+
+    /// Forgets the neutral: the next frames calibrate it again.
+    pub fn recalibrate(&mut self) {
+        self.seen.clear();
+        self.seen_sides.clear();
+        self.neutral = None;
+    }
+
+    /// Sets the neutral from landmarks of the person at rest (instead of the first frames).
+    pub fn set_neutral(&mut self, lm: &[Point2; 68]) -> bool {
+        let Some(n) = face_frame(lm) else {
+            return false;
+        };
+        self.neutral = Some((features(&n), sides(&n)));
+        true
+    }
+
+    /// The coefficients of one frame's landmarks (image pixels); all 0 for a degenerate shape. `jaw_line`:
+    /// whether the jaw points (0-16) were aligned (not with KRFWS's 51 points).
+    pub fn update(&mut self, lm: &[Point2; 68], jaw_line: bool) -> Blendshapes {
+        let Some(n) = face_frame(lm) else {
+            return Blendshapes::default();
+        };
+        let f = features(&n);
+        let s = sides(&n);
+        let (f0, s0) = match self.neutral {
+            Some(v) => v,
+            None => {
+                self.seen.push(f);
+                self.seen_sides.push(s);
+                if self.seen.len() >= self.params.calibration_frames.max(1) {
+                    self.neutral = Some((median(&self.seen), median(&self.seen_sides)));
+                    self.seen = Vec::new();
+                    self.seen_sides = Vec::new();
+                }
+                mean_face()
+            }
+        };
+        let mut out = [0.0f32; N_BLENDSHAPES];
+        for (o, b) in out.iter_mut().zip(Blendshape::ALL) {
+            let (feat, full) = b.reading();
+            if !jaw_line && matches!(feat, Feature::ChinX | Feature::ClosedJawDrop) {
+                continue;
+            }
+            let (now, rest) = match side_slot(feat) {
+                Some(k) => (s[k], s0[k]),
+                None => (value(&f, &n, feat), f0[slot(feat)]),
+            };
+            let c = (now - rest) / full;
+            *o = if c.is_finite() {
+                c.clamp(0.0, 1.0) as f32
+            } else {
+                0.0
+            };
+        }
+        // A narrowed mouth is a funnel as far as the jaw is open, a pucker as far as it is closed.
+        let open = out[index(Blendshape::JawOpen)];
+        out[index(Blendshape::MouthFunnel)] *= open;
+        out[index(Blendshape::MouthPucker)] *= 1.0 - open;
+        Blendshapes(out)
+    }
+}
+
+/// Where `b` is in [`Blendshape::ALL`].
+fn index(b: Blendshape) -> usize {
+    Blendshape::ALL.iter().position(|&a| a == b).unwrap_or(0)
+}
+
+/// The neutral of a mean face (the 300-W mean shape), before a person's is calibrated.
+fn mean_face() -> (Features, [f64; 4]) {
+    static MEAN: std::sync::OnceLock<(Features, [f64; 4])> = std::sync::OnceLock::new();
+    *MEAN.get_or_init(|| {
+        let n = face_frame(&crate::shape::dan_mean_shape()).unwrap_or([(0.0, 0.0); 68]);
+        (features(&n), sides(&n))
+    })
+}
+
+/// The lip-side features, calibrated like the others.
+fn sides(n: &[P; 68]) -> [f64; 4] {
+    [n[52].1, n[50].1, n[56].1, n[58].1]
+}
+
+fn side_slot(f: Feature) -> Option<usize> {
+    match f {
+        Feature::UpperLipSideY(Side::Left) => Some(0),
+        Feature::UpperLipSideY(Side::Right) => Some(1),
+        Feature::LowerLipSideY(Side::Left) => Some(2),
+        Feature::LowerLipSideY(Side::Right) => Some(3),
+        _ => None,
+    }
+}
+
+/// The per-element median of `rows`.
+fn median<const N: usize>(rows: &[[f64; N]]) -> [f64; N] {
+    let mut out = [0.0; N];
+    let mut col = Vec::with_capacity(rows.len());
+    for (k, o) in out.iter_mut().enumerate() {
+        col.clear();
+        col.extend(rows.iter().map(|r| r[k]));
+        col.sort_by(f64::total_cmp);
+        *o = match col.len() {
+            0 => 0.0,
+            n if n % 2 == 1 => col[n / 2],
+            n => 0.5 * (col[n / 2 - 1] + col[n / 2]),
+        };
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_arkits_and_cover_what_68_landmarks_see() {
+        let names: std::collections::HashSet<&str> = Blendshape::ALL.iter().map(|b| b.arkit_name()).collect();
+        assert_eq!(names.len(), N_BLENDSHAPES, "one name each");
+        assert_eq!(N_BLENDSHAPES + NOT_COVERED.len(), 52, "ARKit has 52");
+        for (n, _) in NOT_COVERED {
+            assert!(!names.contains(n), "{n}");
+        }
+        assert!(
+            names.contains("jawOpen") && names.contains("eyeBlinkLeft") && names.contains("mouthSmileRight")
+        );
+    }
+
+    #[test]
+    fn a_resting_face_reads_zero_and_degenerate_shapes_never_give_nan() {
+        let rest = crate::shape::dan_mean_shape().map(|p| Point2::new(200.0 + 2.0 * p.x, 150.0 + 2.0 * p.y));
+        let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
+        for _ in 0..40 {
+            let b = e.update(&rest, true);
+            assert!(b.0.iter().all(|&v| v < 1e-4), "{b:?}");
+        }
+        assert!(e.is_calibrated());
+        let flat = [Point2::new(5.0, 5.0); 68];
+        assert_eq!(e.update(&flat, true), Blendshapes::default());
+        let mut nan = rest;
+        nan[10] = Point2::new(f32::NAN, 1.0);
+        let b = e.update(&nan, true);
+        assert!(b.0.iter().all(|v| (0.0..=1.0).contains(v)), "{b:?}");
+        e.recalibrate();
+        assert!(!e.is_calibrated());
+    }
+
+    #[test]
+    fn the_face_frame_undoes_position_size_and_roll() {
+        let base = crate::shape::dan_mean_shape();
+        let a = face_frame(&base.map(|p| Point2::new(100.0 + p.x, 80.0 + p.y))).unwrap();
+        let (c, s) = (0.3f32.cos(), 0.3f32.sin());
+        let moved = base.map(|p| {
+            Point2::new(
+                400.0 + 3.0 * (c * p.x - s * p.y),
+                50.0 + 3.0 * (s * p.x + c * p.y),
+            )
+        });
+        let b = face_frame(&moved).unwrap();
+        for (p, q) in a.iter().zip(&b) {
+            assert!(
+                (p.0 - q.0).abs() < 1e-4 && (p.1 - q.1).abs() < 1e-4,
+                "{p:?} {q:?}"
+            );
+        }
+    }
+}
