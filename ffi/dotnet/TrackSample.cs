@@ -147,6 +147,12 @@ static class TrackSample
                 if (equal) same++;
             }
             Check(same >= 8, "steady = 0: " + same + " of 10 frames with landmarks equal to the raw ones");
+            var last = raw.Process(px, w, h, 10 * 33333, cam, pose);
+            bool bounded = last.blendshapes != null && last.blendshapes.Length == Native.Blendshapes;
+            for (int k = 0; bounded && k < Native.Blendshapes; k++)
+                bounded = last.blendshapes[k] >= 0f && last.blendshapes[k] <= 1f && Native.BlendshapeName(k) != null;
+            Check(bounded && Native.BlendshapeName(Native.Blendshapes) == null && Native.BlendshapeName(15) == "jawOpen",
+                "blendshapes: " + Native.Blendshapes + " named coefficients in [0, 1]");
         }
 
         // A path the app passes wins over the environment; a missing one names the asset, the path and why.

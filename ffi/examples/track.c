@@ -131,6 +131,13 @@ int main(int argc, char **argv) {
         unfiltered += r.has_face && memcmp(r.landmarks_px, r.raw_landmarks_px, sizeof r.landmarks_px) == 0;
     }
     printf("steady = 0: %d of 10 frames with landmarks equal to the raw ones\n", unfiltered);
+    /* Blendshapes: HF_BLENDSHAPES ARKit-named coefficients in [0, 1], named by hf_blendshape_name. */
+    int bounded = r.has_face;
+    for (uint32_t i = 0; i < HF_BLENDSHAPES; i++) {
+        bounded &= r.blendshapes[i] >= 0.0f && r.blendshapes[i] <= 1.0f && hf_blendshape_name(i) != NULL;
+    }
+    if (!bounded || hf_blendshape_name(HF_BLENDSHAPES) != NULL) return 3;
+    printf("%s %.2f, %s %.2f\n", hf_blendshape_name(15), r.blendshapes[15], hf_blendshape_name(0), r.blendshapes[0]);
     hf_tracker_free(raw);
     set.detect_tiles = 99;
     if (hf_tracker_new_with(&opts, &set, &raw) != HF_STATUS_INVALID_ARGUMENT) return 3;

@@ -13,6 +13,11 @@
 #include <stdlib.h>
 
 /**
+ * How many blendshape coefficients an `HfResult` carries.
+ */
+#define HF_BLENDSHAPES 39
+
+/**
  * Most faces one `HfFaces` holds (`hf_tracker_new_faces` accepts 1..=`HF_MAX_FACES`).
  */
 #define HF_MAX_FACES 8
@@ -367,6 +372,11 @@ typedef struct HfResult {
    * The aligner's own landmarks for this frame (x, y), unfiltered, image pixels.
    */
   float raw_landmarks_px[136];
+  /**
+   * ARKit-named blendshape coefficients in [0, 1], `HF_BLENDSHAPES` of them; `hf_blendshape_name(i)` names
+   * slot `i` (against this person's neutral, calibrated on the first second of tracking).
+   */
+  float blendshapes[HF_BLENDSHAPES];
 } HfResult;
 
 /**
@@ -428,6 +438,12 @@ typedef struct HfLinkStatus {
 #ifdef __cplusplus
 extern "C" {
 #endif // __cplusplus
+
+/**
+ * ARKit's name of blendshape slot `i` (`"jawOpen"`, `"eyeBlinkLeft"`, ...): a static NUL-terminated string,
+ * or NULL when `i >= HF_BLENDSHAPES`.
+ */
+const char *hf_blendshape_name(uint32_t i);
 
 /**
  * Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead).

@@ -253,6 +253,26 @@ pub struct HfResult {
     pub mouth_open: u8,
     /// The aligner's own landmarks for this frame (x, y), unfiltered, image pixels.
     pub raw_landmarks_px: [f32; 136],
+    /// ARKit-named blendshape coefficients in [0, 1], `HF_BLENDSHAPES` of them; `hf_blendshape_name(i)` names
+    /// slot `i` (against this person's neutral, calibrated on the first second of tracking).
+    pub blendshapes: [f32; HF_BLENDSHAPES],
+}
+
+/// How many blendshape coefficients an `HfResult` carries.
+pub const HF_BLENDSHAPES: usize = 39;
+
+/// ARKit's name of blendshape slot `i` (`"jawOpen"`, `"eyeBlinkLeft"`, ...): a static NUL-terminated string,
+/// or NULL when `i >= HF_BLENDSHAPES`.
+#[unsafe(no_mangle)]
+pub extern "C" fn hf_blendshape_name(i: u32) -> *const c_char {
+    static NAMES: std::sync::OnceLock<Vec<CString>> = std::sync::OnceLock::new();
+    let names = NAMES.get_or_init(|| {
+        holoface_headset_client::Blendshape::ALL
+            .iter()
+            .filter_map(|b| CString::new(b.arkit_name()).ok())
+            .collect()
+    });
+    names.get(i as usize).map_or(std::ptr::null(), |n| n.as_ptr())
 }
 
 /// Most faces one `HfFaces` holds (`hf_tracker_new_faces` accepts 1..=`HF_MAX_FACES`).
@@ -937,6 +957,7 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
         brows_raised: 0,
         mouth_open: 0,
         raw_landmarks_px: [0.0; 136],
+        blendshapes: [0.0; HF_BLENDSHAPES],
     }
 }
 
@@ -958,6 +979,7 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     c.display_position_m = u.display.0.to_array();
     c.display_rotation_wxyz = q(u.display.1);
     c.weights = u.fit.weights.0;
+    c.blendshapes = u.blendshapes.0;
     c.smile = u8::from(u.attributes.smile);
     c.brows_raised = u8::from(u.attributes.brows_raised);
     c.mouth_open = u8::from(u.attributes.mouth_open);

@@ -54,6 +54,8 @@ namespace HoloFace
         public byte smile, browsRaised, mouthOpen;
         /// <summary>The aligner's own landmarks, unfiltered (landmarksPx is steadied: draw that).</summary>
         [MarshalAs(UnmanagedType.ByValArray, SizeConst = 136)] public float[] rawLandmarksPx;
+        /// <summary>ARKit-named blendshape coefficients in [0, 1]; Native.BlendshapeName(i) names slot i.</summary>
+        [MarshalAs(UnmanagedType.ByValArray, SizeConst = Native.Blendshapes)] public float[] blendshapes;
     }
 
     /// <summary>One face of a several-face tracker: its stable id and its answer.</summary>
@@ -116,6 +118,13 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_link_status(IntPtr tracker, out HfLinkStatus status);
         [DllImport(Lib)] static extern IntPtr hf_last_error();
+        [DllImport(Lib)] static extern IntPtr hf_blendshape_name(uint i);
+
+        /// <summary>HF_BLENDSHAPES: the coefficients an HfResult carries.</summary>
+        public const int Blendshapes = 39;
+
+        /// <summary>ARKit's name of blendshape slot i ("jawOpen", "eyeBlinkLeft", ...), null past the last.</summary>
+        public static string BlendshapeName(int i) => i < 0 ? null : Marshal.PtrToStringUTF8(hf_blendshape_name((uint)i));
 
         public static string LastError() => Marshal.PtrToStringUTF8(hf_last_error());
     }

@@ -18,6 +18,7 @@ free for research use and not redistributed with holoface).
 """
 
 from ._holoface import (
+    BLENDSHAPE_NAMES,
     AssetError,
     Face,
     FaceResult,
@@ -35,6 +36,7 @@ from ._holoface import (
 )
 
 __all__ = [
+    "BLENDSHAPE_NAMES",
     "AssetError",
     "Face",
     "FaceResult",

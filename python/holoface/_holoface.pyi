@@ -8,6 +8,8 @@ import numpy as np
 import numpy.typing as npt
 
 __version__: str
+BLENDSHAPE_NAMES: list[str]
+"""ARKit's names of Face.blendshapes' slots ("eyeBlinkLeft", ..., "jawOpen", ...)."""
 
 _Path = Union[str, PathLike[str]]
 _Matrix4 = Union[npt.NDArray[np.floating], Sequence[Sequence[float]]]
@@ -99,6 +101,8 @@ class Face:
     landmarks: npt.NDArray[np.float32]
     """[68, 2] iBUG-68 landmarks in image pixels, steadied over time (what to draw)."""
     raw_landmarks: npt.NDArray[np.float32]
+    blendshapes: npt.NDArray[np.float32]
+    """float32 [39]: ARKit-named coefficients in [0, 1], in BLENDSHAPE_NAMES order."""
     """[68, 2] the aligner's own landmarks for this frame, unfiltered."""
     landmark_set: str
     """"ibug68" or "inner51" (KRFWS aligns the 51 inner points; the jaw holds the initial shape)."""

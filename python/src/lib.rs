@@ -343,6 +343,9 @@ struct PyFace {
     brows_raised: bool,
     /// Mouth open.
     mouth_open: bool,
+    /// float32 [39]: ARKit-named blendshape coefficients in [0, 1], in `holoface.BLENDSHAPE_NAMES` order
+    /// (against this person's neutral, calibrated on the first second of tracking).
+    blendshapes: Py<PyArray1<f32>>,
 }
 
 #[pymethods]
@@ -473,6 +476,7 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         world_pose: matrix4(py, u.world.rotation, u.world.position),
         predicted_position: u.predicted_position.to_array().to_pyarray(py).unbind(),
         display_pose: matrix4(py, u.display.1, u.display.0),
+        blendshapes: u.blendshapes.0.to_pyarray(py).unbind(),
         expression_weights: weights.unbind(),
         smile: u.attributes.smile,
         brows_raised: u.attributes.brows_raised,
@@ -801,6 +805,13 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_gray, m)?)?;
     m.add_function(wrap_pyfunction!(installed::install_candide, m)?)?;
     m.add_function(wrap_pyfunction!(installed::data_dir, m)?)?;
+    m.add(
+        "BLENDSHAPE_NAMES",
+        holoface_headset_client::Blendshape::ALL
+            .iter()
+            .map(|b| b.arkit_name())
+            .collect::<Vec<_>>(),
+    )?;
     m.add("HoloFaceError", py.get_type::<HoloFaceError>())?;
     m.add("AssetError", py.get_type::<AssetError>())?;
     m.add("ProcessingError", py.get_type::<ProcessingError>())?;

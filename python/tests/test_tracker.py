@@ -233,6 +233,24 @@ def test_the_detector_and_steadying_options_match_the_cli(clip):
                 assert np.array_equal(face.landmarks, face.raw_landmarks), "steady=False: landmarks are the raw ones"
 
 
+def test_faces_carry_named_blendshapes_in_zero_one(clip):
+    names = holoface.BLENDSHAPE_NAMES
+    assert len(names) == 39 and len(set(names)) == 39
+    assert {"jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "mouthSmileLeft", "browInnerUp"} <= set(names)
+    assert not any(n.startswith("eyeLook") or n in ("cheekPuff", "tongueOut") for n in names)
+    frames = list(holoface.FrameSource(clip))
+    with holoface.FaceTracker() as tracker:
+        seen = 0
+        for frame in frames:
+            r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
+            for face in r.faces:
+                b = face.blendshapes
+                assert b.dtype == np.float32 and b.shape == (39,)
+                assert np.all((b >= 0.0) & (b <= 1.0)) and not np.any(np.isnan(b))
+                seen += 1
+    assert seen > 0
+
+
 def test_the_wheel_works_outside_the_checkout(tmp_path, clip, cli_lines):
     """The wheel `make python-test` built, installed into a fresh venv in a temporary folder with its pinned
     onnxruntime, every HOLOFACE_* and ORT_* variable unset, HOME elsewhere: after install_candide, the first
