@@ -61,6 +61,7 @@ pub fn annotate(
                 &format!("world {:+.2} {:+.2} {:+.2}", t.x, t.y, t.z),
                 colour,
             );
+            blendshape_bars(&mut cv, &u.blendshapes, 40);
         }
         ([], reason) => {
             let (colour, _) = aligner_style(None);
@@ -77,6 +78,24 @@ pub fn annotate(
         }
     }
     cv
+}
+
+/// The six strongest blendshape coefficients (above 0.05) as labelled bars, one per line from `y0`: the full
+/// bar (coefficient 1) is 100 px.
+fn blendshape_bars(cv: &mut Canvas, b: &holoface_headset_client::Blendshapes, y0: i64) {
+    let mut top: Vec<_> = b.iter().filter(|&(_, v)| v > 0.05).collect();
+    top.sort_by(|a, b| b.1.total_cmp(&a.1));
+    for (row, (shape, v)) in top.into_iter().take(6).enumerate() {
+        let y = y0 + 14 * row as i64;
+        cv.text(6, y, shape.arkit_name(), [255, 255, 255]);
+        let x0 = 6.0 + 8.0 * 20.0;
+        cv.line(
+            (x0, y as f64 + 5.0),
+            (x0 + 100.0 * f64::from(v), y as f64 + 5.0),
+            [90, 200, 255],
+            4,
+        );
+    }
 }
 
 fn draw_face(cv: &mut Canvas, u: &FaceUpdate, model: &FaceModel, k: &Intrinsics) {
