@@ -502,6 +502,9 @@ pub struct BlendshapeEstimator {
     /// The lip-side features' calibration, like `seen`.
     seen_sides: Vec<[f64; 4]>,
     neutral: Option<(Features, [f64; 4])>,
+    /// The chin's two features, calibrated on frames with a jaw line only.
+    seen_jaw: Vec<[f64; 2]>,
+    neutral_jaw: Option<[f64; 2]>,
 }
 
 impl BlendshapeEstimator {
@@ -512,6 +515,8 @@ impl BlendshapeEstimator {
             seen: Vec::new(),
             seen_sides: Vec::new(),
             neutral: None,
+            seen_jaw: Vec::new(),
+            neutral_jaw: None,
         }
     }
 
@@ -525,6 +530,8 @@ impl BlendshapeEstimator {
         self.seen.clear();
         self.seen_sides.clear();
         self.neutral = None;
+        self.seen_jaw.clear();
+        self.neutral_jaw = None;
     }
 
     /// Sets the neutral from landmarks of the person at rest (instead of the first frames).
@@ -532,7 +539,9 @@ impl BlendshapeEstimator {
         let Some(n) = face_frame(lm) else {
             return false;
         };
-        self.neutral = Some((features(&n), sides(&n)));
+        let f = features(&n);
+        self.neutral_jaw = Some([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
+        self.neutral = Some((f, sides(&n)));
         true
     }
 
@@ -544,7 +553,15 @@ impl BlendshapeEstimator {
         };
         let f = features(&n);
         let s = sides(&n);
-        let (f0, s0) = match self.neutral {
+        if jaw_line && self.neutral_jaw.is_none() {
+            self.seen_jaw
+                .push([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
+            if self.seen_jaw.len() >= self.params.calibration_frames.max(1) {
+                self.neutral_jaw = Some(median(&self.seen_jaw));
+                self.seen_jaw = Vec::new();
+            }
+        }
+        let (mut f0, s0) = match self.neutral {
             Some(v) => v,
             None => {
                 self.seen.push(f);
@@ -557,6 +574,13 @@ impl BlendshapeEstimator {
                 mean_face()
             }
         };
+        // The chin's features from frames that aligned the jaw only (KRFWS's jaw slots hold its start).
+        let [chin_x, jaw_drop] = self.neutral_jaw.unwrap_or_else(|| {
+            let m = mean_face().0;
+            [m[slot(Feature::ChinX)], m[slot(Feature::ClosedJawDrop)]]
+        });
+        f0[slot(Feature::ChinX)] = chin_x;
+        f0[slot(Feature::ClosedJawDrop)] = jaw_drop;
         let mut out = [0.0f32; N_BLENDSHAPES];
         for (o, b) in out.iter_mut().zip(Blendshape::ALL) {
             let (feat, full) = b.reading();
@@ -662,6 +686,33 @@ mod tests {
         assert!(b.0.iter().all(|v| (0.0..=1.0).contains(v)), "{b:?}");
         e.recalibrate();
         assert!(!e.is_calibrated());
+    }
+
+    #[test]
+    fn the_chin_is_calibrated_only_on_frames_that_aligned_it() {
+        let rest = crate::shape::dan_mean_shape().map(|p| Point2::new(200.0 + 2.0 * p.x, 150.0 + 2.0 * p.y));
+        // KRFWS's frames: the jaw slots hold its start, here a chin 20 px off to one side.
+        let mut off = rest;
+        off[8].x += 20.0;
+        let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
+        for _ in 0..30 {
+            e.update(&off, false);
+        }
+        assert!(e.is_calibrated());
+        for _ in 0..30 {
+            e.update(&rest, true);
+        }
+        let b = e.update(&rest, true);
+        assert!(
+            b.get(Blendshape::JawLeft) < 1e-4 && b.get(Blendshape::JawRight) < 1e-4,
+            "{b:?}"
+        );
+        // Without a jaw line the chin's coefficients are 0 whatever the slots hold.
+        let b = e.update(&off, false);
+        assert_eq!(
+            (b.get(Blendshape::JawLeft), b.get(Blendshape::JawRight)),
+            (0.0, 0.0)
+        );
     }
 
     #[test]

@@ -155,6 +155,38 @@ struct Record {
     sent_bytes: usize,
 }
 
+/// Each blendshape coefficient's mean over the frames with a face, as JSON, and a line naming the five
+/// strongest.
+fn mean_blendshapes(frames: &[holoface_headset_client::Blendshapes]) -> (serde_json::Value, String) {
+    let n = frames.len().max(1) as f64;
+    let mut mean: Vec<(&'static str, f64)> = holoface_headset_client::Blendshape::ALL
+        .iter()
+        .enumerate()
+        .map(|(k, b)| {
+            let sum: f64 = frames.iter().map(|f| f64::from(f.0[k])).sum();
+            (b.arkit_name(), sum / n)
+        })
+        .collect();
+    let json = mean
+        .iter()
+        .map(|&(name, v)| (name.to_owned(), json!(v)))
+        .collect::<serde_json::Map<_, _>>()
+        .into();
+    mean.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let top: Vec<String> = mean
+        .iter()
+        .take(5)
+        .map(|(name, v)| format!("{name} {v:.2}"))
+        .collect();
+    (
+        json,
+        format!(
+            "expression (ARKit blendshapes, mean over the frames with a face): {}",
+            top.join(", ")
+        ),
+    )
+}
+
 /// Runs `holoface demo`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.frames == 0 || args.fps <= 0.0 {
@@ -194,6 +226,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let strip_at = strip_frames(args.frames, args.cut_at, cut_end);
     let mut strip = Vec::new();
     let mut records = Vec::with_capacity(args.frames);
+    let mut expressions = Vec::with_capacity(args.frames);
     let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
     let mut healthy_wire = None;
     let start = Instant::now();
@@ -276,6 +309,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "brows_raised": u.attributes.brows_raised,
                     "mouth_open": u.attributes.mouth_open,
                 });
+                line["blendshapes"] = u
+                    .blendshapes
+                    .iter()
+                    .map(|(b, v)| (b.arkit_name().to_owned(), json!(v)))
+                    .collect::<serde_json::Map<_, _>>()
+                    .into();
+                expressions.push(u.blendshapes);
             }
             FaceResult::NoFace(reason) => {
                 line["face"] = json!(false);
@@ -290,6 +330,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let wall = start.elapsed().as_secs_f64();
     log.commit()?;
+    let expression = mean_blendshapes(&expressions);
     let aligner = tracker.aligner();
     let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| {
         let sent = aligner
@@ -306,7 +347,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let strip_path = args.out.join("strip.png");
     write_atomic(&strip_path, strip_png(&strip))?;
-    let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    let mut summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    crate::say!("{}", expression.1);
+    summary["blendshapes_mean"] = expression.0;
     let summary_path = args.out.join("summary.json");
     write_atomic(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     crate::say!(
