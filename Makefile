@@ -29,7 +29,7 @@ export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
 PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
-.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-krfws train-refiner export-dan clean-venv
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -369,6 +369,12 @@ train-refiner: setup-release
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
 	  --cache runs/refiner/dan-answers.bin
+
+# The blendshapes' pose terms (models/assets/blendshape_pose.txt): how head turns move each landmark in their face
+# frame, from the training annotations and each one's CANDIDE-3 fit.
+train-blendshapes:
+	$(CARGO) run --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
+	  --out models/assets/blendshape_pose.txt
 
 train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)

@@ -25,7 +25,7 @@ use holoface_models::pose::{
 };
 use holoface_models::shape::OUTER_EYE_CORNERS;
 pub use holoface_models::blendshapes::{Blendshape, BlendshapeParams, Blendshapes};
-use holoface_models::blendshapes::BlendshapeEstimator;
+use holoface_models::blendshapes::{BlendshapeEstimator, HeadTurn};
 pub use holoface_models::steady::{FilterParams, OneEuroParams, SteadyParams};
 use holoface_models::steady::{LandmarkFilter, Source};
 use serde::Serialize;
@@ -551,7 +551,8 @@ impl TrackerSession {
         let mut expressions = index
             .map(|i| self.tracks[i].expressions.clone())
             .unwrap_or_else(|| BlendshapeEstimator::new(self.opts.blendshapes));
-        let blendshapes = expressions.update(&shown, a.set == LandmarkSet::Ibug68);
+        let turn = HeadTurn::from_pose(fitted.rotation, fitted.translation);
+        let blendshapes = expressions.update(&shown, a.set == LandmarkSet::Ibug68, Some(turn));
         let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
             Some(mut t) => {
                 let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;

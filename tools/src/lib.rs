@@ -1,5 +1,6 @@
 //! The `holoface` command-line tools and what only they need: teacher-label files ([`labels`]), the synthetic
-//! headset renderer ([`render`]), annotated output ([`annotate`]), the in-process loopback server
+//! headset renderer ([`render`]), annotated output ([`annotate`]), how the blendshapes follow real faces
+//! ([`expressions`]), the in-process loopback server
 //! ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]). A leaf:
 //! nothing else in the workspace depends on this crate; what the load tester and the end-to-end tests share
 //! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-toolkit`.
@@ -11,6 +12,7 @@
 pub mod annotate;
 pub mod args;
 pub mod cli;
+pub mod expressions;
 #[cfg(feature = "train")]
 pub mod labels;
 pub mod loopback;

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::blendshapes::{BlendshapeEstimator, Blendshapes};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::metrics::{ErrorSummary, largest_yaw, nme49, nme68, summarise};
 use holoface_models::shape::{dan_mean_shape, fit_to_box};
@@ -14,6 +15,7 @@ use serde::Serialize;
 
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, list_folder};
+use crate::expressions::{CoefficientAgreement, agreement, overall_abs_diff};
 use crate::plot::{Curve, ced_plot_png};
 use holoface_headset_client::align::{Aligner, Confidence};
 use holoface_headset_client::detect::{BlazeFace, FaceDetector, shape_from_detection};
@@ -118,6 +120,9 @@ struct AlignerReport {
     /// The wire encoding DAN's crops went through, and the mean frame-request size it gave.
     crop_encoding: Option<String>,
     mean_request_bytes: Option<f64>,
+    /// The blendshape coefficients from the aligner's landmarks against those from the ground truth (both
+    /// against the mean face's neutral), per coefficient, over the aligned faces.
+    blendshapes_vs_truth: Vec<CoefficientAgreement>,
     per_image: Vec<PerImage>,
 }
 
@@ -204,6 +209,7 @@ fn evaluate(
     let mut per_image = Vec::with_capacity(cases.len());
     let (mut e68, mut e49) = (Vec::new(), Vec::new());
     let mut aligned = 0usize;
+    let (mut shapes_ours, mut shapes_truth): (Vec<Blendshapes>, Vec<Blendshapes>) = (Vec::new(), Vec::new());
     let mut align_time = std::time::Duration::ZERO;
     for (i, c) in cases.iter().enumerate() {
         let Some(init) = &c.init else {
@@ -234,6 +240,11 @@ fn evaluate(
             holoface_headset_client::LandmarkSet::Inner51 => None,
         };
         let n49 = nme49(&a.landmarks, &c.gt);
+        // A still has no person to calibrate: both against the mean face (a fresh estimator's first frame).
+        let jaw_line = a.set == holoface_headset_client::LandmarkSet::Ibug68;
+        let fresh = || BlendshapeEstimator::new(Default::default());
+        shapes_ours.push(fresh().update(&a.landmarks, jaw_line, None));
+        shapes_truth.push(fresh().update(&c.gt, jaw_line, None));
         e68.push(n68.unwrap_or(f64::INFINITY));
         e49.push(n49.unwrap_or(f64::INFINITY));
         per_image.push(PerImage {
@@ -264,6 +275,7 @@ fn evaluate(
         },
         crop_encoding: None,
         mean_request_bytes: None,
+        blendshapes_vs_truth: agreement(&shapes_ours, &shapes_truth),
         per_image,
     })
 }
@@ -317,6 +329,24 @@ fn say_report(r: &AlignerReport) {
             100.0 * s.failure_rate
         ))
     );
+    let rows = &r.blendshapes_vs_truth;
+    if !rows.is_empty() {
+        let mut rs: Vec<f64> = rows.iter().filter_map(|c| c.correlation).collect();
+        rs.sort_by(f64::total_cmp);
+        let worst = rows
+            .iter()
+            .max_by(|a, b| a.mean_abs_diff.total_cmp(&b.mean_abs_diff));
+        crate::say!(
+            "{:<6}   blendshapes vs ground truth: mean |diff| {:.3}, median r {}{}",
+            r.aligner,
+            overall_abs_diff(rows),
+            rs.get(rs.len() / 2).map_or("-".into(), |v| format!("{v:.2}")),
+            worst.map_or_else(String::new, |w| format!(
+                "; largest {} {:.3}",
+                w.name, w.mean_abs_diff
+            ))
+        );
+    }
 }
 
 /// Runs `holoface eval`.
@@ -501,6 +531,16 @@ mod tests {
         assert_eq!(r.subsets["lfpw"].images, 2);
         assert_eq!(r.hardest_fifth.images, 1);
         assert!((r.hardest_fifth.nme49.mean - want).abs() < 1e-6);
+        // A shifted answer reads the same expression: the coefficients come from the face's own frame.
+        assert_eq!(
+            r.blendshapes_vs_truth.len(),
+            holoface_models::blendshapes::N_BLENDSHAPES
+        );
+        assert!(
+            overall_abs_diff(&r.blendshapes_vs_truth) < 1e-4,
+            "{:?}",
+            r.blendshapes_vs_truth
+        );
         // The same aligner unshifted: no error.
         let exact = evaluate(
             &mut Shifted(0.0),

@@ -14,6 +14,8 @@ pub mod teacher_labels;
 pub mod track;
 pub mod tracking_losses;
 #[cfg(feature = "train")]
+pub mod train_blendshapes;
+#[cfg(feature = "train")]
 pub mod train_krfws;
 #[cfg(feature = "train")]
 pub mod train_refiner;
@@ -60,6 +62,10 @@ pub enum Command {
     /// validation faces with a real aligner.
     TrackingLosses(tracking_losses::Args),
     #[cfg(feature = "train")]
+    /// Learn how head turns move the landmarks in the blendshapes' face frame (their pose terms) from the
+    /// training annotations.
+    TrainBlendshapes(train_blendshapes::Args),
+    #[cfg(feature = "train")]
     /// Train the KRFWS local aligner and evaluate it on the validation split.
     TrainKrfws(train_krfws::Args),
     #[cfg(feature = "train")]
@@ -85,6 +91,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         #[cfg(feature = "train")]
         Command::TeacherLabels(args) => teacher_labels::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),
+        #[cfg(feature = "train")]
+        Command::TrainBlendshapes(args) => train_blendshapes::run(args),
         #[cfg(feature = "train")]
         Command::TrainKrfws(args) => train_krfws::run(args),
         #[cfg(feature = "train")]

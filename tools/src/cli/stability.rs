@@ -8,13 +8,15 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
 use holoface_headset_client::{
-    AlignerChoice, AnsweredBy, FaceTracker, InitSource, RemoteOptions, SessionOptions, TrackerOptions,
+    AlignerChoice, AnsweredBy, BlendshapeParams, Blendshapes, FaceTracker, InitSource, RemoteOptions,
+    SessionOptions, TrackerOptions,
 };
 use holoface_sources::output::write_atomic;
 use holoface_sources::source::open_source;
 use serde_json::json;
 
 use crate::args::RuntimeArgs;
+use crate::expressions::{RestRule, VideoReport, video_report};
 use crate::stability::{Landmarks, Summary, agreement, jitter49, jump, parse_peer, summarise};
 
 /// The aligners `stability` can run.
@@ -77,6 +79,8 @@ struct Run {
     steady: Vec<Landmarks>,
     by: Vec<Option<AnsweredBy>>,
     detections: usize,
+    /// The blendshape coefficients per frame.
+    shapes: Vec<Option<Blendshapes>>,
 }
 
 /// One aligner's report.
@@ -96,10 +100,16 @@ struct Report {
     /// The largest jump at a remote/local switch (eye distances), raw and steadied.
     largest_switch_jump_raw: Option<f64>,
     largest_switch_jump_steadied: Option<f64>,
+    /// The blendshapes against the lips' gap and the eyes' opening measured on the peer's landmarks (ours,
+    /// raw, without a peer), after calibration.
+    expressions: VideoReport,
 }
 
 fn report(r: &Run, peer: Option<&[Landmarks]>) -> Report {
     let frames = r.raw.len();
+    // Calibration takes the first frames of the first track.
+    let calibrated_from =
+        r.raw.iter().position(Option::is_some).unwrap_or(0) + BlendshapeParams::default().calibration_frames;
     let switch_frames: Vec<usize> = (1..frames)
         .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
         .collect();
@@ -123,6 +133,12 @@ fn report(r: &Run, peer: Option<&[Landmarks]>) -> Report {
         switches: switch_frames.len(),
         largest_switch_jump_raw: largest(&r.raw),
         largest_switch_jump_steadied: largest(&r.steady),
+        expressions: video_report(
+            &r.shapes,
+            peer.unwrap_or(&r.raw),
+            calibrated_from,
+            RestRule::default(),
+        ),
     }
 }
 
@@ -160,6 +176,7 @@ fn track_clip(
             r.raw.push(face.map(|u| u.raw_landmarks));
             r.steady.push(face.map(|u| u.landmarks));
             r.by.push(face.map(|u| u.answered_by));
+            r.shapes.push(face.map(|u| u.blendshapes));
             r.detections += usize::from(face.is_some_and(|u| u.init == InitSource::Detection));
         }
         frames += 1;
@@ -204,6 +221,20 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
                     .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
             );
         }
+    }
+    for r in reports {
+        let e = &r.expressions;
+        let r2 = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.2}"));
+        crate::say!(
+            "{:<8} blendshapes ({} frames): r(jawOpen, lip gap) {}, r(eyeBlink, eye closing) {}; at rest ({} frames) largest mean {}, largest p95 {}",
+            r.aligner,
+            e.frames,
+            r2(e.jaw_open_vs_lip_gap),
+            r2(e.blink_vs_eye_closing),
+            e.rest_frames,
+            e.rest_max.map_or("-".into(), |(n, v)| format!("{n} {v:.3}")),
+            e.rest_p95_max.map_or("-".into(), |(n, v)| format!("{n} {v:.3}")),
+        );
     }
     if let Some(p) = peer {
         crate::say!(
@@ -310,6 +341,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             steady: Vec::new(),
             by: Vec::new(),
             detections: 0,
+            shapes: Vec::new(),
         });
     }
     let mut source = open_source(&args.source, args.fps, None)?;

@@ -4,8 +4,11 @@
 //! **How.** Each frame's landmarks are brought into the face's own frame: the affine map that takes the
 //! face's rigid points (eye corners, nasion, nose wings) onto a fixed template, which removes the head's
 //! position, size, roll and, to first order, the foreshortening of yaw and pitch (a flat patch seen from
-//! any direction is an affine image of itself). There each coefficient is one displacement (a lid, a brow,
-//! a lip corner, the lip gap, ...) against the same person's **neutral**, in eye distances, divided by its
+//! any direction is an affine image of itself). The face is not flat, so what a turn still moves there (the
+//! lips, the chin, the brows) is undone with [`PoseTerms`], learnt from annotated faces in every pose, given
+//! the head's turn from the runtime's CANDIDE-3 fit ([`HeadTurn`]). There each coefficient is one
+//! displacement (a lid, a brow, a lip corner, the lip gap, ...) against the same person's **neutral**, in
+//! eye distances, divided by its
 //! full movement. The neutral is the per-feature median over the first [`BlendshapeParams::calibration_frames`]
 //! frames of tracking, so a resting face reads near 0 whoever it is (the person should be at rest then);
 //! until then, and for still images, it is a mean face's (the 300-W mean shape).
@@ -21,6 +24,41 @@
 //! contour in depth), `jawForward` (depth) and `tongueOut`. Pure: no IO, no clock.
 
 use crate::geometry::Point2;
+
+mod pose;
+pub use pose::{HeadTurn, PoseTerms};
+
+/// The committed pose terms (`holoface train-blendshapes`; see [`PoseTerms`]).
+const POSE_TERMS_TXT: &str = include_str!("../../assets/blendshape_pose.txt");
+
+/// The committed pose terms, parsed once; `None` only in a build whose asset is broken, which its own test
+/// (`committed_pose_terms_parse_and_undo_turns`) fails.
+fn pose_terms() -> Option<&'static PoseTerms> {
+    static TERMS: std::sync::OnceLock<Option<PoseTerms>> = std::sync::OnceLock::new();
+    TERMS
+        .get_or_init(|| PoseTerms::parse(POSE_TERMS_TXT).ok())
+        .as_ref()
+}
+
+/// Fits the pose terms to annotated shapes (image pixels) and their heads' turns, every pose (pass their
+/// mirror images too so that the terms are symmetric). `None` with fewer than 20 usable shapes.
+pub fn fit_pose_terms(shapes: &[([Point2; 68], HeadTurn)]) -> Option<PoseTerms> {
+    let frames: Vec<([P; 68], HeadTurn)> = shapes
+        .iter()
+        .filter_map(|(lm, t)| Some((face_frame(lm)?, *t)))
+        .collect();
+    PoseTerms::fit(&frames)
+}
+
+/// The landmarks in the face's frame, with the head's turn undone when it is known
+/// ([`PoseTerms::frontalise`]).
+fn frame(lm: &[Point2; 68], turn: Option<HeadTurn>) -> Option<[P; 68]> {
+    let mut n = face_frame(lm)?;
+    if let (Some(terms), Some(turn)) = (pose_terms(), turn) {
+        terms.frontalise(&mut n, turn);
+    }
+    Some(n)
+}
 
 /// One ARKit blendshape this module estimates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -208,7 +246,8 @@ impl Blendshape {
             Self::JawOpen => (F::LipGap, JAW_OPEN),
             Self::JawLeft => (F::ChinX, 0.12),
             Self::JawRight => (F::ChinX, -0.12),
-            Self::MouthClose => (F::ClosedJawDrop, 0.15),
+            // The lips closed over a jaw dropped as far as at `jawOpen` 1 (the chin's drop less the lips' gap).
+            Self::MouthClose => (F::ClosedJawDrop, JAW_OPEN),
             // The mouth narrowed, while open (funnel) or closed (pucker): see `BlendshapeEstimator::update`.
             Self::MouthFunnel => (F::MouthWidth, -0.15),
             Self::MouthPucker => (F::MouthWidth, -0.15),
@@ -316,42 +355,37 @@ fn face_frame(lm: &[Point2; 68]) -> Option<[P; 68]> {
             atb[r][1] += row[r] * TEMPLATE[k].1;
         }
     }
-    let m = solve3(ata, atb)?;
+    let col = |k: usize| solve(ata, [atb[0][k], atb[1][k], atb[2][k]]);
+    let (mu, mv) = (col(0)?, col(1)?);
     let mut out = [(0.0, 0.0); 68];
     for (o, p) in out.iter_mut().zip(lm) {
         let (x, y) = (f64::from(p.x), f64::from(p.y));
-        *o = (
-            x * m[0][0] + y * m[1][0] + m[2][0],
-            x * m[0][1] + y * m[1][1] + m[2][1],
-        );
+        *o = (x * mu[0] + y * mu[1] + mu[2], x * mv[0] + y * mv[1] + mv[2]);
     }
     out.iter()
         .all(|p| p.0.is_finite() && p.1.is_finite())
         .then_some(out)
 }
 
-/// Solves `a · x = b` (3x3, two columns) by Gaussian elimination with partial pivoting.
-fn solve3(mut a: [[f64; 3]; 3], mut b: [[f64; 2]; 3]) -> Option<[[f64; 2]; 3]> {
-    for col in 0..3 {
-        let pivot = (col..3).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        let p = a[pivot][col];
-        if p.is_nan() || p.abs() <= 1e-12 {
+/// Solves `a · x = b` by Gaussian elimination with partial pivoting (`None` when singular).
+pub(crate) fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    for col in 0..N {
+        let pivot = (col..N).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[pivot][col].is_nan() || a[pivot][col].abs() <= 1e-12 {
             return None;
         }
         a.swap(col, pivot);
         b.swap(col, pivot);
         let (ra, rb) = (a[col], b[col]);
-        for r in (0..3).filter(|&r| r != col) {
+        for r in (0..N).filter(|&r| r != col) {
             let f = a[r][col] / ra[col];
             for (x, y) in a[r].iter_mut().zip(ra) {
                 *x -= f * y;
             }
-            for (x, y) in b[r].iter_mut().zip(rb) {
-                *x -= f * y;
-            }
+            b[r] -= f * rb;
         }
     }
-    Some(std::array::from_fn(|r| [b[r][0] / a[r][r], b[r][1] / a[r][r]]))
+    Some(std::array::from_fn(|r| b[r] / a[r][r]))
 }
 
 /// Every feature of one frame (in [`Feature`] order of [`FEATURES`]).
@@ -534,9 +568,10 @@ impl BlendshapeEstimator {
         self.neutral_jaw = None;
     }
 
-    /// Sets the neutral from landmarks of the person at rest (instead of the first frames).
-    pub fn set_neutral(&mut self, lm: &[Point2; 68]) -> bool {
-        let Some(n) = face_frame(lm) else {
+    /// Sets the neutral from landmarks of the person at rest (instead of the first frames), with the head's
+    /// turn as for [`Self::update`].
+    pub fn set_neutral(&mut self, lm: &[Point2; 68], turn: Option<HeadTurn>) -> bool {
+        let Some(n) = frame(lm, turn) else {
             return false;
         };
         let f = features(&n);
@@ -546,9 +581,12 @@ impl BlendshapeEstimator {
     }
 
     /// The coefficients of one frame's landmarks (image pixels); all 0 for a degenerate shape. `jaw_line`:
-    /// whether the jaw points (0-16) were aligned (not with KRFWS's 51 points).
-    pub fn update(&mut self, lm: &[Point2; 68], jaw_line: bool) -> Blendshapes {
-        let Some(n) = face_frame(lm) else {
+    /// whether the jaw points (0-16) were aligned (not with KRFWS's 51 points). `turn`: the head's turn
+    /// (from the frame's CANDIDE-3 fit), whose shift of the landmarks is undone first ([`PoseTerms`]);
+    /// `None` reads the landmarks as they are (a still image without a fit). Give it on every frame or on
+    /// none: the neutral is read the same way.
+    pub fn update(&mut self, lm: &[Point2; 68], jaw_line: bool, turn: Option<HeadTurn>) -> Blendshapes {
+        let Some(n) = frame(lm, turn) else {
             return Blendshapes::default();
         };
         let f = features(&n);
@@ -615,7 +653,7 @@ fn index(b: Blendshape) -> usize {
 fn mean_face() -> (Features, [f64; 4]) {
     static MEAN: std::sync::OnceLock<(Features, [f64; 4])> = std::sync::OnceLock::new();
     *MEAN.get_or_init(|| {
-        let n = face_frame(&crate::shape::dan_mean_shape()).unwrap_or([(0.0, 0.0); 68]);
+        let n = frame(&crate::shape::dan_mean_shape(), None).unwrap_or([(0.0, 0.0); 68]);
         (features(&n), sides(&n))
     })
 }
@@ -657,6 +695,30 @@ mod tests {
     use super::*;
 
     #[test]
+    fn committed_pose_terms_parse_and_undo_turns() {
+        let terms = pose_terms().expect("models/assets/blendshape_pose.txt parses");
+        // Facing the camera nothing moves; turned, the landmarks move (the chin most of all).
+        let mean = face_frame(&crate::shape::dan_mean_shape()).unwrap();
+        let mut ahead = mean;
+        terms.frontalise(&mut ahead, HeadTurn::default());
+        assert_eq!(ahead, mean);
+        let mut turned = mean;
+        terms.frontalise(
+            &mut turned,
+            HeadTurn {
+                across: 0.4,
+                down: 0.0,
+            },
+        );
+        assert!(
+            (turned[8].0 - mean[8].0).abs() > 0.05,
+            "{:?} {:?}",
+            turned[8],
+            mean[8]
+        );
+    }
+
+    #[test]
     fn names_are_arkits_and_cover_what_68_landmarks_see() {
         let names: std::collections::HashSet<&str> = Blendshape::ALL.iter().map(|b| b.arkit_name()).collect();
         assert_eq!(names.len(), N_BLENDSHAPES, "one name each");
@@ -674,15 +736,15 @@ mod tests {
         let rest = crate::shape::dan_mean_shape().map(|p| Point2::new(200.0 + 2.0 * p.x, 150.0 + 2.0 * p.y));
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         for _ in 0..40 {
-            let b = e.update(&rest, true);
+            let b = e.update(&rest, true, None);
             assert!(b.0.iter().all(|&v| v < 1e-4), "{b:?}");
         }
         assert!(e.is_calibrated());
         let flat = [Point2::new(5.0, 5.0); 68];
-        assert_eq!(e.update(&flat, true), Blendshapes::default());
+        assert_eq!(e.update(&flat, true, None), Blendshapes::default());
         let mut nan = rest;
         nan[10] = Point2::new(f32::NAN, 1.0);
-        let b = e.update(&nan, true);
+        let b = e.update(&nan, true, None);
         assert!(b.0.iter().all(|v| (0.0..=1.0).contains(v)), "{b:?}");
         e.recalibrate();
         assert!(!e.is_calibrated());
@@ -696,19 +758,19 @@ mod tests {
         off[8].x += 20.0;
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         for _ in 0..30 {
-            e.update(&off, false);
+            e.update(&off, false, None);
         }
         assert!(e.is_calibrated());
         for _ in 0..30 {
-            e.update(&rest, true);
+            e.update(&rest, true, None);
         }
-        let b = e.update(&rest, true);
+        let b = e.update(&rest, true, None);
         assert!(
             b.get(Blendshape::JawLeft) < 1e-4 && b.get(Blendshape::JawRight) < 1e-4,
             "{b:?}"
         );
         // Without a jaw line the chin's coefficients are 0 whatever the slots hold.
-        let b = e.update(&off, false);
+        let b = e.update(&off, false, None);
         assert_eq!(
             (b.get(Blendshape::JawLeft), b.get(Blendshape::JawRight)),
             (0.0, 0.0)
