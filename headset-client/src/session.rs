@@ -274,8 +274,9 @@ pub struct FaceUpdate {
     /// Attributes from the expression weights.
     pub attributes: Attributes,
     /// ARKit-named blendshape coefficients in [0, 1] ([`holoface_models::blendshapes`]), from the steadied
-    /// landmarks in the face's own frame against this person's neutral (calibrated on the track's first
-    /// [`SessionOptions::blendshapes`] frames; see [`crate::FaceTracker::recalibrate_blendshapes`]).
+    /// landmarks in the face's own frame, the head's turn undone, against this person's neutral (calibrated
+    /// on the track's first [`SessionOptions::blendshapes`] frames of each aligner; see
+    /// [`crate::FaceTracker::recalibrate_blendshapes`]).
     pub blendshapes: Blendshapes,
     /// Where the frame's initial shape came from.
     pub init: InitSource,
@@ -552,7 +553,9 @@ impl TrackerSession {
             .map(|i| self.tracks[i].expressions.clone())
             .unwrap_or_else(|| BlendshapeEstimator::new(self.opts.blendshapes));
         let turn = HeadTurn::from_pose(fitted.rotation, fitted.translation);
-        let blendshapes = expressions.update(&shown, a.set == LandmarkSet::Ibug68, Some(turn));
+        // Each aligner calibrates its own neutral: they place a resting face a little differently.
+        let blendshapes =
+            expressions.update_from(a.answered_by as u8, &shown, a.set == LandmarkSet::Ibug68, Some(turn));
         let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
             Some(mut t) => {
                 let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;

@@ -527,10 +527,9 @@ impl Default for BlendshapeParams {
     }
 }
 
-/// One face's estimator: its neutral (being calibrated or done) and the last coefficients.
-#[derive(Clone, Debug)]
-pub struct BlendshapeEstimator {
-    params: BlendshapeParams,
+/// One source's neutral: being calibrated, or done.
+#[derive(Clone, Debug, Default)]
+struct Calibration {
     /// The calibration frames' features (kept until calibrated).
     seen: Vec<Features>,
     /// The lip-side features' calibration, like `seen`.
@@ -541,79 +540,142 @@ pub struct BlendshapeEstimator {
     neutral_jaw: Option<[f64; 2]>,
 }
 
+/// Frames after which a calibrating neutral is used provisionally (their median) instead of a mean face's.
+const PROVISIONAL_FRAMES: usize = 5;
+
+impl Calibration {
+    /// The median of the frames seen so far, once there are [`PROVISIONAL_FRAMES`]: a person's face is closer
+    /// to its own first frames than to a mean face.
+    fn provisional(&self) -> Option<(Features, [f64; 4])> {
+        (self.seen.len() >= PROVISIONAL_FRAMES).then(|| (median(&self.seen), median(&self.seen_sides)))
+    }
+
+    fn provisional_jaw(&self) -> Option<[f64; 2]> {
+        (self.seen_jaw.len() >= PROVISIONAL_FRAMES).then(|| median(&self.seen_jaw))
+    }
+
+    /// Takes one frame's features into the calibration while it lasts.
+    fn observe(&mut self, f: &Features, s: [f64; 4], jaw_line: bool, frames: usize) {
+        if jaw_line && self.neutral_jaw.is_none() {
+            self.seen_jaw
+                .push([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
+            if self.seen_jaw.len() >= frames {
+                self.neutral_jaw = Some(median(&self.seen_jaw));
+                self.seen_jaw = Vec::new();
+            }
+        }
+        if self.neutral.is_none() {
+            self.seen.push(*f);
+            self.seen_sides.push(s);
+            if self.seen.len() >= frames {
+                self.neutral = Some((median(&self.seen), median(&self.seen_sides)));
+                self.seen = Vec::new();
+                self.seen_sides = Vec::new();
+            }
+        }
+    }
+}
+
+/// One face's estimator: a neutral per source of landmarks (being calibrated or done).
+///
+/// Aligners differ systematically (the server's DAN and the headset's KRFWS place a resting mouth a little
+/// differently), so each source ([`Self::update_from`]) calibrates its own neutral on its own frames; until
+/// it has, it reads against another source's calibrated neutral, else the median of its own first frames
+/// (from the fifth), else a mean face's.
+#[derive(Clone, Debug)]
+pub struct BlendshapeEstimator {
+    params: BlendshapeParams,
+    /// Per source id, in the order first seen.
+    sources: Vec<(u8, Calibration)>,
+}
+
 impl BlendshapeEstimator {
     /// An estimator that calibrates on the first frames it sees.
     pub fn new(params: BlendshapeParams) -> Self {
         Self {
             params,
-            seen: Vec::new(),
-            seen_sides: Vec::new(),
-            neutral: None,
-            seen_jaw: Vec::new(),
-            neutral_jaw: None,
+            sources: Vec::new(),
         }
     }
 
-    /// Whether the neutral is calibrated.
+    /// Whether a neutral is calibrated (for any source).
     pub fn is_calibrated(&self) -> bool {
-        self.neutral.is_some()
+        self.sources.iter().any(|(_, c)| c.neutral.is_some())
     }
 
-    /// Forgets the neutral: the next frames calibrate it again.
+    /// Forgets every neutral: the next frames calibrate them again.
     pub fn recalibrate(&mut self) {
-        self.seen.clear();
-        self.seen_sides.clear();
-        self.neutral = None;
-        self.seen_jaw.clear();
-        self.neutral_jaw = None;
+        self.sources.clear();
     }
 
     /// Sets the neutral from landmarks of the person at rest (instead of the first frames), with the head's
-    /// turn as for [`Self::update`].
+    /// turn as for [`Self::update`]; for every source (each calibrated on its own frames afterwards is
+    /// replaced).
     pub fn set_neutral(&mut self, lm: &[Point2; 68], turn: Option<HeadTurn>) -> bool {
         let Some(n) = frame(lm, turn) else {
             return false;
         };
         let f = features(&n);
-        self.neutral_jaw = Some([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
-        self.neutral = Some((f, sides(&n)));
+        self.sources = vec![(
+            0,
+            Calibration {
+                neutral_jaw: Some([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]),
+                neutral: Some((f, sides(&n))),
+                ..Calibration::default()
+            },
+        )];
         true
     }
 
-    /// The coefficients of one frame's landmarks (image pixels); all 0 for a degenerate shape. `jaw_line`:
-    /// whether the jaw points (0-16) were aligned (not with KRFWS's 51 points). `turn`: the head's turn
-    /// (from the frame's CANDIDE-3 fit), whose shift of the landmarks is undone first ([`PoseTerms`]);
-    /// `None` reads the landmarks as they are (a still image without a fit). Give it on every frame or on
-    /// none: the neutral is read the same way.
+    /// [`Self::update_from`] for one source of landmarks (source 0).
     pub fn update(&mut self, lm: &[Point2; 68], jaw_line: bool, turn: Option<HeadTurn>) -> Blendshapes {
+        self.update_from(0, lm, jaw_line, turn)
+    }
+
+    /// The coefficients of one frame's landmarks (image pixels) from `source` (an aligner's id: each has
+    /// its own neutral); all 0 for a degenerate shape. `jaw_line`: whether the jaw points (0-16) were
+    /// aligned (not with KRFWS's 51 points). `turn`: the head's turn (from the frame's CANDIDE-3 fit), whose
+    /// shift of the landmarks is undone first ([`PoseTerms`]); `None` reads the landmarks as they are (a
+    /// still image without a fit). Give it on every frame or on none: the neutral is read the same way.
+    pub fn update_from(
+        &mut self,
+        source: u8,
+        lm: &[Point2; 68],
+        jaw_line: bool,
+        turn: Option<HeadTurn>,
+    ) -> Blendshapes {
         let Some(n) = frame(lm, turn) else {
             return Blendshapes::default();
         };
         let f = features(&n);
         let s = sides(&n);
-        if jaw_line && self.neutral_jaw.is_none() {
-            self.seen_jaw
-                .push([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
-            if self.seen_jaw.len() >= self.params.calibration_frames.max(1) {
-                self.neutral_jaw = Some(median(&self.seen_jaw));
-                self.seen_jaw = Vec::new();
-            }
-        }
-        let (mut f0, s0) = match self.neutral {
-            Some(v) => v,
+        let k = match self.sources.iter().position(|(id, _)| *id == source) {
+            Some(k) => k,
             None => {
-                self.seen.push(f);
-                self.seen_sides.push(s);
-                if self.seen.len() >= self.params.calibration_frames.max(1) {
-                    self.neutral = Some((median(&self.seen), median(&self.seen_sides)));
-                    self.seen = Vec::new();
-                    self.seen_sides = Vec::new();
-                }
-                mean_face()
+                self.sources.push((source, Calibration::default()));
+                self.sources.len() - 1
             }
         };
+        // This frame's neutral: the source's own once calibrated, else another's, else its own first frames',
+        // else a mean face's.
+        let own = &self.sources[k].1;
+        let pick = |get: fn(&Calibration) -> bool| {
+            Some(own)
+                .filter(|c| get(c))
+                .or_else(|| self.sources.iter().map(|(_, c)| c).find(|c| get(c)))
+        };
+        let neutral = pick(|c| c.neutral.is_some())
+            .and_then(|c| c.neutral)
+            .or_else(|| own.provisional());
+        let neutral_jaw = pick(|c| c.neutral_jaw.is_some())
+            .and_then(|c| c.neutral_jaw)
+            .or_else(|| own.provisional_jaw());
+        self.sources[k]
+            .1
+            .observe(&f, s, jaw_line, self.params.calibration_frames.max(1));
+        let (mut f0, s0) = neutral.unwrap_or_else(mean_face);
         // The chin's features from frames that aligned the jaw only (KRFWS's jaw slots hold its start).
-        let [chin_x, jaw_drop] = self.neutral_jaw.unwrap_or_else(|| {
+        let [chin_x, jaw_drop] = neutral_jaw.unwrap_or_else(|| {
             let m = mean_face().0;
             [m[slot(Feature::ChinX)], m[slot(Feature::ClosedJawDrop)]]
         });
@@ -693,6 +755,58 @@ fn median<const N: usize>(rows: &[[f64; N]]) -> [f64; N] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn each_source_reads_against_its_own_neutral_once_calibrated() {
+        let params = BlendshapeParams {
+            calibration_frames: 5,
+        };
+        let remote = crate::shape::dan_mean_shape();
+        // The local aligner places the resting mouth corners systematically higher.
+        let mut local = remote;
+        local[48].y -= 1.0;
+        local[54].y -= 1.0;
+        let smile = |b: &Blendshapes| b.get(Blendshape::MouthSmileLeft);
+        let mut e = BlendshapeEstimator::new(params);
+        for _ in 0..5 {
+            e.update_from(1, &remote, true, None);
+        }
+        assert!(e.is_calibrated());
+        // Before its own neutral, the local source reads against the remote one: the offset shows.
+        let first = e.update_from(2, &local, false, None);
+        assert!(smile(&first) > 0.2, "{first:?}");
+        for _ in 0..5 {
+            e.update_from(2, &local, false, None);
+        }
+        let local_now = e.update_from(2, &local, false, None);
+        let remote_now = e.update_from(1, &remote, true, None);
+        assert!(
+            local_now.0.iter().chain(&remote_now.0).all(|&v| v < 1e-6),
+            "{local_now:?} {remote_now:?}"
+        );
+        // Recalibration forgets both.
+        e.recalibrate();
+        assert!(!e.is_calibrated());
+    }
+
+    #[test]
+    fn while_calibrating_a_face_reads_against_its_own_first_frames() {
+        // A person whose resting mouth corners sit higher than the mean face's.
+        let mut face = crate::shape::dan_mean_shape();
+        face[48].y -= 1.0;
+        face[54].y -= 1.0;
+        let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
+        let first = e.update(&face, true, None);
+        assert!(first.get(Blendshape::MouthSmileLeft) > 0.2, "{first:?}");
+        for _ in 1..PROVISIONAL_FRAMES {
+            e.update(&face, true, None);
+        }
+        let sixth = e.update(&face, true, None);
+        assert!(
+            !e.is_calibrated() && sixth.0.iter().all(|&v| v < 1e-6),
+            "{sixth:?}"
+        );
+    }
 
     #[test]
     fn committed_pose_terms_parse_and_undo_turns() {
