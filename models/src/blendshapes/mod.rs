@@ -10,8 +10,10 @@
 //! displacement (a lid, a brow, a lip corner, the lip gap, ...) against the same person's **neutral**, in
 //! eye distances, divided by its
 //! full movement. The neutral is the per-feature median over the first [`BlendshapeParams::calibration_frames`]
-//! frames of tracking, so a resting face reads near 0 whoever it is (the person should be at rest then);
-//! until then, and for still images, it is a mean face's (the 300-W mean shape).
+//! frames of tracking (the quarter of them with the lips closest: a person may talk meanwhile), so a resting face
+//! reads near 0 whoever it is; each aligner calibrates its own (see [`BlendshapeEstimator`]). Until then it is
+//! another aligner's, else the median of the frames so far (from the fifth), else (the first frames, still
+//! images) a mean face's (the 300-W mean shape).
 //! [`BlendshapeEstimator::recalibrate`] starts over (a new person, or a calibration prompt). Without a jaw
 //! line (KRFWS's 51 points) the coefficients that read the chin (`jawLeft`, `jawRight`, `mouthClose`) are 0.
 //!
@@ -540,6 +542,9 @@ struct Calibration {
     neutral_jaw: Option<[f64; 2]>,
 }
 
+/// How far apart (eye distances) the inner lips of a closed mouth may read: a few pixels of landmark noise.
+const CLOSED_LIPS: f64 = 0.02;
+
 /// Frames after which a calibrating neutral is used provisionally (their median) instead of a mean face's.
 const PROVISIONAL_FRAMES: usize = 5;
 
@@ -547,7 +552,29 @@ impl Calibration {
     /// The median of the frames seen so far, once there are [`PROVISIONAL_FRAMES`]: a person's face is closer
     /// to its own first frames than to a mean face.
     fn provisional(&self) -> Option<(Features, [f64; 4])> {
-        (self.seen.len() >= PROVISIONAL_FRAMES).then(|| (median(&self.seen), median(&self.seen_sides)))
+        (self.seen.len() >= PROVISIONAL_FRAMES).then(|| self.resting())
+    }
+
+    /// The neutral of the frames seen: the per-feature median over those whose lips are closed (an inner-lip
+    /// gap within [`CLOSED_LIPS`] of the smallest, its 10th percentile; at least the quarter with the
+    /// smallest), so that a person who talks while it calibrates still gets a neutral with the mouth at rest.
+    fn resting(&self) -> (Features, [f64; 4]) {
+        let gap = slot(Feature::LipGap);
+        let mut gaps: Vec<f64> = self.seen.iter().map(|f| f[gap]).collect();
+        gaps.sort_by(f64::total_cmp);
+        let at = |q: usize| gaps.get(gaps.len().saturating_sub(1) * q / 100).copied();
+        let cut = match (at(10), at(25)) {
+            (Some(least), Some(quarter)) => quarter.max(least + CLOSED_LIPS),
+            _ => f64::INFINITY,
+        };
+        let (mut f, mut s) = (Vec::new(), Vec::new());
+        for (a, b) in self.seen.iter().zip(&self.seen_sides) {
+            if a[gap] <= cut {
+                f.push(*a);
+                s.push(*b);
+            }
+        }
+        (median(&f), median(&s))
     }
 
     fn provisional_jaw(&self) -> Option<[f64; 2]> {
@@ -568,7 +595,7 @@ impl Calibration {
             self.seen.push(*f);
             self.seen_sides.push(s);
             if self.seen.len() >= frames {
-                self.neutral = Some((median(&self.seen), median(&self.seen_sides)));
+                self.neutral = Some(self.resting());
                 self.seen = Vec::new();
                 self.seen_sides = Vec::new();
             }
@@ -806,6 +833,25 @@ mod tests {
             !e.is_calibrated() && sixth.0.iter().all(|&v| v < 1e-6),
             "{sixth:?}"
         );
+    }
+
+    #[test]
+    fn talking_while_calibrating_still_gives_a_resting_mouth() {
+        let closed = crate::shape::dan_mean_shape();
+        // The mouth open: the lower lip and the jaw dropped.
+        let mut open = closed;
+        for i in [5, 6, 7, 8, 9, 10, 11, 55, 56, 57, 58, 59, 65, 66, 67] {
+            open[i].y += 6.0;
+        }
+        let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
+        // Talking: open on three frames of every five.
+        for k in 0..30 {
+            e.update(if k % 5 < 3 { &open } else { &closed }, true, None);
+        }
+        assert!(e.is_calibrated());
+        let rest = e.update(&closed, true, None);
+        assert!(rest.0.iter().all(|&v| v < 1e-6), "{rest:?}");
+        assert!(e.update(&open, true, None).get(Blendshape::JawOpen) > 0.2);
     }
 
     #[test]

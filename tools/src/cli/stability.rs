@@ -63,6 +63,9 @@ pub struct Args {
     /// Stop after this many frames.
     #[arg(long, default_value_t = 100_000)]
     pub max_frames: usize,
+    /// Also write every frame (JSON lines: per aligner, who answered and the blendshape coefficients).
+    #[arg(long)]
+    pub frames: Option<PathBuf>,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -182,6 +185,31 @@ fn track_clip(
         frames += 1;
     }
     Ok(frames)
+}
+
+/// One JSON line per frame: per aligner, who answered and the blendshape coefficients (by ARKit name).
+fn frame_lines(runs: &[Run], frames: usize) -> String {
+    let mut out = String::new();
+    for t in 0..frames {
+        let per: serde_json::Map<String, serde_json::Value> = runs
+            .iter()
+            .map(|r| {
+                let shapes = r.shapes.get(t).copied().flatten().map(|b| {
+                    b.iter()
+                        .map(|(s, v)| (s.arkit_name().to_owned(), json!(v)))
+                        .collect::<serde_json::Map<_, _>>()
+                });
+                let by = r.by.get(t).copied().flatten().map(|b| format!("{b:?}"));
+                (
+                    r.name.to_owned(),
+                    json!({ "answered_by": by, "blendshapes": shapes }),
+                )
+            })
+            .collect();
+        out.push_str(&json!({ "frame": t, "aligners": per }).to_string());
+        out.push('\n');
+    }
+    out
 }
 
 /// Prints the table: one line per aligner (and its switch jumps), then the peer's.
@@ -376,6 +404,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     });
     write_atomic(&args.out, &serde_json::to_vec_pretty(&doc)?)?;
     crate::say!("wrote {}", args.out.display());
+    if let Some(path) = &args.frames {
+        write_atomic(path, frame_lines(&runs, frames))?;
+        crate::say!("wrote {}", path.display());
+    }
     if let Some(plot) = &args.plot {
         write_plot(plot, &runs, peer.as_deref(), !args.steady.no_steady)?;
         crate::say!("wrote {}", plot.display());
