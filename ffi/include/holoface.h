@@ -353,7 +353,9 @@ typedef struct HfResult {
    */
   double display_rotation_wxyz[4];
   /**
-   * CANDIDE-3 expression weights: jaw drop, lip stretcher, brow lowerer, lip-corner depressor, eyes closed.
+   * HoloFace's expression weights (jaw drop, lip stretcher, brow lowerer, lip-corner depressor, eyes closed),
+   * derived from `blendshapes`, each in [-1, 1] (negative brow lowerer: raised; negative lip-corner
+   * depressor: a smile).
    */
   double weights[5];
   /**

@@ -243,7 +243,9 @@ pub struct HfResult {
     pub display_position_m: [f64; 3],
     /// Rotation to render (denoised, w, x, y, z).
     pub display_rotation_wxyz: [f64; 4],
-    /// CANDIDE-3 expression weights: jaw drop, lip stretcher, brow lowerer, lip-corner depressor, eyes closed.
+    /// HoloFace's expression weights (jaw drop, lip stretcher, brow lowerer, lip-corner depressor, eyes closed),
+    /// derived from `blendshapes`, each in [-1, 1] (negative brow lowerer: raised; negative lip-corner
+    /// depressor: a smile).
     pub weights: [f64; 5],
     /// Attributes (0/1).
     pub smile: u8,
@@ -978,7 +980,7 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     c.predicted_position_m = u.predicted_position.to_array();
     c.display_position_m = u.display.0.to_array();
     c.display_rotation_wxyz = q(u.display.1);
-    c.weights = u.fit.weights.0;
+    c.weights = u.expression.0;
     c.blendshapes = u.blendshapes.0;
     c.smile = u8::from(u.attributes.smile);
     c.brows_raised = u8::from(u.attributes.brows_raised);

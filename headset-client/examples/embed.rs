@@ -47,7 +47,7 @@ fn main() -> anyhow::Result<()> {
     println!(
         "image: head at {:.3?} m (camera frame), jaw drop {:.2}, answered by {:?}",
         face.fit.translation.to_array(),
-        face.fit.weights[Unit::JawDrop],
+        face.expression[Unit::JawDrop],
         r.answered_by
     );
 

@@ -17,6 +17,7 @@
 
 use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
+use holoface_models::expression::ExpressionWeights;
 use holoface_models::geometry::{Point2, Rect, Similarity2};
 use holoface_models::kalman::{Denoiser, KalmanParams, PositionPredictor};
 use holoface_models::math3::{Pose, Quat, Vec3};
@@ -263,7 +264,8 @@ pub struct FaceUpdate {
     pub landmark_set: LandmarkSet,
     /// The aligner's confidence.
     pub confidence: Confidence,
-    /// CANDIDE-3 fit in the camera frame (head → camera).
+    /// CANDIDE-3 fit in the camera frame (head → camera); its `weights` shape the fitted mesh. What an app
+    /// reads as expression is [`Self::blendshapes`] (or [`Self::expression`]).
     pub fit: FitResult,
     /// Head pose in the world.
     pub world: WorldPose,
@@ -271,8 +273,12 @@ pub struct FaceUpdate {
     pub predicted_position: Vec3,
     /// Position and rotation to display (prediction after two-frame denoising).
     pub display: (Vec3, Quat),
-    /// Attributes from the expression weights.
+    /// Attributes (smile, brows raised, mouth open) from the blendshape coefficients.
     pub attributes: Attributes,
+    /// HoloFace's five expression weights (jaw drop, lip stretcher, brow lowerer, lip-corner depressor, eyes
+    /// closed), derived from [`Self::blendshapes`], each in [-1, 1]
+    /// ([`holoface_models::blendshapes::Blendshapes::expression_weights`]).
+    pub expression: ExpressionWeights,
     /// ARKit-named blendshape coefficients in [0, 1] ([`holoface_models::blendshapes`]), from the steadied
     /// landmarks in the face's own frame, the head's turn undone, against this person's neutral (calibrated
     /// on the track's first [`SessionOptions::blendshapes`] frames of each aligner; see
@@ -575,7 +581,7 @@ impl TrackerSession {
         };
         let predicted_position = predictor.predict(self.opts.lookahead_s);
         let display = denoiser.apply(predicted_position, world.rotation);
-        let attributes = self.opts.attributes.update(&fitted.weights, prev_attr);
+        let attributes = self.opts.attributes.update(&blendshapes, prev_attr);
         let track = Track {
             id,
             landmarks: a.landmarks,
@@ -604,6 +610,7 @@ impl TrackerSession {
                 predicted_position,
                 display,
                 attributes,
+                expression: blendshapes.expression_weights(),
                 blendshapes,
                 init: c.source,
                 answered_by: a.answered_by,
@@ -680,7 +687,7 @@ mod tests {
         let gt = FitResult {
             rotation: Quat::IDENTITY,
             translation: Vec3::new(0.0, 0.0, z),
-            weights: holoface_models::expression::ExpressionWeights::NEUTRAL,
+            weights: ExpressionWeights::NEUTRAL,
             rmse_px: 0.0,
             iterations: 0,
             converged: true,

@@ -1,8 +1,8 @@
 //! World pose of the head, expression attributes, and headset-motion-compensated landmark initialisation.
 
+use crate::blendshapes::{Blendshape, Blendshapes};
 use crate::camera::Intrinsics;
 use crate::candide::FitResult;
-use crate::expression::{ExpressionWeights, Unit};
 use crate::geometry::Point2;
 use crate::math3::{Mat3, Pose, Quat, Vec3};
 
@@ -68,35 +68,37 @@ pub fn compensate_headset_motion(
     moved
 }
 
-/// Binary facial attributes derived from the expression weights.
+/// Binary facial attributes derived from the blendshape coefficients.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Attributes {
-    /// AUV2 lip stretcher above its threshold.
+    /// `mouthSmileLeft/Right` (their mean) above its threshold.
     pub smile: bool,
-    /// AUV3 brow lowerer below minus its threshold (brows raised).
+    /// `browInnerUp` or `browOuterUpLeft/Right` (their mean) above its threshold.
     pub brows_raised: bool,
-    /// AUV11 jaw drop above its threshold.
+    /// `jawOpen` above its threshold.
     pub mouth_open: bool,
 }
 
-/// Thresholds and hysteresis for [`Attributes`] (HoloFace: smile 0.45, brows 0.20, mouth 0.40).
+/// Thresholds and hysteresis for [`Attributes`], on the coefficients (each in [0, 1]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AttributeThresholds {
-    /// Lip-stretcher weight that turns `smile` on.
+    /// Smile coefficient that turns `smile` on.
     pub smile: f64,
-    /// Negative brow-lowerer weight that turns `brows_raised` on.
+    /// Brow-raise coefficient that turns `brows_raised` on.
     pub brows_raised: f64,
-    /// Jaw-drop weight that turns `mouth_open` on.
+    /// `jawOpen` that turns `mouth_open` on.
     pub mouth_open: f64,
     /// An attribute turns off only below `threshold − hysteresis`.
     pub hysteresis: f64,
 }
 
 impl Default for AttributeThresholds {
+    /// Half a full movement for the mouth, a bit more for the brows (their readings at rest on real video
+    /// reach 0.3 at the 95th percentile).
     fn default() -> Self {
         Self {
             smile: 0.45,
-            brows_raised: 0.20,
+            brows_raised: 0.45,
             mouth_open: 0.40,
             hysteresis: 0.05,
         }
@@ -104,8 +106,8 @@ impl Default for AttributeThresholds {
 }
 
 impl AttributeThresholds {
-    /// Next attribute state from the expression weights and the previous state.
-    pub fn update(&self, weights: &ExpressionWeights, prev: Attributes) -> Attributes {
+    /// Next attribute state from the blendshape coefficients and the previous state.
+    pub fn update(&self, b: &Blendshapes, prev: Attributes) -> Attributes {
         let hyst = |on: bool, value: f64, thr: f64| {
             if on {
                 value > thr - self.hysteresis
@@ -114,9 +116,13 @@ impl AttributeThresholds {
             }
         };
         Attributes {
-            mouth_open: hyst(prev.mouth_open, weights[Unit::JawDrop], self.mouth_open),
-            smile: hyst(prev.smile, weights[Unit::LipStretcher], self.smile),
-            brows_raised: hyst(prev.brows_raised, -weights[Unit::BrowLowerer], self.brows_raised),
+            mouth_open: hyst(
+                prev.mouth_open,
+                f64::from(b.get(Blendshape::JawOpen)),
+                self.mouth_open,
+            ),
+            smile: hyst(prev.smile, b.smile(), self.smile),
+            brows_raised: hyst(prev.brows_raised, b.brows_raised(), self.brows_raised),
         }
     }
 }
@@ -164,20 +170,22 @@ mod tests {
     #[test]
     fn attributes_have_hysteresis() {
         let t = AttributeThresholds::default();
-        let a = t.update(
-            &ExpressionWeights([0.5, 0.0, -0.3, 0.0, 0.0]),
-            Attributes::default(),
-        );
+        let coef = |jaw: f32, brow: f32| {
+            let mut b = Blendshapes::default();
+            for (s, v) in [(Blendshape::JawOpen, jaw), (Blendshape::BrowInnerUp, brow)] {
+                let i = Blendshape::ALL.iter().position(|&x| x == s).unwrap_or(0);
+                b.0[i] = v;
+            }
+            b
+        };
+        let a = t.update(&coef(0.5, 0.5), Attributes::default());
         assert!(a.mouth_open && a.brows_raised && !a.smile);
-        let b = t.update(&ExpressionWeights([0.37, 0.0, -0.17, 0.0, 0.0]), a);
+        let b = t.update(&coef(0.37, 0.42), a);
         assert!(
             b.mouth_open && b.brows_raised,
             "stays on inside the hysteresis band"
         );
-        let c = t.update(
-            &ExpressionWeights([0.37, 0.0, -0.17, 0.0, 0.0]),
-            Attributes::default(),
-        );
+        let c = t.update(&coef(0.37, 0.42), Attributes::default());
         assert!(
             !c.mouth_open && !c.brows_raised,
             "does not turn on below the threshold"

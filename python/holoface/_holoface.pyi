@@ -122,6 +122,7 @@ class Face:
     display_pose: npt.NDArray[np.float64]
     """[4, 4] the pose to render: prediction after two-frame denoising."""
     expression_weights: dict[str, float]
+    """HoloFace's five expression weights, derived from `blendshapes`, each in [-1, 1]."""
     smile: bool
     brows_raised: bool
     mouth_open: bool

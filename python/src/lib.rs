@@ -451,7 +451,7 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         raw[[i, 1]] = r.y;
     }
     let weights = PyDict::new(py);
-    for (unit, w) in u.fit.weights.iter() {
+    for (unit, w) in u.expression.iter() {
         weights.set_item(unit.name(), w)?;
     }
     let (face_probability, predicted_error) = match u.confidence {

@@ -733,6 +733,42 @@ impl BlendshapeEstimator {
     }
 }
 
+impl Blendshapes {
+    /// The mean of a left/right pair (or the one value).
+    fn both(&self, left: Blendshape, right: Blendshape) -> f64 {
+        0.5 * (f64::from(self.get(left)) + f64::from(self.get(right)))
+    }
+
+    /// HoloFace's five expression weights (CANDIDE-3's units), derived from the coefficients, each in
+    /// [-1, 1] with the old signs: jaw drop `jawOpen`; lip stretcher `mouthStretch`; brow lowerer `browDown`
+    /// less the brows' raise (negative: raised); lip-corner depressor `mouthFrown` less `mouthSmile`
+    /// (negative: a smile); eyes closed `eyeBlink` less `eyeWide`.
+    pub fn expression_weights(&self) -> crate::expression::ExpressionWeights {
+        use Blendshape as B;
+        let raised =
+            f64::from(self.get(B::BrowInnerUp)).max(self.both(B::BrowOuterUpLeft, B::BrowOuterUpRight));
+        crate::expression::ExpressionWeights([
+            f64::from(self.get(B::JawOpen)),
+            self.both(B::MouthStretchLeft, B::MouthStretchRight),
+            self.both(B::BrowDownLeft, B::BrowDownRight) - raised,
+            self.both(B::MouthFrownLeft, B::MouthFrownRight)
+                - self.both(B::MouthSmileLeft, B::MouthSmileRight),
+            self.both(B::EyeBlinkLeft, B::EyeBlinkRight) - self.both(B::EyeWideLeft, B::EyeWideRight),
+        ])
+    }
+
+    /// A smile: the mean of `mouthSmileLeft/Right`.
+    pub fn smile(&self) -> f64 {
+        self.both(Blendshape::MouthSmileLeft, Blendshape::MouthSmileRight)
+    }
+
+    /// The brows' raise: `browInnerUp` or the outer brows' mean, the larger.
+    pub fn brows_raised(&self) -> f64 {
+        f64::from(self.get(Blendshape::BrowInnerUp))
+            .max(self.both(Blendshape::BrowOuterUpLeft, Blendshape::BrowOuterUpRight))
+    }
+}
+
 /// Where `b` is in [`Blendshape::ALL`].
 fn index(b: Blendshape) -> usize {
     Blendshape::ALL.iter().position(|&a| a == b).unwrap_or(0)
@@ -852,6 +888,31 @@ mod tests {
         let rest = e.update(&closed, true, None);
         assert!(rest.0.iter().all(|&v| v < 1e-6), "{rest:?}");
         assert!(e.update(&open, true, None).get(Blendshape::JawOpen) > 0.2);
+    }
+
+    #[test]
+    fn the_old_weights_come_from_the_coefficients_with_their_old_signs() {
+        let mut b = Blendshapes::default();
+        let set = |b: &mut Blendshapes, s: Blendshape, v: f32| b.0[index(s)] = v;
+        set(&mut b, Blendshape::JawOpen, 0.6);
+        set(&mut b, Blendshape::MouthSmileLeft, 0.8);
+        set(&mut b, Blendshape::MouthSmileRight, 0.6);
+        set(&mut b, Blendshape::BrowInnerUp, 0.5);
+        set(&mut b, Blendshape::EyeBlinkLeft, 1.0);
+        let w = b.expression_weights();
+        use crate::expression::Unit;
+        assert!((w[Unit::JawDrop] - 0.6).abs() < 1e-6);
+        assert!(
+            (w[Unit::LipCornerDepressor] + 0.7).abs() < 1e-6,
+            "a smile is negative"
+        );
+        assert!(
+            (w[Unit::BrowLowerer] + 0.5).abs() < 1e-6,
+            "raised brows are negative"
+        );
+        assert!((w[Unit::EyesClosed] - 0.5).abs() < 1e-6);
+        assert_eq!(w[Unit::LipStretcher], 0.0);
+        assert!((b.smile() - 0.7).abs() < 1e-6 && (b.brows_raised() - 0.5).abs() < 1e-6);
     }
 
     #[test]

@@ -303,7 +303,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 line["face"] = json!(true);
                 line["world_position_m"] = json!(u.world.position.to_array());
                 line["display_position_m"] = json!(u.display.0.to_array());
-                line["weights"] = json!(u.fit.weights.0);
+                line["weights"] = json!(u.expression.0);
                 line["attributes"] = json!({
                     "smile": u.attributes.smile,
                     "brows_raised": u.attributes.brows_raised,

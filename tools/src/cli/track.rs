@@ -118,7 +118,7 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
             "predicted_position_m": u.predicted_position.to_array(),
             "display_position_m": u.display.0.to_array(),
         },
-        "weights": u.fit.weights.iter()
+        "weights": u.expression.iter()
             .map(|(unit, w)| (unit.name().to_owned(), json!(w)))
             .collect::<serde_json::Map<_, _>>(),
         "attributes": {
