@@ -16,8 +16,11 @@
 //! here).
 //!
 //! Switching aligners (remote DAN and local KRFWS disagree by a few percent of the eye distance) would make
-//! the raw landmarks jump. [`LandmarkFilter::filter`] is told which source answered; on a change it keeps the
-//! output continuous and lets the offset between the two sources fade out over [`SteadyParams::switch_fade_s`].
+//! the raw landmarks jump. [`LandmarkFilter::filter`] is told which source answered; on a change it moves the
+//! new source's answers back onto the path the filters were on (their shape, and their placement where its
+//! speed would have taken it), then lets that offset fade out over [`SteadyParams::switch_fade_s`]: the
+//! output keeps its position and its speed across the switch (a face moving when the link drops does not
+//! stop for a frame).
 
 use crate::geometry::{Point2, Similarity2};
 
@@ -175,11 +178,13 @@ struct State<const N: usize> {
     rigid: [OneEuro; RIGID],
     /// The rigid parameters last seen (angle unwrapping).
     last_angle: f64,
-    /// Offset (face frame) added to the filtered shape after a switch, and the time it has left.
-    offset: [Point2; N],
+    /// After a switch, how far the new source's answers sit from where the filter was going (its shape in
+    /// the face's frame, its placement's predicted parameters): taken off the filters' inputs, fading out,
+    /// so that the output keeps its position and its speed across the switch. The time the fade has left.
+    bias_shape: [Point2; N],
+    bias_rigid: [f64; RIGID],
     fade_left_s: f64,
     fade_total_s: f64,
-    last_out: [Point2; N],
 }
 
 /// Why a [`LandmarkFilter`] could not be built.
@@ -296,10 +301,10 @@ impl<const N: usize> LandmarkFilter<N> {
                 }),
                 rigid: r.map(OneEuro::start),
                 last_angle: r[3],
-                offset: [Point2::default(); N],
+                bias_shape: [Point2::default(); N],
+                bias_rigid: [0.0; RIGID],
                 fade_left_s: 0.0,
                 fade_total_s: 0.0,
-                last_out: *raw,
             });
             return *raw;
         };
@@ -321,9 +326,6 @@ impl<const N: usize> LandmarkFilter<N> {
             st.rigid[2].x = s1.ln();
             st.rigid[3].x = a1;
             st.last_angle = a1;
-            for p in &mut st.last_out {
-                *p = moved.apply(*p);
-            }
         }
         // Unwrap the rotation next to the last one so the filter never sees a 2π jump.
         let mut angle = sim.angle();
@@ -335,29 +337,16 @@ impl<const N: usize> LandmarkFilter<N> {
         }
         st.last_angle = angle;
         let r = rigid_raw(angle);
-        let mut rf = [0.0; RIGID];
-        for k in 0..RIGID {
-            rf[k] = st.rigid[k].step_predicted(r[k], dt, &p.rigid);
-        }
-        let (s, a) = (rf[2].exp(), rf[3]);
-        let placed = Similarity2::from_parts(s, a, rf[0] * s, rf[1] * s);
-        let mut shape = [Point2::default(); N];
-        for (i, f) in st.shape.iter_mut().enumerate() {
-            shape[i] = Point2::new(
-                f[0].step(f64::from(face[i].x), dt, &p.shape) as f32,
-                f[1].step(f64::from(face[i].y), dt, &p.shape) as f32,
-            );
-        }
         if source != st.source {
             st.source = source;
-            // Keep the output where it was: the offset that would put this frame's output on the last one's
-            // (in the face's frame), faded out from here.
-            if self.params.switch_fade_s > 0.0
-                && let Some(pinv) = placed.inverse()
-            {
-                for ((o, last), now) in st.offset.iter_mut().zip(&st.last_out).zip(&shape) {
-                    let last = pinv.apply(*last);
-                    *o = Point2::new(last.x - now.x, last.y - now.y);
+            // The new source's offset from where the filters were going: its answers are moved back onto
+            // that path, then let go over the fade, so nothing jumps and nothing stops.
+            if self.params.switch_fade_s > 0.0 {
+                for ((b, f), now) in st.bias_rigid.iter_mut().zip(&st.rigid).zip(r) {
+                    *b = now - (f.x + f.dx * dt);
+                }
+                for ((b, f), now) in st.bias_shape.iter_mut().zip(&st.shape).zip(&face) {
+                    *b = Point2::new(now.x - f[0].x as f32, now.y - f[1].x as f32);
                 }
                 st.fade_left_s = self.params.switch_fade_s;
                 st.fade_total_s = self.params.switch_fade_s;
@@ -365,17 +354,29 @@ impl<const N: usize> LandmarkFilter<N> {
         } else {
             st.fade_left_s = (st.fade_left_s - dt).max(0.0);
         }
-        if st.fade_left_s > 0.0 && st.fade_total_s > 0.0 {
-            let w = (st.fade_left_s / st.fade_total_s) as f32;
-            for (p, o) in shape.iter_mut().zip(&st.offset) {
-                p.x += w * o.x;
-                p.y += w * o.y;
-            }
+        let w = if st.fade_left_s > 0.0 && st.fade_total_s > 0.0 {
+            st.fade_left_s / st.fade_total_s
+        } else {
+            0.0
+        };
+        let mut rf = [0.0; RIGID];
+        for k in 0..RIGID {
+            rf[k] = st.rigid[k].step_predicted(r[k] - w * st.bias_rigid[k], dt, &p.rigid);
+        }
+        let (s, a) = (rf[2].exp(), rf[3]);
+        let placed = Similarity2::from_parts(s, a, rf[0] * s, rf[1] * s);
+        let mut shape = [Point2::default(); N];
+        let wf = w as f32;
+        for (i, f) in st.shape.iter_mut().enumerate() {
+            let b = st.bias_shape[i];
+            shape[i] = Point2::new(
+                f[0].step(f64::from(face[i].x - wf * b.x), dt, &p.shape) as f32,
+                f[1].step(f64::from(face[i].y - wf * b.y), dt, &p.shape) as f32,
+            );
         }
         let mut out = [Point2::default(); N];
         placed.apply_all(&shape, &mut out);
         st.timestamp_us = timestamp_us;
-        st.last_out = out;
         out
     }
 }
@@ -540,6 +541,55 @@ mod tests {
         assert!(worst_step < 2.0, "a frame moved {worst_step} px at the switch");
         let settled = out.iter().zip(&b).map(|(p, q)| p.dist(*q)).fold(0.0f32, f32::max);
         assert!(settled < 0.1, "still {settled} px off the new source");
+    }
+
+    #[test]
+    fn a_switch_while_the_face_moves_keeps_its_speed() {
+        let mut f = LandmarkFilter::new(&reference(), (36, 45), SteadyParams::default()).unwrap();
+        // A face crossing the image at 3 px per frame; the second source answers 5 px lower and its mouth 3 px
+        // to the right, and is the precise kind (its light filter would pass a placement jump through).
+        let at = |k: u64| placed(&Similarity2::from_parts(2.0, 0.0, 150.0 + 3.0 * k as f64, 150.0));
+        let other = |k: u64| {
+            let mut b = at(k);
+            for (i, p) in b.iter_mut().enumerate() {
+                p.y += 5.0;
+                if i >= 48 {
+                    p.x += 3.0;
+                }
+            }
+            b
+        };
+        let precise = Source { id: 2, precise: true };
+        let mut out = Vec::new();
+        for k in 0..60u64 {
+            let (lm, src) = if k < 30 {
+                (at(k), NOISY0)
+            } else {
+                (other(k), precise)
+            };
+            out.push(f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY));
+        }
+        // The largest change of speed (second difference, any point) around the switch, in pixels per frame.
+        let second = |t: usize| {
+            (0..68)
+                .map(|i| {
+                    let (a, b, c) = (out[t - 2][i], out[t - 1][i], out[t][i]);
+                    (a.x + c.x - 2.0 * b.x).hypot(a.y + c.y - 2.0 * b.y)
+                })
+                .fold(0.0f32, f32::max)
+        };
+        let worst = (28..40).map(second).fold(0.0f32, f32::max);
+        // Stopping for a frame would change the speed by the face's 3 px per frame.
+        assert!(
+            worst < 1.2,
+            "the speed changed by {worst} px per frame at the switch"
+        );
+        let settled = out[59]
+            .iter()
+            .zip(&other(59))
+            .map(|(p, q)| p.dist(*q))
+            .fold(0.0f32, f32::max);
+        assert!(settled < 0.5, "still {settled} px off the new source");
     }
 
     #[test]

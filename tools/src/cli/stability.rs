@@ -63,7 +63,8 @@ pub struct Args {
     /// Stop after this many frames.
     #[arg(long, default_value_t = 100_000)]
     pub max_frames: usize,
-    /// Also write every frame (JSON lines: per aligner, who answered and the blendshape coefficients).
+    /// Also write every frame (JSON lines: per aligner, who answered, the blendshape coefficients and the
+    /// steadied and raw landmarks).
     #[arg(long)]
     pub frames: Option<PathBuf>,
     /// CANDIDE-3 model.
@@ -187,7 +188,8 @@ fn track_clip(
     Ok(frames)
 }
 
-/// One JSON line per frame: per aligner, who answered and the blendshape coefficients (by ARKit name).
+/// One JSON line per frame: per aligner, who answered, the blendshape coefficients (by ARKit name) and the
+/// steadied and raw landmarks (x, y pairs).
 fn frame_lines(runs: &[Run], frames: usize) -> String {
     let mut out = String::new();
     for t in 0..frames {
@@ -200,9 +202,19 @@ fn frame_lines(runs: &[Run], frames: usize) -> String {
                         .collect::<serde_json::Map<_, _>>()
                 });
                 let by = r.by.get(t).copied().flatten().map(|b| format!("{b:?}"));
+                let points = |lm: Option<&Landmarks>| {
+                    lm.copied()
+                        .flatten()
+                        .map(|p| p.iter().flat_map(|q| [q.x, q.y]).collect::<Vec<f32>>())
+                };
                 (
                     r.name.to_owned(),
-                    json!({ "answered_by": by, "blendshapes": shapes }),
+                    json!({
+                        "answered_by": by,
+                        "blendshapes": shapes,
+                        "landmarks": points(r.steady.get(t)),
+                        "raw_landmarks": points(r.raw.get(t)),
+                    }),
                 )
             })
             .collect();
