@@ -537,13 +537,25 @@ struct Calibration {
     /// The lip-side features' calibration, like `seen`.
     seen_sides: Vec<[f64; 4]>,
     neutral: Option<(Features, [f64; 4])>,
-    /// The chin's two features, calibrated on frames with a jaw line only.
-    seen_jaw: Vec<[f64; 2]>,
+    /// The chin's two features and the lips' gap, calibrated on frames with a jaw line only.
+    seen_jaw: Vec<[f64; 3]>,
     neutral_jaw: Option<[f64; 2]>,
 }
 
 /// How far apart (eye distances) the inner lips of a closed mouth may read: a few pixels of landmark noise.
 const CLOSED_LIPS: f64 = 0.02;
+
+/// The largest inner-lip gap of the calibration frames counted as closed lips: within [`CLOSED_LIPS`] of the
+/// gaps' 10th percentile, and at least their lower quartile (infinite without frames).
+fn closed_lips(gaps: impl Iterator<Item = f64>) -> f64 {
+    let mut gaps: Vec<f64> = gaps.collect();
+    gaps.sort_by(f64::total_cmp);
+    let at = |q: usize| gaps.get(gaps.len().saturating_sub(1) * q / 100).copied();
+    match (at(10), at(25)) {
+        (Some(least), Some(quarter)) => quarter.max(least + CLOSED_LIPS),
+        _ => f64::INFINITY,
+    }
+}
 
 /// Frames after which a calibrating neutral is used provisionally (their median) instead of a mean face's.
 const PROVISIONAL_FRAMES: usize = 5;
@@ -555,18 +567,12 @@ impl Calibration {
         (self.seen.len() >= PROVISIONAL_FRAMES).then(|| self.resting())
     }
 
-    /// The neutral of the frames seen: the per-feature median over those whose lips are closed (an inner-lip
-    /// gap within [`CLOSED_LIPS`] of the smallest, its 10th percentile; at least the quarter with the
-    /// smallest), so that a person who talks while it calibrates still gets a neutral with the mouth at rest.
+    /// The neutral of the frames seen: the per-feature median over those whose lips are closed
+    /// ([`closed_lips`]), so that a person who talks while it calibrates still gets a neutral with the mouth
+    /// at rest.
     fn resting(&self) -> (Features, [f64; 4]) {
         let gap = slot(Feature::LipGap);
-        let mut gaps: Vec<f64> = self.seen.iter().map(|f| f[gap]).collect();
-        gaps.sort_by(f64::total_cmp);
-        let at = |q: usize| gaps.get(gaps.len().saturating_sub(1) * q / 100).copied();
-        let cut = match (at(10), at(25)) {
-            (Some(least), Some(quarter)) => quarter.max(least + CLOSED_LIPS),
-            _ => f64::INFINITY,
-        };
+        let cut = closed_lips(self.seen.iter().map(|f| f[gap]));
         let (mut f, mut s) = (Vec::new(), Vec::new());
         for (a, b) in self.seen.iter().zip(&self.seen_sides) {
             if a[gap] <= cut {
@@ -577,17 +583,32 @@ impl Calibration {
         (median(&f), median(&s))
     }
 
+    /// The chin's neutral, from the jaw frames with closed lips as [`Self::resting`].
+    fn resting_jaw(&self) -> [f64; 2] {
+        let cut = closed_lips(self.seen_jaw.iter().map(|r| r[2]));
+        let kept: Vec<[f64; 2]> = self
+            .seen_jaw
+            .iter()
+            .filter(|r| r[2] <= cut)
+            .map(|r| [r[0], r[1]])
+            .collect();
+        median(&kept)
+    }
+
     fn provisional_jaw(&self) -> Option<[f64; 2]> {
-        (self.seen_jaw.len() >= PROVISIONAL_FRAMES).then(|| median(&self.seen_jaw))
+        (self.seen_jaw.len() >= PROVISIONAL_FRAMES).then(|| self.resting_jaw())
     }
 
     /// Takes one frame's features into the calibration while it lasts.
     fn observe(&mut self, f: &Features, s: [f64; 4], jaw_line: bool, frames: usize) {
         if jaw_line && self.neutral_jaw.is_none() {
-            self.seen_jaw
-                .push([f[slot(Feature::ChinX)], f[slot(Feature::ClosedJawDrop)]]);
+            self.seen_jaw.push([
+                f[slot(Feature::ChinX)],
+                f[slot(Feature::ClosedJawDrop)],
+                f[slot(Feature::LipGap)],
+            ]);
             if self.seen_jaw.len() >= frames {
-                self.neutral_jaw = Some(median(&self.seen_jaw));
+                self.neutral_jaw = Some(self.resting_jaw());
                 self.seen_jaw = Vec::new();
             }
         }
