@@ -766,14 +766,11 @@ impl Blendshapes {
     /// (negative: a smile); eyes closed `eyeBlink` less `eyeWide`.
     pub fn expression_weights(&self) -> crate::expression::ExpressionWeights {
         use Blendshape as B;
-        let raised =
-            f64::from(self.get(B::BrowInnerUp)).max(self.both(B::BrowOuterUpLeft, B::BrowOuterUpRight));
         crate::expression::ExpressionWeights([
             f64::from(self.get(B::JawOpen)),
             self.both(B::MouthStretchLeft, B::MouthStretchRight),
-            self.both(B::BrowDownLeft, B::BrowDownRight) - raised,
-            self.both(B::MouthFrownLeft, B::MouthFrownRight)
-                - self.both(B::MouthSmileLeft, B::MouthSmileRight),
+            self.both(B::BrowDownLeft, B::BrowDownRight) - self.brows_raised(),
+            self.both(B::MouthFrownLeft, B::MouthFrownRight) - self.smile(),
             self.both(B::EyeBlinkLeft, B::EyeBlinkRight) - self.both(B::EyeWideLeft, B::EyeWideRight),
         ])
     }
