@@ -376,6 +376,10 @@ train-blendshapes:
 	$(CARGO) run --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
 	  --out models/assets/blendshape_pose.txt
 
+# The local aligner (models/KRFWS_MODEL_CARD.md): the annotated faces plus the teacher-labelled natural-pose ones
+# (LFW and the face-mask set's unmasked faces; make teacher-labels), 3 starts per teacher face.
+# `KRFWS_ARGS=` is the annotated-only ablation (the model shipped before 2026-12-03).
+KRFWS_ARGS ?= --teacher-labels .data/labels/lfw.hflabels,.data/labels/nomask.hflabels --teacher-starts 3
 train-krfws:
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
 
