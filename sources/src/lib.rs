@@ -12,6 +12,8 @@
 //! message.
 #![deny(missing_docs)]
 
+#[cfg(feature = "ffmpeg")]
+pub mod ffmpeg;
 pub mod images;
 pub mod output;
 pub mod poses;
@@ -24,6 +26,37 @@ pub mod video;
 pub mod y4m;
 
 pub use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
+
+/// A decoded video frame as the runtime takes it: no pose (the identity until a sidecar gives one), the given
+/// intrinsics or a 60° horizontal field of view.
+#[cfg(any(feature = "h264", feature = "ffmpeg"))]
+pub(crate) fn video_frame(
+    index: usize,
+    timestamp_us: u64,
+    image: holoface_models::image::GrayImage,
+    intrinsics: Option<holoface_models::camera::Intrinsics>,
+) -> OwnedFrame {
+    let intrinsics = intrinsics
+        .unwrap_or_else(|| holoface_headset_client::default_intrinsics(image.width(), image.height()));
+    OwnedFrame {
+        index,
+        timestamp_us,
+        image,
+        intrinsics,
+        world_from_camera: holoface_models::math3::Pose::IDENTITY,
+        ground_truth: None,
+    }
+}
+
+/// Limited-range luma (16–235, what almost every video encoder writes) → full range (0–255), rounded and
+/// clamped: video frames get the contrast the aligners were trained on (JPEG/PNG grey levels).
+#[cfg_attr(not(any(feature = "h264", feature = "ffmpeg")), allow(dead_code))]
+pub(crate) fn full_range_lut() -> [u8; 256] {
+    std::array::from_fn(|y| {
+        let v = ((y as f64 - 16.0) * 255.0 / 219.0).round();
+        v.clamp(0.0, 255.0) as u8
+    })
+}
 pub use source::open_source;
 
 /// A source's failure as the runtime's error type. The message is the whole context chain ("cam.y4m: frame 2:

@@ -233,6 +233,28 @@ fn is_matroska(path: &Path) -> bool {
     }
 }
 
+/// Whether `path` names a video container FFmpeg reads other than MP4 and Matroska, by extension.
+fn is_other_video(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+        [
+            "avi", "ts", "mts", "m2ts", "3gp", "flv", "ogv", "hevc", "h264", "264", "265",
+        ]
+        .contains(&e.to_ascii_lowercase().as_str())
+    })
+}
+
+/// A video file through FFmpeg's libraries (feature `ffmpeg`).
+#[cfg(feature = "ffmpeg")]
+fn open_video(path: &Path) -> anyhow::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(crate::ffmpeg::FfmpegSource::open(path, None)?))
+}
+
+/// Never called without the `ffmpeg` feature (the caller checks it first).
+#[cfg(not(feature = "ffmpeg"))]
+fn open_video(path: &Path) -> anyhow::Result<Box<dyn FrameSource>> {
+    bail!("{}: this build reads videos without FFmpeg", path.display())
+}
+
 /// Whether `path` is a PNG or JPEG image, by extension.
 fn is_image(path: &Path) -> bool {
     path.extension()
@@ -255,7 +277,9 @@ fn is_y4m(path: &Path) -> bool {
     }
 }
 
-/// Opens a frame source: a folder of images, one image (a photograph: one frame), an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-` for
+/// Opens a frame source: a folder of images, one image (a photograph: one frame), a video file (with the `ffmpeg`
+/// feature whatever the system's FFmpeg decodes: MP4, MOV, WebM, MKV, ... with H.264, HEVC, VP8/VP9, AV1; without
+/// it MP4/H.264 through OpenH264), a YUV4MPEG2 stream (`.y4m`, or `-` for
 /// standard input: a live camera piped through ffmpeg), or a recorded stream (`.hfrec`); with a pose sidecar
 /// (see [`crate::poses`]) the frames take their camera-to-world poses from it. `fps` times the frames of an
 /// image folder and of a `.y4m` whose header has no frame rate.
@@ -268,10 +292,12 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
     } else if path.is_file() {
         if is_image(path) {
             Box::new(ImageSequence::single(path, fps)?)
+        } else if cfg!(feature = "ffmpeg") && (is_mp4(path) || is_matroska(path) || is_other_video(path)) {
+            open_video(path)?
         } else if is_matroska(path) {
             bail!(
-                "{} is a WebM/Matroska video (VP8, VP9 or AV1): holoface decodes H.264 MP4 and y4m itself; pipe \
-                 other videos through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
+                "{} is a WebM/Matroska video (VP8, VP9 or AV1): this build decodes H.264 MP4 and y4m itself \
+                 (the `ffmpeg` feature reads the rest); pipe other videos through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
                 path.display(),
                 path.display()
             )

@@ -25,21 +25,12 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, anyhow, bail};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
-use holoface_models::math3::Pose;
 
 use crate::output::Output;
-use holoface_headset_client::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
+use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;
-
-/// Limited-range luma (16–235) → full range (0–255), rounded and clamped.
-fn full_range_lut() -> [u8; 256] {
-    std::array::from_fn(|y| {
-        let v = ((y as f64 - 16.0) * 255.0 / 219.0).round();
-        v.clamp(0.0, 255.0) as u8
-    })
-}
 
 /// Runs a call into the `mp4` crate, turning its errors and panics into one error type.
 fn mp4_call<T>(what: &str, f: impl FnOnce() -> mp4::Result<T>) -> anyhow::Result<T> {
@@ -188,7 +179,7 @@ impl Mp4Source {
             flushed: false,
             index: 0,
             intrinsics,
-            lut: full_range_lut(),
+            lut: crate::full_range_lut(),
         })
     }
 
@@ -290,17 +281,12 @@ impl Mp4Source {
             .map_or_else(|| self.index as u64 * 33_333, |std::cmp::Reverse(t)| t);
         let index = self.index;
         self.index += 1;
-        let intrinsics = self
-            .intrinsics
-            .unwrap_or_else(|| default_intrinsics(image.width(), image.height()));
-        Ok(Some(OwnedFrame {
+        Ok(Some(crate::video_frame(
             index,
             timestamp_us,
             image,
-            intrinsics,
-            world_from_camera: Pose::IDENTITY,
-            ground_truth: None,
-        }))
+            self.intrinsics,
+        )))
     }
 }
 
@@ -521,7 +507,7 @@ mod tests {
 
     #[test]
     fn luma_range_expansion_is_monotone_and_saturates() {
-        let lut = full_range_lut();
+        let lut = crate::full_range_lut();
         assert_eq!(lut[16], 0);
         assert_eq!(lut[235], 255);
         assert_eq!(lut[0], 0);

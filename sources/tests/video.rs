@@ -193,72 +193,117 @@ fn ffmpeg(args: &[&str]) {
     );
 }
 
-/// Camera MP4s as encoders write them (x264's defaults use B-frames; most cameras and screen recorders
-/// too): every frame decodes, in display order, with increasing times, and matches ffmpeg's own decode (luma,
-/// expanded from limited to full range as every frame of ours). Without B-frames the match is exact; with
-/// them OpenH264 is not bit-exact in a few B-frame blocks (measured: at most 199 of 19,200 pixels of a frame,
-/// by at most 7 grey levels, with x264's temporal direct mode; BENCHMARKS.md "Video input"), so each frame
-/// must be ffmpeg's frame of the same index and differ in under 2 % of its pixels by at most 8 levels.
-#[test]
-fn h264_of_every_common_profile_with_b_frames_decodes_every_frame_in_order() {
-    let d = tmp("profiles");
-    let (w, h, n) = (160usize, 120usize, 60usize);
+/// A clip of `testsrc2` (60 frames, 160x120, 25 fps) encoded by Debian's ffmpeg with `codec` (the encoder and
+/// its options) into `dir/name`.
+fn make_clip(dir: &Path, name: &str, codec: &[&str]) -> std::path::PathBuf {
+    let clip = dir.join(name);
+    let mut args = vec![
+        "-f",
+        "lavfi",
+        "-i",
+        "testsrc2=size=160x120:rate=25",
+        "-frames:v",
+        "60",
+    ];
+    args.extend(codec.iter().copied());
+    args.push(clip.to_str().unwrap());
+    ffmpeg(&args);
+    clip
+}
+
+/// ffmpeg's own decode of `clip` (every frame as decoded, no frame dropped or repeated): the luma planes in
+/// the decoder's pixel format, turned into the full-range 8-bit grey every frame of ours is (limited range
+/// 16-235 expanded; 10-bit rounded to 8 bits first; full range taken as it is).
+fn ffmpeg_luma(clip: &Path, w: usize, h: usize, pix_fmt: &str) -> Vec<Vec<u8>> {
+    let raw = clip.with_extension("yuv");
+    ffmpeg(&[
+        "-i",
+        clip.to_str().unwrap(),
+        "-fps_mode",
+        "passthrough",
+        "-f",
+        "rawvideo",
+        "-pix_fmt",
+        pix_fmt,
+        raw.to_str().unwrap(),
+    ]);
+    let yuv = std::fs::read(&raw).unwrap();
     let to_full = |v: u8| ((f64::from(v) - 16.0) * 255.0 / 219.0).round().clamp(0.0, 255.0) as u8;
-    for (name, x264, exact) in [
-        ("baseline", vec!["-profile:v", "baseline"], true),
-        ("high-no-b-frames", vec!["-profile:v", "high", "-bf", "0"], true),
-        ("main-b-frames", vec!["-profile:v", "main", "-bf", "3"], false),
-        (
-            "high-b-frames",
-            vec!["-profile:v", "high", "-bf", "3", "-b_strategy", "2"],
-            false,
-        ),
-        ("x264-defaults", vec![], false),
-        (
-            "high-temporal-direct",
-            vec!["-profile:v", "high", "-x264-params", "direct=temporal"],
-            false,
-        ),
-    ] {
-        let clip = d.join(format!("{name}.mp4"));
-        let clip_s = clip.to_str().unwrap();
-        let mut args = vec![
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc2=size=160x120:rate=25",
-            "-frames:v",
-            "60",
-        ];
-        args.extend(["-pix_fmt", "yuv420p", "-c:v", "libx264"]);
-        args.extend(x264.iter().copied());
-        args.push(clip_s);
-        ffmpeg(&args);
-        // ffmpeg's decode: the raw Y planes, expanded to full range.
-        let raw = d.join(format!("{name}.yuv"));
-        ffmpeg(&[
-            "-i",
-            clip_s,
-            "-f",
-            "rawvideo",
-            "-pix_fmt",
-            "yuv420p",
-            raw.to_str().unwrap(),
-        ]);
-        let yuv = std::fs::read(&raw).unwrap();
-        let frame_bytes = w * h * 3 / 2;
-        assert_eq!(yuv.len(), n * frame_bytes, "{name}: ffmpeg's frame count");
-        let theirs: Vec<Vec<u8>> = (0..n)
-            .map(|i| {
-                yuv[i * frame_bytes..i * frame_bytes + w * h]
-                    .iter()
-                    .map(|&v| to_full(v))
-                    .collect()
-            })
-            .collect();
-        let mut src = open_source(&clip, 25.0, None).unwrap();
-        let frames = read_all(src.as_mut()).unwrap_or_else(|e| panic!("{name}: {e:#}"));
-        assert_eq!(frames.len(), n, "{name}: every frame");
+    let (bytes_per_sample, full) = match pix_fmt {
+        "yuv420p" => (1, false),
+        "yuvj420p" => (1, true),
+        "yuv420p10le" => (2, false),
+        _ => panic!("{pix_fmt}"),
+    };
+    let frame_bytes = w * h * 3 / 2 * bytes_per_sample;
+    assert_eq!(yuv.len() % frame_bytes, 0, "{}: whole frames", clip.display());
+    yuv.chunks_exact(frame_bytes)
+        .map(|f| {
+            f[..w * h * bytes_per_sample]
+                .chunks_exact(bytes_per_sample)
+                .map(|s| {
+                    let v = if bytes_per_sample == 2 {
+                        ((u16::from_le_bytes([s[0], s[1]]) + 2) >> 2).min(255) as u8
+                    } else {
+                        s[0]
+                    };
+                    if full { v } else { to_full(v) }
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Every frame came out, in display order, with increasing times.
+fn assert_complete_and_ordered(name: &str, frames: &[holoface_headset_client::OwnedFrame], n: usize) {
+    assert_eq!(frames.len(), n, "{name}: every frame");
+    for (i, f) in frames.iter().enumerate() {
+        assert_eq!(f.index, i, "{name}");
+        if i > 0 {
+            assert!(
+                f.timestamp_us > frames[i - 1].timestamp_us,
+                "{name}: frame {i} out of order"
+            );
+        }
+    }
+}
+
+/// The H.264 settings cameras and encoders use: x264's defaults have B-frames (weighted, pyramid), as do most
+/// cameras and screen recorders.
+const H264_SETTINGS: &[(&str, &[&str])] = &[
+    ("baseline", &["-profile:v", "baseline"]),
+    ("high-no-b-frames", &["-profile:v", "high", "-bf", "0"]),
+    ("main-b-frames", &["-profile:v", "main", "-bf", "3"]),
+    (
+        "high-b-frames",
+        &["-profile:v", "high", "-bf", "3", "-b_strategy", "2"],
+    ),
+    ("x264-defaults", &[]),
+    (
+        "high-temporal-direct",
+        &["-profile:v", "high", "-x264-params", "direct=temporal"],
+    ),
+];
+
+/// OpenH264 (the `h264` feature, what the Python wheel reads MP4 with): every frame of every common H.264
+/// profile decodes, in display order, each ffmpeg's frame of the same index. Without B-frames the match is
+/// exact; with them OpenH264 is not bit-exact in a few B-frame blocks (measured: at most 199 of 19,200 pixels of
+/// a frame, by at most 7 grey levels, with x264's temporal direct mode; BENCHMARKS.md "Video input"), so each
+/// frame must differ in under 2 % of its pixels by at most 8 levels. A codec it cannot read is refused by name.
+#[test]
+fn openh264_reads_h264_of_every_common_profile_with_b_frames_in_order() {
+    let d = tmp("profiles-openh264");
+    let (w, h, n) = (160usize, 120usize, 60usize);
+    for (name, x264) in H264_SETTINGS {
+        let mut codec = vec!["-pix_fmt", "yuv420p", "-c:v", "libx264"];
+        codec.extend(x264.iter().copied());
+        let clip = make_clip(&d, &format!("{name}.mp4"), &codec);
+        let theirs = ffmpeg_luma(&clip, w, h, "yuv420p");
+        assert_eq!(theirs.len(), n, "{name}: ffmpeg's frame count");
+        let exact = x264.contains(&"baseline") || x264.contains(&"0");
+        let mut src = holoface_sources::video::Mp4Source::open(&clip, None).unwrap();
+        let frames = read_all(&mut src).unwrap_or_else(|e| panic!("{name}: {e:#}"));
+        assert_complete_and_ordered(name, &frames, n);
         let differing = |a: &[u8], b: &[u8]| a.iter().zip(b).filter(|(x, y)| x != y).count();
         for (i, f) in frames.iter().enumerate() {
             assert_eq!((f.image.width(), f.image.height()), (w, h), "{name} frame {i}");
@@ -268,61 +313,137 @@ fn h264_of_every_common_profile_with_b_frames_decodes_every_frame_in_order() {
                     ours == theirs[i].as_slice(),
                     "{name}: frame {i} differs from ffmpeg's"
                 );
-            } else {
-                let closest = (0..n).min_by_key(|&j| differing(ours, &theirs[j])).unwrap();
-                assert_eq!(
-                    closest, i,
-                    "{name}: frame {i} is ffmpeg's frame {closest} (out of order)"
-                );
-                let diff = differing(ours, &theirs[i]);
-                let max = ours
-                    .iter()
-                    .zip(&theirs[i])
-                    .map(|(a, b)| a.abs_diff(*b))
-                    .max()
-                    .unwrap();
-                assert!(
-                    diff * 50 < w * h && max <= 8,
-                    "{name}: frame {i}: {diff} pixels differ, by up to {max}"
-                );
+                continue;
             }
-            if i > 0 {
-                assert!(
-                    f.timestamp_us > frames[i - 1].timestamp_us,
-                    "{name}: frame {i} out of order"
-                );
-            }
+            let closest = (0..n).min_by_key(|&j| differing(ours, &theirs[j])).unwrap();
+            assert_eq!(
+                closest, i,
+                "{name}: frame {i} is ffmpeg's frame {closest} (out of order)"
+            );
+            let diff = differing(ours, &theirs[i]);
+            let max = ours
+                .iter()
+                .zip(&theirs[i])
+                .map(|(a, b)| a.abs_diff(*b))
+                .max()
+                .unwrap();
+            assert!(
+                diff * 50 < w * h && max <= 8,
+                "{name}: frame {i}: {diff} pixels differ, by up to {max}"
+            );
         }
     }
-    // A codec OpenH264 cannot read is refused by name, with the ffmpeg pipe that reads it.
-    for (file, codec, want) in [
-        ("clip.webm", ["-c:v", "libvpx-vp9"].as_slice(), "WebM"),
+    let hevc = make_clip(
+        &d,
+        "hevc.mp4",
+        &[
+            "-c:v",
+            "libx265",
+            "-x265-params",
+            "log-level=error",
+            "-tag:v",
+            "hev1",
+        ],
+    );
+    let err = holoface_sources::video::Mp4Source::open(&hevc, None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("no H.264 video track") && err.contains("yuv4mpegpipe"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+/// FFmpeg's libraries (the `ffmpeg` feature, what the `holoface` CLI reads video with): H.264 of every common
+/// profile, HEVC (8 and 10 bits), VP8 and VP9 WebM, full-range H.264 decode completely, in display order, and
+/// bit-exactly as `ffmpeg -i CLIP` decodes them, through `open_source` as the tools open them.
+#[cfg(feature = "ffmpeg")]
+#[test]
+fn ffmpeg_reads_every_common_codec_frame_exactly_in_order() {
+    let d = tmp("profiles-ffmpeg");
+    let (w, h, n) = (160usize, 120usize, 60usize);
+    let mut clips: Vec<(String, Vec<&str>, &str)> = H264_SETTINGS
+        .iter()
+        .map(|(name, x264)| {
+            let mut codec = vec!["-pix_fmt", "yuv420p", "-c:v", "libx264"];
+            codec.extend(x264.iter().copied());
+            (format!("{name}.mp4"), codec, "yuv420p")
+        })
+        .collect();
+    let x265 = ["-c:v", "libx265", "-x265-params", "log-level=error"];
+    clips.extend([
         (
-            "hevc.mp4",
-            ["-c:v", "libx265", "-tag:v", "hev1"].as_slice(),
-            "no H.264 video track",
+            "full-range.mp4".to_string(),
+            vec!["-pix_fmt", "yuvj420p", "-c:v", "libx264"],
+            "yuvj420p",
         ),
-    ] {
-        let clip = d.join(file);
-        let mut args = vec![
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc2=size=160x120:rate=25",
-            "-frames:v",
-            "5",
-        ];
-        args.extend(codec.iter().copied());
-        args.push(clip.to_str().unwrap());
-        ffmpeg(&args);
-        let err = open_source(&clip, 25.0, None)
-            .err()
-            .unwrap_or_else(|| panic!("{file} is refused"))
-            .to_string();
-        assert!(
-            err.contains(want) && err.contains("yuv4mpegpipe"),
-            "{file}: {err}"
-        );
+        (
+            "hevc.mp4".to_string(),
+            [&x265[..], &["-pix_fmt", "yuv420p", "-tag:v", "hvc1"]].concat(),
+            "yuv420p",
+        ),
+        (
+            "hevc-10bit.mkv".to_string(),
+            [&x265[..], &["-pix_fmt", "yuv420p10le"]].concat(),
+            "yuv420p10le",
+        ),
+        (
+            "vp9.webm".to_string(),
+            vec![
+                "-pix_fmt",
+                "yuv420p",
+                "-c:v",
+                "libvpx-vp9",
+                "-deadline",
+                "realtime",
+                "-cpu-used",
+                "8",
+            ],
+            "yuv420p",
+        ),
+        (
+            "vp8.webm".to_string(),
+            vec![
+                "-pix_fmt",
+                "yuv420p",
+                "-c:v",
+                "libvpx",
+                "-deadline",
+                "realtime",
+                "-cpu-used",
+                "8",
+            ],
+            "yuv420p",
+        ),
+    ]);
+    for (name, codec, pix_fmt) in &clips {
+        let clip = make_clip(&d, name, codec);
+        let theirs = ffmpeg_luma(&clip, w, h, pix_fmt);
+        assert_eq!(theirs.len(), n, "{name}: ffmpeg's frame count");
+        let mut src = open_source(&clip, 25.0, None).unwrap();
+        let frames = read_all(src.as_mut()).unwrap_or_else(|e| panic!("{name}: {e:#}"));
+        assert_complete_and_ordered(name, &frames, n);
+        for (i, f) in frames.iter().enumerate() {
+            assert_eq!((f.image.width(), f.image.height()), (w, h), "{name} frame {i}");
+            assert!(
+                f.image.view().data() == theirs[i].as_slice(),
+                "{name}: frame {i} differs from ffmpeg's decode"
+            );
+            // 25 fps: the stream's own times, 40 ms apart.
+            assert_eq!(f.timestamp_us, i as u64 * 40_000, "{name}: frame {i}'s time");
+        }
     }
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+/// Without FFmpeg's libraries a WebM is refused by name, with the ffmpeg pipe that reads it.
+#[cfg(not(feature = "ffmpeg"))]
+#[test]
+fn without_ffmpeg_a_webm_is_refused_with_the_pipe_that_reads_it() {
+    let d = tmp("webm-refused");
+    let clip = make_clip(&d, "clip.webm", &["-c:v", "libvpx-vp9", "-deadline", "realtime"]);
+    let err = open_source(&clip, 25.0, None).err().expect("refused").to_string();
+    assert!(err.contains("WebM") && err.contains("yuv4mpegpipe"), "{err}");
     let _ = std::fs::remove_dir_all(&d);
 }

@@ -32,8 +32,8 @@ pub enum StabilityAligner {
 /// Arguments of `holoface stability`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// Video (MP4/H.264), `.y4m`, or `-` for a YUV4MPEG2 stream on standard input
-    /// (`ffmpeg -i CLIP -f yuv4mpegpipe - | holoface stability --source -`).
+    /// A video file (MP4, WebM, MKV, ...: whatever the system's FFmpeg libraries decode), `.y4m`, or `-` for a
+    /// YUV4MPEG2 stream on standard input (`ffmpeg -i CLIP -f yuv4mpegpipe - | holoface stability --source -`).
     #[arg(long)]
     pub source: PathBuf,
     /// Frame rate when the source has none.

@@ -17,7 +17,8 @@ use holoface_sources::source::open_source;
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// A folder of PNG/JPEG frames (name order), an MP4/H.264 video, a YUV4MPEG2 stream (`.y4m`, or `-`
+    /// A folder of PNG/JPEG frames (name order), a video file (MP4, MOV, WebM, MKV: H.264, HEVC, VP8/VP9,
+    /// through the system's FFmpeg libraries; MP4/H.264 only in a build without them), a YUV4MPEG2 stream (`.y4m`, or `-`
     /// for standard input: a live camera through ffmpeg, taken as fixed without `--poses`), or a recorded
     /// stream (`.hfrec`).
     #[arg(long)]
