@@ -112,6 +112,9 @@ pub struct FfmpegSource {
     finished: bool,
     first_ts: Option<i64>,
     last_us: Option<u64>,
+    /// The video's length the container declares (µs), when it declares one: a file that ends well before it
+    /// was cut short (an interrupted download or copy).
+    declared_us: Option<u64>,
     index: usize,
     intrinsics: Option<Intrinsics>,
     lut: [u8; 256],
@@ -151,6 +154,19 @@ impl FfmpegSource {
             .streams()
             .best(ff::media::Type::Video)
             .ok_or_else(|| anyhow!("{shown} has no video stream"))?;
+        // The video stream's own length, else the container's (AV_TIME_BASE = µs); absent = not declared.
+        let declared_us = {
+            let own = stream.duration();
+            let tb = stream.time_base();
+            if own > 0 && tb.denominator() > 0 {
+                u64::try_from(
+                    i128::from(own) * i128::from(tb.numerator()) * 1_000_000 / i128::from(tb.denominator()),
+                )
+                .ok()
+            } else {
+                u64::try_from(input.duration()).ok().filter(|&d| d > 0)
+            }
+        };
         let (index, time_base, rate, params) = (
             stream.index(),
             stream.time_base(),
@@ -208,6 +224,7 @@ impl FfmpegSource {
             finished: false,
             first_ts: None,
             last_us: None,
+            declared_us,
             index: 0,
             intrinsics,
             lut: crate::full_range_lut(),
@@ -263,9 +280,12 @@ impl FfmpegSource {
                 Ok(()) => {}
                 Err(ff::Error::Eof) => {
                     self.drained = true;
-                    self.decoder
-                        .send_eof()
-                        .map_err(|e| anyhow!("ending the decode of {}: {e}", self.path.display()))?;
+                    self.decoder.send_eof().map_err(|e| {
+                        anyhow!(
+                            "ending the decode of {}: {e}; the file is damaged or cut short",
+                            self.path.display()
+                        )
+                    })?;
                     continue;
                 }
                 Err(e) => bail!(
@@ -331,6 +351,27 @@ impl FfmpegSource {
         GrayImage::from_vec(px, w, h).map_err(|e| anyhow!("a {w}x{h} frame: {e}"))
     }
 
+    /// At the end: refuses a video that stops well before the length its container declares (more than half a
+    /// second and three frames short), which is what a cut file looks like to the demuxer (it just ends).
+    fn check_complete(&self) -> anyhow::Result<()> {
+        let (Some(declared), Some(last)) = (self.declared_us, self.last_us) else {
+            return Ok(());
+        };
+        let got = last + self.frame_us;
+        let slack = (3 * self.frame_us).max(500_000);
+        if got + slack < declared {
+            bail!(
+                "{}: the video ends at {:.2} s ({} frames) but its container declares {:.2} s: the file is cut short \
+                 (an interrupted download or copy?)",
+                self.path.display(),
+                got as f64 / 1e6,
+                self.index,
+                declared as f64 / 1e6
+            );
+        }
+        Ok(())
+    }
+
     /// A frame's time in µs from the first frame: the stream's own time when it increases, else the previous
     /// time plus one frame.
     fn time_of(&mut self, ts: Option<i64>) -> u64 {
@@ -356,6 +397,7 @@ impl FfmpegSource {
     fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         self.fill()?;
         let Some((ts, image)) = self.ready.pop_front() else {
+            self.check_complete()?;
             return Ok(None);
         };
         let timestamp_us = self.time_of(ts);

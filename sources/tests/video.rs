@@ -447,3 +447,58 @@ fn without_ffmpeg_a_webm_is_refused_with_the_pipe_that_reads_it() {
     assert!(err.contains("WebM") && err.contains("yuv4mpegpipe"), "{err}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// Damaged WebM and Matroska files through FFmpeg: every case is an error naming the file or a decode that ends,
+/// never a panic or a hang; the files that cannot decode at all are errors.
+#[cfg(feature = "ffmpeg")]
+#[test]
+fn damaged_webm_files_are_errors_naming_the_file_never_a_panic() {
+    let d = tmp("damaged-webm");
+    let good = make_clip(
+        &d,
+        "good.webm",
+        &["-c:v", "libvpx", "-deadline", "realtime", "-cpu-used", "8"],
+    );
+    let bytes = std::fs::read(&good).unwrap();
+    let mut cases: Vec<(String, Vec<u8>)> = vec![
+        ("truncated.webm".into(), bytes[..bytes.len() / 2].to_vec()),
+        ("header-only.webm".into(), bytes[..64].to_vec()),
+        ("empty.webm".into(), Vec::new()),
+        (
+            "text.webm".into(),
+            b"\x1a\x45\xdf\xa3 this is not a video".to_vec(),
+        ),
+    ];
+    let mut damaged = bytes.clone();
+    let mid = damaged.len() / 3;
+    damaged[mid..mid + 300].fill(0xff);
+    cases.push(("damaged.webm".into(), damaged));
+    for k in (0..bytes.len().min(800)).step_by(41) {
+        let mut f = bytes.clone();
+        f[k] ^= 0x5a;
+        cases.push((format!("flipped-{k}.webm"), f));
+    }
+    for (name, data) in &cases {
+        let path = d.join(name);
+        std::fs::write(&path, data).unwrap();
+        let result = std::panic::catch_unwind(|| {
+            open_source(&path, 25.0, None).and_then(|mut s| read_all(&mut *s).map(|f| f.len()))
+        })
+        .unwrap_or_else(|_| panic!("{name}: panicked"));
+        match result {
+            Ok(n) => assert!(n <= 60, "{name}: {n} frames from a 60-frame clip"),
+            Err(e) => {
+                let msg = format!("{e:#}");
+                assert!(
+                    msg.contains(name.as_str()),
+                    "{name}: error does not name the file: {msg}"
+                );
+            }
+        }
+    }
+    for name in ["truncated.webm", "header-only.webm", "empty.webm", "text.webm"] {
+        let r = open_source(&d.join(name), 25.0, None).and_then(|mut s| read_all(&mut *s).map(|f| f.len()));
+        assert!(r.is_err(), "{name}: read {:?} frames", r.ok());
+    }
+    let _ = std::fs::remove_dir_all(&d);
+}
