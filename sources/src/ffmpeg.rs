@@ -11,7 +11,8 @@
 //! Bounds: the file must be a regular file opened through the `file` protocol only (no playlist or concat
 //! demuxer can make it open other files or URLs); the frame size is checked against [`MAX_SIDE`] and
 //! [`MAX_PIXELS`] before any frame is decoded, and the decoder itself refuses larger frames later in the stream
-//! (`max_pixels`). A packet the decoder refuses is an error naming the file and the packet; frames come out in
+//! (`max_pixels`). A packet the decoder refuses is an error naming the file and the packet, and so is a file
+//! that ends well before the length it declares (cut short: FFmpeg itself only logs it); frames come out in
 //! display order with increasing times.
 
 use std::collections::VecDeque;
