@@ -358,9 +358,9 @@ impl FfmpegSource {
         let (Some(declared), Some(last)) = (self.declared_us, self.last_us) else {
             return Ok(());
         };
-        let got = last + self.frame_us;
-        let slack = (3 * self.frame_us).max(500_000);
-        if got + slack < declared {
+        let got = last.saturating_add(self.frame_us);
+        let slack = self.frame_us.saturating_mul(3).max(500_000);
+        if got.saturating_add(slack) < declared {
             bail!(
                 "{}: the video ends at {:.2} s ({} frames) but its container declares {:.2} s: the file is cut short \
                  (an interrupted download or copy?)",
@@ -388,7 +388,7 @@ impl FfmpegSource {
         let t = match (from_stream, self.last_us) {
             (Some(t), Some(last)) if t > last => t,
             (Some(t), None) => t,
-            (_, Some(last)) => last + self.frame_us,
+            (_, Some(last)) => last.saturating_add(self.frame_us),
             (None, None) => 0,
         };
         self.last_us = Some(t);
