@@ -185,7 +185,7 @@ impl<E: InferenceEngine> InferenceEngine for CascadeEngine<E> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use holoface_models::geometry::Point2;
-    use holoface_models::refine::{RefineStage, RegressionTree, SHAPE_DIM, SplitTest};
+    use holoface_models::refine::{RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest};
 
     use super::*;
     use crate::fake::FakeEngine;
@@ -214,6 +214,7 @@ mod tests {
             name: "shift".into(),
             starts: 1,
             mirror: false,
+            sampling: Sampling::Nearest,
         }
         .to_bytes()
     }

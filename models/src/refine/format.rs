@@ -2,12 +2,13 @@
 //!
 //! ```text
 //! magic      8 bytes  "HFREFINE"
-//! version    u32      1
+//! version    u32      1 or 2
 //! name       u16 length + UTF-8 (at most 128 bytes)
 //! crop_size  u16      16..=1024
 //! depth      u8       1..=8
 //! starts     u8       1..=9 (refine from this many starts and take the per-coordinate median)
 //! mirror     u8       1 = also refine the mirror image and answer the mean, 0 = not
+//! sampling   u8       (version 2 only) 0 = nearest pixel, 1 = bilinear; version 1 is nearest
 //! stages     u16      1..=64
 //! mean       68 x (f32 x, f32 y)
 //! per stage:
@@ -24,14 +25,15 @@
 //! every index and float is validated, so a damaged file is an error naming what is wrong, never a panic.
 
 use super::{
-    REFINE_LANDMARKS, RefineCascade, RefineError, RefineStage, RegressionTree, SHAPE_DIM, SplitTest,
+    REFINE_LANDMARKS, RefineCascade, RefineError, RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest,
 };
 use crate::geometry::Point2;
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"HFREFINE";
-/// Current format version.
-pub const FORMAT_VERSION: u32 = 1;
+/// Newest format version (2: the sampling byte). A nearest-pixel model is written as version 1, so the
+/// files of older builds stay byte for byte the same.
+pub const FORMAT_VERSION: u32 = 2;
 const MAX_NAME: usize = 128;
 const MAX_STAGES: usize = 64;
 const MAX_FEATURES: usize = 4096;
@@ -84,7 +86,11 @@ impl RefineCascade {
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut out = Vec::new();
         out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        let version: u32 = match self.sampling {
+            Sampling::Nearest => 1,
+            Sampling::Bilinear => FORMAT_VERSION,
+        };
+        out.extend_from_slice(&version.to_le_bytes());
         let name = self.name.as_bytes();
         let name = &name[..name.len().min(MAX_NAME)];
         out.extend_from_slice(&(name.len() as u16).to_le_bytes());
@@ -93,6 +99,9 @@ impl RefineCascade {
         out.push(self.depth as u8);
         out.push(self.starts as u8);
         out.push(u8::from(self.mirror));
+        if version >= 2 {
+            out.push(u8::from(self.sampling == Sampling::Bilinear));
+        }
         out.extend_from_slice(&(self.stages.len() as u16).to_le_bytes());
         for p in &self.mean {
             out.extend_from_slice(&p.x.to_le_bytes());
@@ -144,9 +153,9 @@ impl RefineCascade {
             pos: MAGIC.len(),
         };
         let version = r.u32("version")?;
-        if version != FORMAT_VERSION {
+        if !(1..=FORMAT_VERSION).contains(&version) {
             return Err(bad(format!(
-                "format version {version}, this build reads {FORMAT_VERSION}"
+                "format version {version}, this build reads 1..={FORMAT_VERSION}"
             )));
         }
         let name_len = usize::from(r.u16("name length")?);
@@ -175,6 +184,14 @@ impl RefineCascade {
             0 => false,
             1 => true,
             v => return Err(bad(format!("mirror flag {v} (0 or 1)"))),
+        };
+        let sampling = match version {
+            1 => Sampling::Nearest,
+            _ => match r.u8("sampling")? {
+                0 => Sampling::Nearest,
+                1 => Sampling::Bilinear,
+                v => return Err(bad(format!("sampling {v} (0 nearest or 1 bilinear)"))),
+            },
         };
         let n_stages = usize::from(r.u16("stage count")?);
         if !(1..=MAX_STAGES).contains(&n_stages) {
@@ -259,6 +276,7 @@ impl RefineCascade {
             name,
             starts,
             mirror,
+            sampling,
         })
     }
 }
@@ -309,6 +327,30 @@ mod tests {
         assert_eq!(&bytes[right..right + 4], &(1.25f32 / 127.0).to_le_bytes());
         assert!(bytes[right + 4..right + 4 + 136].iter().all(|&b| b as i8 == -127));
         assert_eq!(bytes.len(), tree + 8 + 2 * (4 + 136) + 4);
+    }
+
+    /// A bilinear model is format v2: one sampling byte after the mirror flag, the rest as v1.
+    #[test]
+    fn a_bilinear_model_is_version_2_with_its_sampling_byte() {
+        let nearest = tiny(0.5, -1.25);
+        let mut r = nearest.clone();
+        r.sampling = Sampling::Bilinear;
+        let (v1, v2) = (nearest.to_bytes(), r.to_bytes());
+        assert_eq!(&v2[8..12], &2u32.to_le_bytes());
+        assert_eq!(v2[23], 1, "bilinear");
+        assert_eq!(v2.len(), v1.len() + 1);
+        assert_eq!(&v2[24..v2.len() - 4], &v1[23..v1.len() - 4]);
+        assert_eq!(RefineCascade::from_bytes(&v2).unwrap(), r);
+        let reseal = |mut b: Vec<u8>| {
+            b.truncate(b.len() - 4);
+            let c = crc32fast::hash(&b);
+            b.extend_from_slice(&c.to_le_bytes());
+            b
+        };
+        let mut bad = v2.clone();
+        bad[23] = 7;
+        let err = RefineCascade::from_bytes(&reseal(bad)).unwrap_err().to_string();
+        assert!(err.contains("sampling 7"), "{err}");
     }
 
     #[test]

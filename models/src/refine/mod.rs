@@ -9,7 +9,9 @@
 //! Landmarks are in crop pixels (the client's crop, mean shape 56 px in 112). Each stage has a pool of
 //! feature points, each anchored to a landmark with an offset in the mean-shape frame; at run time the
 //! offset is turned and scaled by the similarity from the mean shape to the current shape (rotation and
-//! scale only), the nearest crop pixel is read (0 outside the crop, as the crop reads outside the image).
+//! scale only), the crop is read there (0 outside the crop, as the crop reads outside the image): the nearest
+//! pixel, or, in models trained so ([`Sampling::Bilinear`]), the bilinear interpolation of the four around
+//! it rounded to a grey level, so that a feature changes with sub-pixel moves of the shape.
 //! Each tree of the stage tests `I(u) − I(v) > threshold` at every node (depth `d`, heap order) and its
 //! leaf holds a 136-d shape increment in the mean-shape frame (the learning rate already applied); the
 //! stage sums its trees' leaves and moves the shape by that sum turned back into crop pixels.
@@ -48,6 +50,16 @@ pub enum RefineError {
     /// The start shape is not 68 finite points.
     #[error("start shape: {0}")]
     BadStart(String),
+}
+
+/// How a feature point reads the crop.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Sampling {
+    /// The nearest pixel (format v1 models).
+    #[default]
+    Nearest,
+    /// The four pixels around the point, interpolated and rounded to a grey level.
+    Bilinear,
 }
 
 /// One node test: `I(u) − I(v) > threshold` goes right.
@@ -97,7 +109,7 @@ impl RefineStage {
         &self,
         mean: &[Point2; REFINE_LANDMARKS],
         depth: usize,
-        crop_size: usize,
+        (crop_size, sampling): (usize, Sampling),
         crop: &[u8],
         shape: &mut [Point2; REFINE_LANDMARKS],
         scratch: &mut RefineScratch,
@@ -106,15 +118,15 @@ impl RefineStage {
         if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw") {
             #[allow(unsafe_code)]
             // SAFETY: `apply_avx512` only asks for AVX-512F and BW, which this CPU has (checked just above).
-            return unsafe { self.apply_avx512(mean, depth, crop_size, crop, shape, scratch) };
+            return unsafe { self.apply_avx512(mean, depth, (crop_size, sampling), crop, shape, scratch) };
         }
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             #[allow(unsafe_code)]
             // SAFETY: `apply_avx2` only asks for AVX2, which this CPU has (checked just above).
-            return unsafe { self.apply_avx2(mean, depth, crop_size, crop, shape, scratch) };
+            return unsafe { self.apply_avx2(mean, depth, (crop_size, sampling), crop, shape, scratch) };
         }
-        self.apply_portable(mean, depth, crop_size, crop, shape, scratch)
+        self.apply_portable(mean, depth, (crop_size, sampling), crop, shape, scratch)
     }
 
     /// [`RefineStage::apply`] compiled for AVX-512 (16 lanes).
@@ -124,12 +136,12 @@ impl RefineStage {
         &self,
         mean: &[Point2; REFINE_LANDMARKS],
         depth: usize,
-        crop_size: usize,
+        (crop_size, sampling): (usize, Sampling),
         crop: &[u8],
         shape: &mut [Point2; REFINE_LANDMARKS],
         scratch: &mut RefineScratch,
     ) -> bool {
-        self.apply_portable(mean, depth, crop_size, crop, shape, scratch)
+        self.apply_portable(mean, depth, (crop_size, sampling), crop, shape, scratch)
     }
 
     /// [`RefineStage::apply`] compiled for AVX2.
@@ -139,12 +151,12 @@ impl RefineStage {
         &self,
         mean: &[Point2; REFINE_LANDMARKS],
         depth: usize,
-        crop_size: usize,
+        (crop_size, sampling): (usize, Sampling),
         crop: &[u8],
         shape: &mut [Point2; REFINE_LANDMARKS],
         scratch: &mut RefineScratch,
     ) -> bool {
-        self.apply_portable(mean, depth, crop_size, crop, shape, scratch)
+        self.apply_portable(mean, depth, (crop_size, sampling), crop, shape, scratch)
     }
 
     #[inline(always)]
@@ -152,7 +164,7 @@ impl RefineStage {
         &self,
         mean: &[Point2; REFINE_LANDMARKS],
         depth: usize,
-        crop_size: usize,
+        (crop_size, sampling): (usize, Sampling),
         crop: &[u8],
         shape: &mut [Point2; REFINE_LANDMARKS],
         scratch: &mut RefineScratch,
@@ -164,7 +176,7 @@ impl RefineStage {
         scratch.features.resize(self.anchors.len(), 0);
         read_features(
             crop,
-            crop_size,
+            (crop_size, sampling),
             shape,
             (a, b),
             &self.anchors,
@@ -213,6 +225,8 @@ pub struct RefineCascade {
     /// Also refine the mirror image (the crop flipped left to right, the start mirrored with the iBUG
     /// left/right swap) and answer the mean of the two.
     pub mirror: bool,
+    /// How the feature points read the crop (the model was trained with it).
+    pub sampling: Sampling,
 }
 
 /// The starts [`RefineCascade::refine`] runs when the model asks for several ([`RefineCascade::starts`]): the given
@@ -259,11 +273,11 @@ pub(crate) fn frame_of(mean: &[Point2], shape: &[Point2]) -> Option<(f32, f32)> 
     (a.is_finite() && b.is_finite() && (a * a + b * b) > 1e-12).then_some((a, b))
 }
 
-/// The grey levels of a stage's feature points on `crop` (nearest pixel, 0 outside), into `out`.
+/// The grey levels of a stage's feature points on `crop` (nearest pixel or bilinear, 0 outside), into `out`.
 #[inline(always)]
 pub(crate) fn read_features(
     crop: &[u8],
-    size: usize,
+    (size, sampling): (usize, Sampling),
     shape: &[Point2],
     (a, b): (f32, f32),
     anchors: &[u8],
@@ -275,14 +289,31 @@ pub(crate) fn read_features(
         let p = shape[usize::from(k)];
         let x = p.x + a * off[0] - b * off[1];
         let y = p.y + b * off[0] + a * off[1];
-        *o = if x >= -0.5 && y >= -0.5 && x < lim && y < lim {
+        *o = if !(x >= -0.5 && y >= -0.5 && x < lim && y < lim) {
+            0
+        } else if sampling == Sampling::Bilinear && size >= 2 {
+            bilinear(crop, size, x, y)
+        } else {
             // In range, so the rounded coordinates are valid indices.
             let (xi, yi) = ((x + 0.5) as usize, (y + 0.5) as usize);
             crop.get(yi * size + xi).map_or(0, |&v| i16::from(v))
-        } else {
-            0
         };
     }
+}
+
+/// The crop at `(x, y)` (inside `[-0.5, size - 0.5)`; clamped to the pixel centres), interpolated
+/// between the four pixels around it and rounded to a grey level.
+#[inline(always)]
+fn bilinear(crop: &[u8], size: usize, x: f32, y: f32) -> i16 {
+    let top = (size - 1) as f32;
+    let (x, y) = (x.clamp(0.0, top), y.clamp(0.0, top));
+    // Clamped, so these are valid indices with a right and a lower neighbour.
+    let (x0, y0) = ((x as usize).min(size - 2), (y as usize).min(size - 2));
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let px = |xi: usize, yi: usize| crop.get(yi * size + xi).map_or(0.0, |&v| f32::from(v));
+    let upper = px(x0, y0) + fx * (px(x0 + 1, y0) - px(x0, y0));
+    let lower = px(x0, y0 + 1) + fx * (px(x0 + 1, y0 + 1) - px(x0, y0 + 1));
+    (upper + fy * (lower - upper) + 0.5) as i16
 }
 
 impl RegressionTree {
@@ -434,7 +465,14 @@ impl RefineCascade {
     /// One run of the stages from `shape`, in place.
     fn cascade(&self, crop: &[u8], shape: &mut [Point2; REFINE_LANDMARKS], scratch: &mut RefineScratch) {
         for stage in &self.stages {
-            if !stage.apply(&self.mean, self.depth, self.crop_size, crop, shape, scratch) {
+            if !stage.apply(
+                &self.mean,
+                self.depth,
+                (self.crop_size, self.sampling),
+                crop,
+                shape,
+                scratch,
+            ) {
                 break;
             }
         }
@@ -492,6 +530,7 @@ mod tests {
             name: "tiny".into(),
             starts: 1,
             mirror: false,
+            sampling: Sampling::Nearest,
         }
     }
 
@@ -625,12 +664,42 @@ mod tests {
         let start = mean.map(|p| Point2::new(p.x + 0.7, p.y - 1.3));
         let (mut a, mut b) = (start, start);
         let mut scratch = RefineScratch::default();
-        assert!(stage.apply(&mean, 4, 112, &crop, &mut a, &mut scratch));
-        assert!(stage.apply_portable(&mean, 4, 112, &crop, &mut b, &mut scratch));
+        assert!(stage.apply(&mean, 4, (112, Sampling::Bilinear), &crop, &mut a, &mut scratch));
+        assert!(stage.apply_portable(&mean, 4, (112, Sampling::Bilinear), &crop, &mut b, &mut scratch));
         assert_ne!(a, start, "the stage moved the shape");
         for (p, q) in a.iter().zip(&b) {
             assert_eq!((p.x.to_bits(), p.y.to_bits()), (q.x.to_bits(), q.y.to_bits()));
         }
+    }
+
+    #[test]
+    fn bilinear_features_follow_sub_pixel_moves() {
+        // A horizontal ramp, 10 grey levels per pixel: bilinear reads 10 per pixel moved, in tenths too;
+        // the nearest pixel jumps.
+        let crop: Vec<u8> = (0..8 * 8).map(|i| (i % 8 * 10) as u8).collect();
+        let read = |x: f32, sampling| {
+            let mut out = [0i16; 1];
+            read_features(
+                &crop,
+                (8, sampling),
+                &[Point2::new(x, 3.0)],
+                (1.0, 0.0),
+                &[0],
+                &[[0.0, 0.0]],
+                &mut out,
+            );
+            out[0]
+        };
+        assert_eq!(read(2.0, Sampling::Bilinear), 20);
+        assert_eq!(read(2.3, Sampling::Bilinear), 23);
+        assert_eq!(read(2.75, Sampling::Bilinear), 28);
+        assert_eq!(read(2.3, Sampling::Nearest), 20);
+        assert_eq!(read(2.75, Sampling::Nearest), 30);
+        // The border: clamped to the last pixel inside, 0 outside, as nearest.
+        assert_eq!(read(7.2, Sampling::Bilinear), 70);
+        assert_eq!(read(-0.4, Sampling::Bilinear), 0);
+        assert_eq!(read(7.6, Sampling::Bilinear), 0);
+        assert_eq!(read(-0.6, Sampling::Bilinear), 0);
     }
 
     #[test]
@@ -640,7 +709,7 @@ mod tests {
         let mut out = [7i16; 3];
         read_features(
             &crop,
-            4,
+            (4, Sampling::Nearest),
             &shape,
             (1.0, 0.0),
             &[0, 0, 0],

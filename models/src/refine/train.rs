@@ -16,7 +16,7 @@
 //! - at the end of a stage every shape moves by the sum of its leaves, turned back into crop pixels.
 
 use super::{
-    REFINE_LANDMARKS, RefineCascade, RefineStage, RegressionTree, SHAPE_DIM, SplitTest, frame_of,
+    REFINE_LANDMARKS, RefineCascade, RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest, frame_of,
     read_features,
 };
 use crate::geometry::{Point2, Rect};
@@ -60,6 +60,8 @@ pub struct RefineConfig {
     /// shrinks geometrically from the first value at the first stage to the second at the last
     /// (coarse to fine, as in LBF's local features). `None`: dlib's face-box pool.
     pub local_radius: Option<(f32, f32)>,
+    /// How the feature points read the crop.
+    pub sampling: Sampling,
     /// Seed of every random stream.
     pub seed: u64,
     /// Worker threads.
@@ -82,6 +84,7 @@ impl Default for RefineConfig {
             lambda: 0.1,
             padding: 0.1,
             local_radius: None,
+            sampling: Sampling::Nearest,
             seed: 1,
             threads: 2,
             name: "holoface-ert".into(),
@@ -422,7 +425,7 @@ pub fn train(
             for (o, i) in out.chunks_exact_mut(nf).zip(range) {
                 read_features(
                     samples[i].crop,
-                    crop_size,
+                    (crop_size, cfg.sampling),
                     &cur[i],
                     frames[i],
                     &anchors,
@@ -471,6 +474,7 @@ pub fn train(
         name: cfg.name.clone(),
         starts: 1,
         mirror: false,
+        sampling: cfg.sampling,
     })
 }
 

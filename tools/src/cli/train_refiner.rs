@@ -27,7 +27,7 @@ use holoface_models::crop::warp_bilinear;
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
 use holoface_models::metrics::{nme49, nme68, summarise};
 use holoface_models::refine::train::{RefineConfig, RefineSample, train};
-use holoface_models::refine::{RefineCascade, RefineScratch};
+use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
 use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
 use serde::Serialize;
@@ -82,6 +82,9 @@ pub struct Args {
     /// without and with it).
     #[arg(long)]
     pub mirror: bool,
+    /// Bilinear feature reads (sub-pixel: a format v2 model) instead of the nearest pixel.
+    #[arg(long)]
+    pub bilinear: bool,
     /// Locality prior of the node tests' point pairs (fraction of the mean shape's extent).
     #[arg(long, default_value_t = 0.1)]
     pub lambda: f32,
@@ -533,6 +536,8 @@ struct Report {
     split_tests: usize,
     learning_rate: f32,
     lambda: f32,
+    /// Bilinear feature reads (format v2) instead of the nearest pixel.
+    bilinear: bool,
     local_radius: Option<Vec<f32>>,
     seed: u64,
     dan_seconds: f64,
@@ -760,6 +765,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seed: args.seed,
         threads: args.train_threads,
         lambda: args.lambda,
+        sampling: if args.bilinear {
+            Sampling::Bilinear
+        } else {
+            Sampling::Nearest
+        },
         local_radius: args
             .local_radius
             .as_ref()
@@ -776,7 +786,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let refiner = train(&samples, &mean, size, &cfg, &mut |r, stage| {
         let before = mean_nme68(&val_set, &val_shapes);
         for (shape, a) in val_shapes.iter_mut().zip(&val_set.answered) {
-            stage.apply(&mean, cfg.depth, size, &a.crop, shape, &mut scratch);
+            stage.apply(
+                &mean,
+                cfg.depth,
+                (size, cfg.sampling),
+                &a.crop,
+                shape,
+                &mut scratch,
+            );
         }
         let after = mean_nme68(&val_set, &val_shapes);
         eprintln!(
@@ -844,6 +861,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         split_tests: args.split_tests,
         learning_rate: args.learning_rate,
         lambda: args.lambda,
+        bilinear: args.bilinear,
         local_radius: args.local_radius.clone(),
         seed: args.seed,
         dan_seconds,
