@@ -13,7 +13,10 @@
 //! frames of tracking (the quarter of them with the lips closest: a person may talk meanwhile), so a resting face
 //! reads near 0 whoever it is; each aligner calibrates its own (see [`BlendshapeEstimator`]). Until then it is
 //! another aligner's, else the median of the frames so far (from the fifth), else (the first frames, still
-//! images) a mean face's (the 300-W mean shape).
+//! images) a mean face's (the 300-W mean shape). Once calibrated, the neutral follows the face as it settles:
+//! a frame that already reads near rest (every coefficient at most 0.25, the lips closed as in the neutral)
+//! moves it by an exponential mean over 150 frames (5 s at 30 fps), so a first second that was not quite at
+//! rest (brows raised to start talking) wears off, while a held expression or speech never moves it.
 //! [`BlendshapeEstimator::recalibrate`] starts over (a new person, or a calibration prompt). Without a jaw
 //! line (KRFWS's 51 points) the coefficients that read the chin (`jawLeft`, `jawRight`, `mouthClose`) are 0.
 //!
@@ -557,6 +560,14 @@ fn closed_lips(gaps: impl Iterator<Item = f64>) -> f64 {
     }
 }
 
+/// A frame counts as at rest for the neutral's drift when every coefficient reads at most this and the lips
+/// are closed as in the neutral (within [`CLOSED_LIPS`]).
+const DRIFT_BELOW: f32 = 0.25;
+
+/// Frames over which a calibrated neutral follows the resting face (an exponential mean over the frames at
+/// rest): 5 s at 30 fps.
+const DRIFT_FRAMES: f64 = 150.0;
+
 /// Frames after which a calibrating neutral is used provisionally (their median) instead of a mean face's.
 const PROVISIONAL_FRAMES: usize = 5;
 
@@ -597,6 +608,21 @@ impl Calibration {
 
     fn provisional_jaw(&self) -> Option<[f64; 2]> {
         (self.seen_jaw.len() >= PROVISIONAL_FRAMES).then(|| self.resting_jaw())
+    }
+
+    /// Moves the calibrated neutral a [`DRIFT_FRAMES`]th of the way to a frame at rest: the first second of
+    /// tracking is not always at rest (brows raised to speak, eyes narrowed against the light), and a face
+    /// settles; only frames that already read near rest move it, so a held expression is never absorbed.
+    fn drift(&mut self, f: &Features, s: [f64; 4], jaw_line: bool) {
+        let step = |n: &mut f64, v: f64| *n += (v - *n) / DRIFT_FRAMES;
+        if let Some((n, ns)) = &mut self.neutral {
+            n.iter_mut().zip(f).for_each(|(n, &v)| step(n, v));
+            ns.iter_mut().zip(s).for_each(|(n, v)| step(n, v));
+        }
+        if let (true, Some([chin_x, jaw_drop])) = (jaw_line, &mut self.neutral_jaw) {
+            step(chin_x, f[slot(Feature::ChinX)]);
+            step(jaw_drop, f[slot(Feature::ClosedJawDrop)]);
+        }
     }
 
     /// Takes one frame's features into the calibration while it lasts.
@@ -712,6 +738,7 @@ impl BlendshapeEstimator {
                 .filter(|c| get(c))
                 .or_else(|| self.sources.iter().map(|(_, c)| c).find(|c| get(c)))
         };
+        let calibrated = own.neutral.is_some();
         let neutral = pick(|c| c.neutral.is_some())
             .and_then(|c| c.neutral)
             .or_else(|| own.provisional());
@@ -740,8 +767,9 @@ impl BlendshapeEstimator {
                 None => (value(&f, &n, feat), f0[slot(feat)]),
             };
             let c = (now - rest) / full;
+            // `+ 0.0`: a movement of exactly 0 reads 0, never -0.
             *o = if c.is_finite() {
-                c.clamp(0.0, 1.0) as f32
+                (c.clamp(0.0, 1.0) + 0.0) as f32
             } else {
                 0.0
             };
@@ -750,6 +778,10 @@ impl BlendshapeEstimator {
         let open = out[index(Blendshape::JawOpen)];
         out[index(Blendshape::MouthFunnel)] *= open;
         out[index(Blendshape::MouthPucker)] *= 1.0 - open;
+        let gap = slot(Feature::LipGap);
+        if calibrated && (f[gap] - f0[gap]).abs() <= CLOSED_LIPS && out.iter().all(|&v| v <= DRIFT_BELOW) {
+            self.sources[k].1.drift(&f, s, jaw_line);
+        }
         Blendshapes(out)
     }
 }
@@ -868,6 +900,56 @@ mod tests {
         // Recalibration forgets both.
         e.recalibrate();
         assert!(!e.is_calibrated());
+    }
+
+    #[test]
+    fn the_neutral_drifts_to_a_settled_face_but_never_absorbs_a_held_expression() {
+        let rest = crate::shape::dan_mean_shape();
+        // Calibrated while the brows were raised a little (people raise them to start talking).
+        let mut raised = rest;
+        for p in &mut raised[17..27] {
+            p.y -= 1.0;
+        }
+        let params = BlendshapeParams {
+            calibration_frames: 5,
+        };
+        let mut e = BlendshapeEstimator::new(params);
+        for _ in 0..5 {
+            e.update(&raised, true, None);
+        }
+        let brow_down = |b: &Blendshapes| b.get(Blendshape::BrowDownLeft);
+        let first = e.update(&rest, true, None);
+        assert!(brow_down(&first) > 0.05, "{first:?}");
+        for _ in 0..(4.0 * DRIFT_FRAMES) as usize {
+            e.update(&rest, true, None);
+        }
+        let settled = e.update(&rest, true, None);
+        assert!(
+            brow_down(&settled) < 0.03 * brow_down(&first),
+            "{first:?} {settled:?}"
+        );
+        // A smile held for 20 s reads the same at its end: frames with a movement are not rest.
+        let mut smile = rest;
+        smile[48].y -= 2.0;
+        smile[54].y -= 2.0;
+        let smiling = |b: &Blendshapes| b.get(Blendshape::MouthSmileLeft);
+        let start = e.update(&smile, true, None);
+        assert!(smiling(&start) > DRIFT_BELOW, "{start:?}");
+        for _ in 0..600 {
+            e.update(&smile, true, None);
+        }
+        let end = e.update(&smile, true, None);
+        assert_eq!(smiling(&end), smiling(&start));
+        // Talking (lips apart) does not move it either.
+        let mut open = rest;
+        for p in &mut open[65..68] {
+            p.y += 1.5;
+        }
+        let mut before = e.clone();
+        for _ in 0..600 {
+            e.update(&open, true, None);
+        }
+        assert_eq!(e.update(&rest, true, None), before.update(&rest, true, None));
     }
 
     #[test]
