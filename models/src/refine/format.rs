@@ -287,6 +287,14 @@ mod tests {
     use super::*;
     use crate::refine::tests::tiny;
 
+    /// The file with its checksum recomputed: a consistent checksum over edited content.
+    fn reseal(mut b: Vec<u8>) -> Vec<u8> {
+        b.truncate(b.len() - 4);
+        let c = crc32fast::hash(&b);
+        b.extend_from_slice(&c.to_le_bytes());
+        b
+    }
+
     #[test]
     fn round_trip_keeps_the_model() {
         let r = tiny(0.5, -1.25);
@@ -341,12 +349,6 @@ mod tests {
         assert_eq!(v2.len(), v1.len() + 1);
         assert_eq!(&v2[24..v2.len() - 4], &v1[23..v1.len() - 4]);
         assert_eq!(RefineCascade::from_bytes(&v2).unwrap(), r);
-        let reseal = |mut b: Vec<u8>| {
-            b.truncate(b.len() - 4);
-            let c = crc32fast::hash(&b);
-            b.extend_from_slice(&c.to_le_bytes());
-            b
-        };
         let mut bad = v2.clone();
         bad[23] = 7;
         let err = RefineCascade::from_bytes(&reseal(bad)).unwrap_err().to_string();
@@ -365,12 +367,6 @@ mod tests {
         // Truncation is caught by the checksum (the last four bytes are no longer the CRC).
         assert!(err(&good[..good.len() - 10]).contains("checksum"));
         // A consistent checksum over inconsistent content: each check still names the problem.
-        let reseal = |mut b: Vec<u8>| {
-            b.truncate(b.len() - 4);
-            let c = crc32fast::hash(&b);
-            b.extend_from_slice(&c.to_le_bytes());
-            b
-        };
         let mut v = good.clone();
         v[8] = 9;
         assert!(err(&reseal(v)).contains("format version 9"));
