@@ -17,6 +17,9 @@
 //! a frame that already reads near rest (every coefficient at most 0.25, the lips closed as in the neutral)
 //! moves it by an exponential mean over 150 frames (5 s at 30 fps), so a first second that was not quite at
 //! rest (brows raised to start talking) wears off, while a held expression or speech never moves it.
+//! The lids (`eyeBlink*`, `eyeWide*`) have no dead zone: a hard clamp at the neutral would drop every small
+//! lid movement on the open side of it, so within 0.3 of the neutral they follow a soft knee and a resting lid
+//! reads 0.075 ([`soft_knee`]); further out they read like the others.
 //! [`BlendshapeEstimator::recalibrate`] starts over (a new person, or a calibration prompt). Without a jaw
 //! line (KRFWS's 51 points) the coefficients that read the chin (`jawLeft`, `jawRight`, `mouthClose`) are 0.
 //!
@@ -560,6 +563,24 @@ fn closed_lips(gaps: impl Iterator<Item = f64>) -> f64 {
     }
 }
 
+/// Half the width of the lids' soft knee ([`soft_knee`]), in coefficient units.
+const LID_KNEE: f64 = 0.3;
+
+/// The lids' reading without a dead zone: a lid is never still (a half blink, a squint against the light,
+/// the lid following the gaze), and a hard clamp at the neutral drops every movement on the open side of it,
+/// so a rig's lid would sit dead still and then jump. Within [`LID_KNEE`] of the neutral the reading follows
+/// a parabola that meets 0 and the straight line with their slopes; the neutral itself reads a quarter of
+/// the knee (0.075), further out the reading is the plain one.
+fn soft_knee(c: f64) -> f64 {
+    if c <= -LID_KNEE {
+        0.0
+    } else if c >= LID_KNEE {
+        c
+    } else {
+        (c + LID_KNEE) * (c + LID_KNEE) / (4.0 * LID_KNEE)
+    }
+}
+
 /// A frame counts as at rest for the neutral's drift when every coefficient reads at most this and the lips
 /// are closed as in the neutral (within [`CLOSED_LIPS`]).
 const DRIFT_BELOW: f32 = 0.25;
@@ -766,7 +787,10 @@ impl BlendshapeEstimator {
                 Some(k) => (s[k], s0[k]),
                 None => (value(&f, &n, feat), f0[slot(feat)]),
             };
-            let c = (now - rest) / full;
+            let mut c = (now - rest) / full;
+            if matches!(feat, Feature::LidGap(_)) {
+                c = soft_knee(c);
+            }
             // `+ 0.0`: a movement of exactly 0 reads 0, never -0.
             *o = if c.is_finite() {
                 (c.clamp(0.0, 1.0) + 0.0) as f32
@@ -869,6 +893,59 @@ fn median<const N: usize>(rows: &[[f64; N]]) -> [f64; N] {
 mod tests {
     use super::*;
 
+    /// A face read against its own neutral: the lids at their knee's foot, everything else 0.
+    fn at_neutral(b: &Blendshapes) -> bool {
+        Blendshape::ALL.iter().zip(b.0).all(|(k, v)| {
+            let lid = matches!(k.reading().0, Feature::LidGap(_));
+            let expected = if lid { soft_knee(0.0) as f32 } else { 0.0 };
+            (v - expected).abs() < 1e-4
+        })
+    }
+
+    #[test]
+    fn the_lids_read_small_moves_on_both_sides_of_the_neutral() {
+        let rest = crate::shape::dan_mean_shape();
+        let mut e = BlendshapeEstimator::new(BlendshapeParams {
+            calibration_frames: 5,
+        });
+        for _ in 0..5 {
+            e.update(&rest, true, None);
+        }
+        // The subject's left upper lid (iBUG 43, 44) moved by `dy` pixels (positive: down, closing).
+        let mut lid = |dy: f32| {
+            let mut p = rest;
+            p[43].y += dy;
+            p[44].y += dy;
+            let b = e.update(&p, true, None);
+            (b.get(Blendshape::EyeBlinkLeft), b.get(Blendshape::EyeWideLeft))
+        };
+        let neutral = soft_knee(0.0) as f32;
+        assert!(neutral < 0.1);
+        assert_eq!(lid(0.0), (neutral, neutral));
+        let readings: Vec<(f32, f32)> = [-0.3, -0.1, 0.0, 0.1, 0.3].map(&mut lid).to_vec();
+        // Each step of the lid moves both readings, the right way: no dead zone at the neutral.
+        for w in readings.windows(2) {
+            assert!(w[1].0 > w[0].0 && w[1].1 < w[0].1, "{readings:?}");
+        }
+        // A closed lid still reads the full movement.
+        let closed = lid(100.0);
+        assert_eq!(closed, (1.0, 0.0));
+    }
+
+    #[test]
+    fn soft_knee_meets_zero_and_the_line_smoothly() {
+        let d = 1e-7;
+        for edge in [-LID_KNEE, LID_KNEE] {
+            let (below, above) = (soft_knee(edge - d), soft_knee(edge + d));
+            assert!((above - below).abs() < 1e-6, "{edge}: {below} {above}");
+        }
+        assert_eq!(soft_knee(-1.0), 0.0);
+        assert_eq!(soft_knee(0.7), 0.7);
+        let slope = |c: f64| (soft_knee(c + d) - soft_knee(c - d)) / (2.0 * d);
+        assert!((slope(LID_KNEE - 1e-4) - 1.0).abs() < 1e-3);
+        assert!(slope(-LID_KNEE + 1e-4).abs() < 1e-3);
+    }
+
     #[test]
     fn each_source_reads_against_its_own_neutral_once_calibrated() {
         let params = BlendshapeParams {
@@ -894,7 +971,7 @@ mod tests {
         let local_now = e.update_from(2, &local, false, None);
         let remote_now = e.update_from(1, &remote, true, None);
         assert!(
-            local_now.0.iter().chain(&remote_now.0).all(|&v| v < 1e-6),
+            [local_now, remote_now].iter().all(at_neutral),
             "{local_now:?} {remote_now:?}"
         );
         // Recalibration forgets both.
@@ -965,10 +1042,7 @@ mod tests {
             e.update(&face, true, None);
         }
         let sixth = e.update(&face, true, None);
-        assert!(
-            !e.is_calibrated() && sixth.0.iter().all(|&v| v < 1e-6),
-            "{sixth:?}"
-        );
+        assert!(!e.is_calibrated() && at_neutral(&sixth), "{sixth:?}");
     }
 
     #[test]
@@ -986,7 +1060,7 @@ mod tests {
         }
         assert!(e.is_calibrated());
         let rest = e.update(&closed, true, None);
-        assert!(rest.0.iter().all(|&v| v < 1e-6), "{rest:?}");
+        assert!(at_neutral(&rest), "{rest:?}");
         assert!(e.update(&open, true, None).get(Blendshape::JawOpen) > 0.2);
     }
 
@@ -1058,7 +1132,7 @@ mod tests {
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         for _ in 0..40 {
             let b = e.update(&rest, true, None);
-            assert!(b.0.iter().all(|&v| v < 1e-4), "{b:?}");
+            assert!(at_neutral(&b), "{b:?}");
         }
         assert!(e.is_calibrated());
         let flat = [Point2::new(5.0, 5.0); 68];
