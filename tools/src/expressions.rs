@@ -295,7 +295,10 @@ mod tests {
         assert!(r.jaw_open_vs_lip_gap.unwrap() > 0.95, "{r:?}");
         assert!(r.blink_vs_eye_closing.unwrap() > 0.9, "{r:?}");
         assert!(r.rest_frames >= 10, "{r:?}");
-        assert!(r.rest_max.unwrap().1 < 0.05, "{r:?}");
+        // At rest the lids read their soft knee's foot (0.075), everything else about 0.
+        assert!(r.rest_max.unwrap().1 < 0.08, "{r:?}");
+        let others = r.rest_mean.iter().filter(|(name, _)| !name.starts_with("eye"));
+        assert!(others.clone().all(|(_, v)| *v < 0.05), "{r:?}");
         // Paired with nothing, nothing is reported.
         let empty = video_report(&ours, &vec![None; lms.len()], 30, RestRule::default());
         assert_eq!((empty.frames, empty.rest_max), (0, None));
