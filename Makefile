@@ -382,10 +382,11 @@ export-dan: venv-train
 
 # The server's refinement cascade (models/REFINER_MODEL_CARD.md): DAN's answers on augmented training crops,
 # then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining.
-# 0.2.0: the annotated faces (20 crops per face and mirror) plus the teacher-labelled ones (make teacher-labels; 1 crop
-# per face and mirror). `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only ablation (0.1.0).
-REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --teacher-labels $(TEACHER_LABEL_FILES) --teacher-crops 1 \
-  --version 0.2.0
+# 0.3.0: the annotated faces (20 crops per face and mirror) plus the teacher-labelled ones (make teacher-labels; 1 crop
+# per face and mirror), features read bilinearly (format v2). Without `--bilinear` it is 0.2.0's recipe;
+# `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only ablation (0.1.0).
+REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --bilinear --teacher-labels $(TEACHER_LABEL_FILES) \
+  --teacher-crops 1 --version 0.3.0
 train-refiner: setup-release video-deps
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
