@@ -19,7 +19,7 @@
 //! rest (brows raised to start talking) wears off, while a held expression or speech never moves it.
 //! The lids (`eyeBlink*`, `eyeWide*`) have no dead zone: a hard clamp at the neutral would drop every small
 //! lid movement on the open side of it, so within 0.3 of the neutral they follow a soft knee and a resting lid
-//! reads 0.075 ([`soft_knee`]); further out they read like the others.
+//! reads 0.075 (`soft_knee`); further out they read like the others.
 //! [`BlendshapeEstimator::recalibrate`] starts over (a new person, or a calibration prompt). Without a jaw
 //! line (KRFWS's 51 points) the coefficients that read the chin (`jawLeft`, `jawRight`, `mouthClose`) are 0.
 //!
