@@ -169,7 +169,18 @@ pub fn read(path: &Path) -> anyhow::Result<(LabelHeader, Vec<LabelRecord>)> {
 /// The labelled faces of a label file as training samples (images decoded; an unreadable image is an error
 /// naming it). At most `limit` faces, taken evenly over the file when it holds more.
 pub fn load_samples(path: &Path, limit: Option<usize>) -> anyhow::Result<Vec<Sample>> {
-    let (header, records) = read(path)?;
+    load_samples_where(path, limit, |_| true)
+}
+
+/// [`load_samples`] of the faces whose label `keep` accepts (the filter runs before any image is decoded; the
+/// limit applies to the kept faces).
+pub fn load_samples_where(
+    path: &Path,
+    limit: Option<usize>,
+    keep: impl Fn(&[Point2; 68]) -> bool,
+) -> anyhow::Result<Vec<Sample>> {
+    let (header, mut records) = read(path)?;
+    records.retain(|r| keep(&r.landmarks));
     let take = limit.unwrap_or(records.len()).min(records.len());
     let mut out = Vec::with_capacity(take);
     for k in 0..take {
@@ -236,6 +247,33 @@ mod tests {
         body.extend_from_slice(&crc.to_le_bytes());
         let err = from_bytes(&body).unwrap_err().to_string();
         assert!(err.contains("exceeds the file"), "{err}");
+    }
+
+    #[test]
+    fn the_filter_picks_faces_before_any_image_is_decoded() {
+        let dir = std::env::temp_dir().join(format!("holoface-labels-where-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("a")).unwrap();
+        let (mut h, mut r) = sample();
+        h.images = dir.clone();
+        for (i, rec) in r.iter_mut().enumerate() {
+            rec.name = format!("a/img{i}.png");
+        }
+        image::GrayImage::from_pixel(8, 6, image::Luma([7]))
+            .save(dir.join("a/img1.png"))
+            .unwrap();
+        // img0 is missing and img2 is not an image: only the filter keeps them from failing the load.
+        std::fs::write(dir.join("a/img2.png"), b"not a png").unwrap();
+        let path = dir.join("labels.hflabels");
+        std::fs::write(&path, to_bytes(&h, &r).unwrap()).unwrap();
+
+        let kept = load_samples_where(&path, None, |l| l[0].x == 1.0).unwrap();
+        assert_eq!(kept.len(), 1);
+        assert_eq!(kept[0].name, "lfw/a/img1.png");
+        assert_eq!((kept[0].image.width(), kept[0].image.height()), (8, 6));
+        assert_eq!(kept[0].landmarks, Some(r[1].landmarks));
+        let err = format!("{:#}", load_samples(&path, None).unwrap_err());
+        assert!(err.contains("img0.png"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

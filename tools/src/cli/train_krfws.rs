@@ -13,7 +13,7 @@ use holoface_models::krfws::train::{
     self, FitKind, Progress, TrainConfig, TrainFace, gt_box, roc_auc, youden_threshold,
 };
 use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS, nme49_inner};
-use holoface_models::metrics::{FAILURE_THRESHOLD, summarise};
+use holoface_models::metrics::{FAILURE_THRESHOLD, summarise, yaw_proxy};
 use holoface_models::rng::Rng;
 use serde::Serialize;
 
@@ -91,6 +91,15 @@ pub struct Args {
     /// At most this many faces from each teacher-label file (evenly spaced over it).
     #[arg(long)]
     pub teacher_limit: Option<usize>,
+    /// Teacher-label files of which only the turned faces are trained on (yaw proxy at least
+    /// `--turned-min-yaw`): turned faces from mostly frontal, aligned collections, without tilting the set
+    /// towards frontal faces. Same starts as `--teacher-labels`.
+    #[arg(long, value_delimiter = ',')]
+    pub teacher_turned: Vec<PathBuf>,
+    /// Smallest yaw proxy (`holoface_models::metrics::yaw_proxy`: 0 frontal, towards 1 turned) of a face
+    /// kept from `--teacher-turned`.
+    #[arg(long, default_value_t = 0.2)]
+    pub turned_min_yaw: f64,
 }
 
 /// A plain stderr progress bar (redrawn at most 5 times a second).
@@ -225,6 +234,8 @@ struct ConfigJson {
     failure_fits: usize,
     failure_ridge: f64,
     teacher_labels: Vec<PathBuf>,
+    teacher_turned: Vec<PathBuf>,
+    turned_min_yaw: f64,
     teacher_faces: usize,
     teacher_starts: usize,
 }
@@ -311,9 +322,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(n) = args.limit {
         train_faces.truncate(n);
     }
-    for path in &args.teacher_labels {
-        let faces = crate::labels::load_samples(path, args.teacher_limit)?;
-        eprintln!("{} teacher-labelled faces from {}", faces.len(), path.display());
+    let turned = |l: &[Point2; 68]| yaw_proxy(l).is_some_and(|y| y >= args.turned_min_yaw);
+    let teacher_files = args
+        .teacher_labels
+        .iter()
+        .map(|p| (p, false))
+        .chain(args.teacher_turned.iter().map(|p| (p, true)));
+    for (path, turned_only) in teacher_files {
+        let faces = if turned_only {
+            crate::labels::load_samples_where(path, args.teacher_limit, turned)?
+        } else {
+            crate::labels::load_samples(path, args.teacher_limit)?
+        };
+        let kind = if turned_only { "turned " } else { "" };
+        eprintln!(
+            "{} {kind}teacher-labelled faces from {}",
+            faces.len(),
+            path.display()
+        );
         train_faces.extend(faces.into_iter().filter_map(|s| {
             s.landmarks.map(|landmarks| TrainFace {
                 image: s.image,
@@ -421,6 +447,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             failure_fits: cfg.failure_fits,
             failure_ridge: cfg.failure_ridge,
             teacher_labels: args.teacher_labels.clone(),
+            teacher_turned: args.teacher_turned.clone(),
+            turned_min_yaw: args.turned_min_yaw,
             teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
             teacher_starts: args.teacher_starts,
         },
