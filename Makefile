@@ -382,11 +382,12 @@ export-dan: venv-train
 
 # The server's refinement cascade (models/REFINER_MODEL_CARD.md): DAN's answers on augmented training crops,
 # then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining.
-# 0.3.0: the annotated faces (20 crops per face and mirror) plus the teacher-labelled ones (make teacher-labels; 1 crop
-# per face and mirror), features read bilinearly (format v2). Without `--bilinear` it is 0.2.0's recipe;
-# `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only ablation (0.1.0).
-REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --bilinear --teacher-labels $(TEACHER_LABEL_FILES) \
-  --teacher-crops 1 --version 0.3.0
+# 0.4.0: the annotated faces (20 crops per face and mirror) plus the teacher-labelled ones (make teacher-labels; 1 crop
+# per face and mirror), features read bilinearly (format v2), 12 stages. Without `--stages 12` it is 0.3.0's recipe,
+# without `--bilinear` too 0.2.0's; `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only
+# ablation (0.1.0).
+REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --bilinear --stages 12 --teacher-labels $(TEACHER_LABEL_FILES) \
+  --teacher-crops 1 --version 0.4.0
 train-refiner: setup-release video-deps
 	$(CARGO) build --release -p holoface-tools
 	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
