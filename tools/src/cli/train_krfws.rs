@@ -329,11 +329,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .map(|p| (p, false))
         .chain(args.teacher_turned.iter().map(|p| (p, true)));
     for (path, turned_only) in teacher_files {
-        let faces = if turned_only {
-            crate::labels::load_samples_where(path, args.teacher_limit, turned)?
-        } else {
-            crate::labels::load_samples(path, args.teacher_limit)?
-        };
+        let faces =
+            crate::labels::load_samples_where(path, args.teacher_limit, |l| !turned_only || turned(l))?;
         let kind = if turned_only { "turned " } else { "" };
         eprintln!(
             "{} {kind}teacher-labelled faces from {}",
