@@ -69,6 +69,7 @@ fn synthetic_face(rng: &mut Rng) -> TrainFace {
         image: GrayImage::from_vec(img, w, h).unwrap(),
         landmarks: lm,
         starts: None,
+        lid_weight: 1.0,
     }
 }
 
@@ -323,4 +324,62 @@ fn training_is_deterministic_whatever_the_thread_count() {
     )
     .unwrap();
     assert_ne!(a.to_bytes(), c.to_bytes());
+}
+
+/// Mean distance of the 8 lid points of a 51-point fit from the truth (image pixels).
+fn lid_error(fit: &[Point2; N_POINTS], truth: &[Point2; 68]) -> f64 {
+    train::LID_POINTS
+        .iter()
+        .map(|&k| {
+            let (p, t) = (fit[k], truth[17 + k]);
+            f64::from(((p.x - t.x).powi(2) + (p.y - t.y).powi(2)).sqrt())
+        })
+        .sum::<f64>()
+        / train::LID_POINTS.len() as f64
+}
+
+#[test]
+fn lid_weight_zero_keeps_bad_teacher_lids_out_of_the_lids() {
+    let mut rng = Rng::new(17);
+    let faces: Vec<TrainFace> = (0..30).map(|_| synthetic_face(&mut rng)).collect();
+    // "Teacher" copies of the first 20 faces whose lid labels sit 6 px too low.
+    let teacher = |w: f32| -> Vec<TrainFace> {
+        let mut all: Vec<TrainFace> = faces[..20].to_vec();
+        all.extend(faces[..20].iter().map(|f| {
+            let mut t = f.clone();
+            for &k in &train::LID_POINTS {
+                t.landmarks[17 + k].y += 6.0;
+            }
+            t.starts = Some(6);
+            t.lid_weight = w;
+            t
+        }));
+        all
+    };
+    let lid_error_on_unseen = |w: f32| {
+        let (m, _) = train::train(&teacher(w), &small_config(), &NoProgress).unwrap();
+        let mut scratch = KrfwsScratch::new();
+        let mut out = [Point2::default(); N_POINTS];
+        faces[20..]
+            .iter()
+            .map(|f| {
+                m.align(
+                    &f.image.view(),
+                    &m.init_from_box(&gt_box(&f.landmarks)),
+                    &mut scratch,
+                    &mut out,
+                );
+                lid_error(&out, &f.landmarks)
+            })
+            .sum::<f64>()
+            / 10.0
+    };
+    let (trusted, ignored) = (lid_error_on_unseen(1.0), lid_error_on_unseen(0.0));
+    assert!(
+        ignored < 0.7 * trusted,
+        "lid error with the bad lids weighed 1: {trusted} px, 0: {ignored} px"
+    );
+    let mut bad = teacher(f32::NAN);
+    bad.truncate(21);
+    assert!(train::train(&bad, &small_config(), &NoProgress).is_err());
 }

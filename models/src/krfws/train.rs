@@ -37,7 +37,8 @@
 //! targets, solved by Jacobi-preconditioned conjugate gradients on the normal equations with sparse
 //! matrix–vector products (`X·P` gathers leaf rows, `Xᵀ·R` scatters them): `XᵀX` (leaves × leaves) is
 //! never formed. `λ = ridge · n · trees / leaves`, i.e. [`TrainConfig::ridge`] times the mean leaf
-//! population.
+//! population. A face's [`TrainFace::lid_weight`] ≠ 1 makes each lid output column its own weighted
+//! problem (`XᵀDX + λI`, `D` the samples' lid weights; the preconditioner stays unweighted).
 //!
 //! # Failure detector
 //! Perturbed fits of every training face (small, full-σ and 2×σ gross perturbations, and boxes moved off
@@ -73,6 +74,24 @@ pub struct TrainFace {
     /// with `Some` follow the annotated ones in [`train`]'s list; the failure detector learns from the
     /// annotated faces only.
     pub starts: Option<usize>,
+    /// Weight of this face's eyelid targets (the 8 lid points of the 51, [`LID_POINTS`]) in the global
+    /// regression, relative to its other points: 1 for annotated faces. Below 1, this face's labels shape
+    /// the lids less than the rest of the face (a lever for teacher labels, measured in BENCHMARKS.md,
+    /// "The teacher lids weighed down"); the trees are unchanged.
+    pub lid_weight: f32,
+}
+
+/// The eyelid points (upper and lower lid, not the corners) as indices into the 51 inner points.
+pub const LID_POINTS: [usize; 8] = [20, 21, 23, 24, 26, 27, 29, 30];
+
+/// Which of the 102 regression outputs belong to the lid points.
+fn lid_columns() -> [bool; DELTA_DIM] {
+    let mut c = [false; DELTA_DIM];
+    for p in LID_POINTS {
+        c[2 * p] = true;
+        c[2 * p + 1] = true;
+    }
+    c
 }
 
 /// Training hyper-parameters.
@@ -189,6 +208,7 @@ pub fn mirror_face(face: &TrainFace) -> TrainFace {
         image: face.image.mirrored(),
         landmarks: mirror68(&face.landmarks, face.image.width()),
         starts: face.starts,
+        lid_weight: face.lid_weight,
     }
 }
 
@@ -671,16 +691,30 @@ fn train_forest(
 
 /// Ridge regression from sparse binary codes (`per` global leaf ids per sample) to `y` (n × 102) by
 /// Jacobi-preconditioned multi-right-hand-side conjugate gradients. Returns `W` and the iterations.
+/// `lid_weights` (one per sample) weigh each sample's lid outputs ([`LID_POINTS`]): each output column is
+/// its own weighted least-squares problem; `None` weighs everything 1.
 fn ridge_sparse(
     codes: &[u32],
     per: usize,
     n_leaves: usize,
     y: &[f32],
+    lid_weights: Option<&[f32]>,
     lambda: f64,
     tol: f64,
 ) -> (Vec<f32>, usize) {
     const K: usize = DELTA_DIM;
     let n = codes.len() / per.max(1);
+    let lids = lid_columns();
+    // Scales a sample-major n × K buffer by the sample weights in the lid columns.
+    let weigh = |v: &mut [f64]| {
+        if let Some(w) = lid_weights {
+            for (row, &wi) in v.chunks_exact_mut(K).zip(w) {
+                for (x, _) in row.iter_mut().zip(&lids).filter(|(_, l)| **l) {
+                    *x *= f64::from(wi);
+                }
+            }
+        }
+    };
     let mut diag = vec![lambda; n_leaves];
     for &c in codes {
         diag[c as usize] += 1.0;
@@ -707,7 +741,8 @@ fn ridge_sparse(
             }
         }
     };
-    let yd: Vec<f64> = y.iter().map(|&v| f64::from(v)).collect();
+    let mut yd: Vec<f64> = y.iter().map(|&v| f64::from(v)).collect();
+    weigh(&mut yd);
     let mut b = vec![0.0; n_leaves * K];
     xt(&yd, &mut b);
     let mut x = vec![0.0f64; n_leaves * K];
@@ -731,6 +766,7 @@ fn ridge_sparse(
     for it in 0..200 {
         iters = it + 1;
         x_mul(&p, &mut tmp);
+        weigh(&mut tmp);
         xt(&tmp, &mut q);
         for (j, qv) in q.iter_mut().enumerate() {
             *qv += lambda * p[j];
@@ -784,6 +820,9 @@ pub fn train_cascade(
     {
         return Err(TrainError::Config("1..=8 stage scales in 0.01..=100"));
     }
+    if faces.iter().any(|f| !(0.0..=1e3).contains(&f.lid_weight)) {
+        return Err(TrainError::Config("lid weights must be in 0..=1000"));
+    }
     let mut all: Vec<TrainFace> = Vec::with_capacity(faces.len() * 2);
     for f in faces {
         all.push(f.clone());
@@ -810,6 +849,12 @@ pub fn train_cascade(
         }
     }
     let n = samples.len();
+    // Per-sample lid weights, only when some face weighs its lids differently (else the plain solve).
+    let lid_weights: Option<Vec<f32>> = all
+        .iter()
+        .any(|f| f.lid_weight != 1.0)
+        .then(|| samples.iter().map(|s| all[s.face].lid_weight).collect());
+    let lids = lid_columns();
     let mut report = TrainReport {
         samples: n,
         ..TrainReport::default()
@@ -886,25 +931,36 @@ pub fn train_cascade(
         let mut mses = Vec::new();
         let mut chosen = cfg.ridge[0];
         if select {
-            let (mut tc, mut ty, mut hc, mut hy) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let (mut tc, mut ty, mut tw, mut hc, mut hy, mut hw) = (
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+            );
             for i in 0..n {
                 let (c, y) = (
                     &codes[i * per..(i + 1) * per],
                     &data.targets[i * DELTA_DIM..(i + 1) * DELTA_DIM],
                 );
+                let w = all[samples[i].face].lid_weight;
                 if held(i) {
                     hc.extend_from_slice(c);
                     hy.extend_from_slice(y);
+                    hw.push(w);
                 } else {
                     tc.extend_from_slice(c);
                     ty.extend_from_slice(y);
+                    tw.push(w);
                 }
             }
+            let tw = lid_weights.is_some().then_some(tw.as_slice());
             let mut best = f64::INFINITY;
             for &r in &cfg.ridge {
-                let (w, _) = ridge_sparse(&tc, per, total as usize, &ty, r * population, 1e-6);
+                let (w, _) = ridge_sparse(&tc, per, total as usize, &ty, tw, r * population, 1e-6);
                 let mut err = 0.0f64;
-                for (c, y) in hc.chunks_exact(per).zip(hy.chunks_exact(DELTA_DIM)) {
+                for ((c, y), &wi) in hc.chunks_exact(per).zip(hy.chunks_exact(DELTA_DIM)).zip(&hw) {
                     let mut pred = [0.0f64; DELTA_DIM];
                     for &leaf in c {
                         for (p, v) in pred.iter_mut().zip(&w[leaf as usize * DELTA_DIM..]) {
@@ -914,7 +970,11 @@ pub fn train_cascade(
                     err += pred
                         .iter()
                         .zip(y)
-                        .map(|(p, t)| (p - f64::from(*t)).powi(2))
+                        .zip(&lids)
+                        .map(|((p, t), &lid)| {
+                            let w = if lid { f64::from(wi) } else { 1.0 };
+                            w * (p - f64::from(*t)).powi(2)
+                        })
                         .sum::<f64>();
                 }
                 let mse = err / (hy.len().max(1)) as f64;
@@ -926,7 +986,15 @@ pub fn train_cascade(
             }
         }
         let lambda = chosen * population;
-        let (mut w, iters) = ridge_sparse(&codes, per, total as usize, &data.targets, lambda, 1e-8);
+        let (mut w, iters) = ridge_sparse(
+            &codes,
+            per,
+            total as usize,
+            &data.targets,
+            lid_weights.as_deref(),
+            lambda,
+            1e-8,
+        );
         super::format::round_f16(&mut w);
         progress.inc(1);
         progress.end(&format!("{iters} CG iterations"));
@@ -1324,9 +1392,28 @@ mod tests {
         for (i, v) in [1.0f32, 3.0, -2.0, -2.0, -5.0].iter().enumerate() {
             y[i * DELTA_DIM] = *v;
         }
-        let (w, _) = ridge_sparse(&codes, 1, 2, &y, 1.0, 1e-12);
+        let (w, _) = ridge_sparse(&codes, 1, 2, &y, None, 1.0, 1e-12);
         assert!((w[0] - 4.0 / 3.0).abs() < 1e-4, "{}", w[0]);
         assert!((w[DELTA_DIM] + 9.0 / 4.0).abs() < 1e-4, "{}", w[DELTA_DIM]);
+    }
+
+    #[test]
+    fn lid_weights_drop_a_sample_from_the_lid_outputs_only() {
+        // One leaf, three samples; the third weighs 0 on the lids: a lid output averages the first two,
+        // every other output all three (ridge λ = 1: Σ w·y / (Σ w + 1)).
+        let codes = vec![0u32; 3];
+        let lid = 2 * LID_POINTS[0];
+        let other = 0;
+        let mut y = vec![0.0f32; 3 * DELTA_DIM];
+        for (i, v) in [2.0f32, 4.0, 30.0].iter().enumerate() {
+            y[i * DELTA_DIM + lid] = *v;
+            y[i * DELTA_DIM + other] = *v;
+        }
+        let (w, _) = ridge_sparse(&codes, 1, 1, &y, Some(&[1.0, 1.0, 0.0]), 1.0, 1e-12);
+        assert!((w[lid] - 6.0 / 3.0).abs() < 1e-4, "{}", w[lid]);
+        assert!((w[other] - 36.0 / 4.0).abs() < 1e-4, "{}", w[other]);
+        let (plain, _) = ridge_sparse(&codes, 1, 1, &y, None, 1.0, 1e-12);
+        assert!((plain[lid] - 36.0 / 4.0).abs() < 1e-4, "{}", plain[lid]);
     }
 
     #[test]

@@ -100,6 +100,14 @@ pub struct Args {
     /// kept from `--teacher-turned`.
     #[arg(long, default_value_t = 0.2)]
     pub turned_min_yaw: f64,
+    /// Weight of the teacher-labelled faces' eyelid points in each stage's regression (1: as much as
+    /// their other points; 0: the lids learn from the annotated faces only, so teacher lids cannot move
+    /// how a blink reads).
+    #[arg(long, default_value_t = 1.0)]
+    pub teacher_lid_weight: f32,
+    /// The same for the faces of `--teacher-turned`.
+    #[arg(long, default_value_t = 1.0)]
+    pub turned_lid_weight: f32,
 }
 
 /// A plain stderr progress bar (redrawn at most 5 times a second).
@@ -238,6 +246,8 @@ struct ConfigJson {
     turned_min_yaw: f64,
     teacher_faces: usize,
     teacher_starts: usize,
+    teacher_lid_weight: f32,
+    turned_lid_weight: f32,
 }
 
 fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
@@ -249,6 +259,7 @@ fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
                 image: s.image,
                 landmarks,
                 starts: None,
+                lid_weight: 1.0,
             })
         })
         .collect())
@@ -342,6 +353,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 image: s.image,
                 landmarks,
                 starts: Some(args.teacher_starts),
+                lid_weight: if turned_only {
+                    args.turned_lid_weight
+                } else {
+                    args.teacher_lid_weight
+                },
             })
         }));
     }
@@ -448,6 +464,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             turned_min_yaw: args.turned_min_yaw,
             teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
             teacher_starts: args.teacher_starts,
+            teacher_lid_weight: args.teacher_lid_weight,
+            turned_lid_weight: args.turned_lid_weight,
         },
         training_seconds,
         train_samples: report.samples,
