@@ -689,20 +689,29 @@ fn train_forest(
     (trees, leaves)
 }
 
+/// How [`ridge_sparse`] solves: ridge `lambda`, relative residual `tol` per column, worker `threads`.
+#[derive(Clone, Copy)]
+struct Solve {
+    lambda: f64,
+    tol: f64,
+    threads: usize,
+}
+
 /// Ridge regression from sparse binary codes (`per` global leaf ids per sample) to `y` (n × 102) by
 /// Jacobi-preconditioned multi-right-hand-side conjugate gradients. Returns `W` and the iterations.
 /// `lid_weights` (one per sample) weigh each sample's lid outputs ([`LID_POINTS`]): each output column is
-/// its own weighted least-squares problem; `None` weighs everything 1.
+/// its own weighted least-squares problem; `None` weighs everything 1. The products run on `threads`
+/// threads with the same result bits whatever their number.
 fn ridge_sparse(
     codes: &[u32],
     per: usize,
     n_leaves: usize,
     y: &[f32],
     lid_weights: Option<&[f32]>,
-    lambda: f64,
-    tol: f64,
+    solve: Solve,
 ) -> (Vec<f32>, usize) {
     const K: usize = DELTA_DIM;
+    let Solve { lambda, tol, threads } = solve;
     let n = codes.len() / per.max(1);
     let lids = lid_columns();
     // Scales a sample-major n × K buffer by the sample weights in the lid columns.
@@ -719,27 +728,59 @@ fn ridge_sparse(
     for &c in codes {
         diag[c as usize] += 1.0;
     }
+    let threads = threads.clamp(1, 64);
+    // `Xᵀr`: every thread sums its own block of output columns over all samples in sample order, so the
+    // result is the same bits whatever the thread count.
     let xt = |r: &[f64], out: &mut [f64]| {
-        out.fill(0.0);
-        for (i, row) in codes.chunks_exact(per).enumerate() {
-            let ri = &r[i * K..(i + 1) * K];
-            for &c in row {
-                for (o, v) in out[c as usize * K..(c as usize + 1) * K].iter_mut().zip(ri) {
-                    *o += v;
-                }
+        let bw = K.div_ceil(threads);
+        let parts: Vec<(usize, Vec<f64>)> = std::thread::scope(|sc| {
+            let handles: Vec<_> = (0..K)
+                .step_by(bw)
+                .map(|k0| {
+                    sc.spawn(move || {
+                        let w = bw.min(K - k0);
+                        let mut part = vec![0.0f64; n_leaves * w];
+                        for (i, row) in codes.chunks_exact(per).enumerate() {
+                            let ri = &r[i * K + k0..i * K + k0 + w];
+                            for &c in row {
+                                for (o, v) in part[c as usize * w..(c as usize + 1) * w].iter_mut().zip(ri) {
+                                    *o += v;
+                                }
+                            }
+                        }
+                        (k0, part)
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect()
+        });
+        for (k0, part) in parts {
+            let w = part.len() / n_leaves.max(1);
+            for (o, src) in out.chunks_exact_mut(K).zip(part.chunks_exact(w.max(1))) {
+                o[k0..k0 + w].copy_from_slice(src);
             }
         }
     };
+    // `Xp`: rows split over the threads (each row is one sample's own sum).
     let x_mul = |p: &[f64], out: &mut [f64]| {
-        for (i, row) in codes.chunks_exact(per).enumerate() {
-            let oi = &mut out[i * K..(i + 1) * K];
-            oi.fill(0.0);
-            for &c in row {
-                for (o, v) in oi.iter_mut().zip(&p[c as usize * K..(c as usize + 1) * K]) {
-                    *o += v;
-                }
+        let rows = n.div_ceil(threads).max(1);
+        std::thread::scope(|sc| {
+            for (o, cs) in out.chunks_mut(rows * K).zip(codes.chunks(rows * per)) {
+                sc.spawn(move || {
+                    for (oi, row) in o.chunks_exact_mut(K).zip(cs.chunks_exact(per)) {
+                        oi.fill(0.0);
+                        for &c in row {
+                            for (o, v) in oi.iter_mut().zip(&p[c as usize * K..(c as usize + 1) * K]) {
+                                *o += v;
+                            }
+                        }
+                    }
+                });
             }
-        }
+        });
     };
     let mut yd: Vec<f64> = y.iter().map(|&v| f64::from(v)).collect();
     weigh(&mut yd);
@@ -958,7 +999,18 @@ pub fn train_cascade(
             let tw = lid_weights.is_some().then_some(tw.as_slice());
             let mut best = f64::INFINITY;
             for &r in &cfg.ridge {
-                let (w, _) = ridge_sparse(&tc, per, total as usize, &ty, tw, r * population, 1e-6);
+                let (w, _) = ridge_sparse(
+                    &tc,
+                    per,
+                    total as usize,
+                    &ty,
+                    tw,
+                    Solve {
+                        lambda: r * population,
+                        tol: 1e-6,
+                        threads: cfg.threads,
+                    },
+                );
                 let mut err = 0.0f64;
                 for ((c, y), &wi) in hc.chunks_exact(per).zip(hy.chunks_exact(DELTA_DIM)).zip(&hw) {
                     let mut pred = [0.0f64; DELTA_DIM];
@@ -992,8 +1044,11 @@ pub fn train_cascade(
             total as usize,
             &data.targets,
             lid_weights.as_deref(),
-            lambda,
-            1e-8,
+            Solve {
+                lambda,
+                tol: 1e-8,
+                threads: cfg.threads,
+            },
         );
         super::format::round_f16(&mut w);
         progress.inc(1);
@@ -1392,7 +1447,18 @@ mod tests {
         for (i, v) in [1.0f32, 3.0, -2.0, -2.0, -5.0].iter().enumerate() {
             y[i * DELTA_DIM] = *v;
         }
-        let (w, _) = ridge_sparse(&codes, 1, 2, &y, None, 1.0, 1e-12);
+        let (w, _) = ridge_sparse(
+            &codes,
+            1,
+            2,
+            &y,
+            None,
+            Solve {
+                lambda: 1.0,
+                tol: 1e-12,
+                threads: 1,
+            },
+        );
         assert!((w[0] - 4.0 / 3.0).abs() < 1e-4, "{}", w[0]);
         assert!((w[DELTA_DIM] + 9.0 / 4.0).abs() < 1e-4, "{}", w[DELTA_DIM]);
     }
@@ -1409,10 +1475,32 @@ mod tests {
             y[i * DELTA_DIM + lid] = *v;
             y[i * DELTA_DIM + other] = *v;
         }
-        let (w, _) = ridge_sparse(&codes, 1, 1, &y, Some(&[1.0, 1.0, 0.0]), 1.0, 1e-12);
+        let (w, _) = ridge_sparse(
+            &codes,
+            1,
+            1,
+            &y,
+            Some(&[1.0, 1.0, 0.0]),
+            Solve {
+                lambda: 1.0,
+                tol: 1e-12,
+                threads: 3,
+            },
+        );
         assert!((w[lid] - 6.0 / 3.0).abs() < 1e-4, "{}", w[lid]);
         assert!((w[other] - 36.0 / 4.0).abs() < 1e-4, "{}", w[other]);
-        let (plain, _) = ridge_sparse(&codes, 1, 1, &y, None, 1.0, 1e-12);
+        let (plain, _) = ridge_sparse(
+            &codes,
+            1,
+            1,
+            &y,
+            None,
+            Solve {
+                lambda: 1.0,
+                tol: 1e-12,
+                threads: 2,
+            },
+        );
         assert!((plain[lid] - 36.0 / 4.0).abs() < 1e-4, "{}", plain[lid]);
     }
 
