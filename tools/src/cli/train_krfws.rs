@@ -108,6 +108,9 @@ pub struct Args {
     /// The same for the faces of `--teacher-turned`.
     #[arg(long, default_value_t = 1.0)]
     pub turned_lid_weight: f32,
+    /// Start shapes per `--teacher-turned` face and mirror image (default: `--teacher-starts`).
+    #[arg(long)]
+    pub turned_starts: Option<usize>,
 }
 
 /// A plain stderr progress bar (redrawn at most 5 times a second).
@@ -248,6 +251,7 @@ struct ConfigJson {
     teacher_starts: usize,
     teacher_lid_weight: f32,
     turned_lid_weight: f32,
+    turned_starts: Option<usize>,
 }
 
 fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
@@ -352,7 +356,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             s.landmarks.map(|landmarks| TrainFace {
                 image: s.image,
                 landmarks,
-                starts: Some(args.teacher_starts),
+                starts: Some(if turned_only {
+                    args.turned_starts.unwrap_or(args.teacher_starts)
+                } else {
+                    args.teacher_starts
+                }),
                 lid_weight: if turned_only {
                     args.turned_lid_weight
                 } else {
@@ -466,6 +474,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             teacher_starts: args.teacher_starts,
             teacher_lid_weight: args.teacher_lid_weight,
             turned_lid_weight: args.turned_lid_weight,
+            turned_starts: args.turned_starts,
         },
         training_seconds,
         train_samples: report.samples,
