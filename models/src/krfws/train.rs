@@ -1439,6 +1439,15 @@ mod tests {
         assert!(!cholesky_solve(&mut bad, 1, &mut [1.0]));
     }
 
+    /// λ = 1, solved to round-off, on `threads` threads.
+    fn exact(threads: usize) -> Solve {
+        Solve {
+            lambda: 1.0,
+            tol: 1e-12,
+            threads,
+        }
+    }
+
     #[test]
     fn sparse_ridge_matches_closed_form_on_one_tree() {
         // One tree with 2 leaves: the ridge solution of each leaf is Σy / (count + λ).
@@ -1447,18 +1456,7 @@ mod tests {
         for (i, v) in [1.0f32, 3.0, -2.0, -2.0, -5.0].iter().enumerate() {
             y[i * DELTA_DIM] = *v;
         }
-        let (w, _) = ridge_sparse(
-            &codes,
-            1,
-            2,
-            &y,
-            None,
-            Solve {
-                lambda: 1.0,
-                tol: 1e-12,
-                threads: 1,
-            },
-        );
+        let (w, _) = ridge_sparse(&codes, 1, 2, &y, None, exact(1));
         assert!((w[0] - 4.0 / 3.0).abs() < 1e-4, "{}", w[0]);
         assert!((w[DELTA_DIM] + 9.0 / 4.0).abs() < 1e-4, "{}", w[DELTA_DIM]);
     }
@@ -1475,32 +1473,10 @@ mod tests {
             y[i * DELTA_DIM + lid] = *v;
             y[i * DELTA_DIM + other] = *v;
         }
-        let (w, _) = ridge_sparse(
-            &codes,
-            1,
-            1,
-            &y,
-            Some(&[1.0, 1.0, 0.0]),
-            Solve {
-                lambda: 1.0,
-                tol: 1e-12,
-                threads: 3,
-            },
-        );
+        let (w, _) = ridge_sparse(&codes, 1, 1, &y, Some(&[1.0, 1.0, 0.0]), exact(3));
         assert!((w[lid] - 6.0 / 3.0).abs() < 1e-4, "{}", w[lid]);
         assert!((w[other] - 36.0 / 4.0).abs() < 1e-4, "{}", w[other]);
-        let (plain, _) = ridge_sparse(
-            &codes,
-            1,
-            1,
-            &y,
-            None,
-            Solve {
-                lambda: 1.0,
-                tol: 1e-12,
-                threads: 2,
-            },
-        );
+        let (plain, _) = ridge_sparse(&codes, 1, 1, &y, None, exact(2));
         assert!((plain[lid] - 36.0 / 4.0).abs() < 1e-4, "{}", plain[lid]);
     }
 

@@ -101,8 +101,7 @@ pub struct Args {
     #[arg(long, default_value_t = 0.2)]
     pub turned_min_yaw: f64,
     /// Weight of the teacher-labelled faces' eyelid points in each stage's regression (1: as much as
-    /// their other points; 0: the lids learn from the annotated faces only, so teacher lids cannot move
-    /// how a blink reads).
+    /// their other points; 0: the lids' regression learns from the annotated faces only).
     #[arg(long, default_value_t = 1.0)]
     pub teacher_lid_weight: f32,
     /// The same for the faces of `--teacher-turned`.
