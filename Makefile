@@ -5,6 +5,10 @@
 # Runtime library, face detector and sample and our models; the tests also use a Python venv of pinned packages.
 
 SHELL := /bin/bash
+# The test build's package selection and features (`check`, `test-build`, `unit` share it), and the facade's: what an
+# app compiles (`deps-check`, checked and documented with one selection so the two share their dependencies).
+TEST_SEL := --workspace --features holoface-python/extension-module
+FACADE_SEL := -p holoface-headset-client -p holoface-ffi -p holoface-python --features holoface-python/extension-module
 .SHELLFLAGS := -eu -o pipefail -c
 PYTHON ?= python3
 VENV := .venv
@@ -130,10 +134,12 @@ golden: venv
 	$(PY) models/dan/golden_crops.py --data $(HOLOFACE_DATA)/faces68/train --out target/golden/dan_crops.bin
 
 # clippy and rustdoc compile holoface-tools with its default `ffmpeg` feature: FFmpeg's headers and libclang first.
+# They take the test build's package selection and features (TEST_SEL), so that the three share the code that runs at
+# build time (proc macros, build scripts) instead of compiling it once per feature set.
 check: video-deps
 	$(CARGO) fmt --all --check
-	$(CARGO) clippy --locked --workspace --all-targets -- -D warnings
-	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked --workspace --no-deps --lib --bins --examples -q
+	$(CARGO) clippy --locked $(TEST_SEL) --all-targets -- -D warnings
+	RUSTDOCFLAGS=-Dwarnings $(CARGO) doc --locked $(TEST_SEL) --no-deps --lib --bins --examples -q
 
 # The protocol crate must not depend on an async runtime or a QUIC stack; the headset runtime (and the C
 # ABI a headset app links) must not compile the alignment server, its certificate generator, its config
@@ -170,9 +176,9 @@ deps-check:
 	@for c in holoface-ffi holoface-python; do \
 	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-headset-client feature "tools"'; then \
 	    echo "$$c enables holoface-headset-client/tools: it must use the facade only" >&2; exit 1; fi; done
-	$(CARGO) check --locked -q -p holoface-headset-client -p holoface-ffi -p holoface-python --lib --examples
+	$(CARGO) check --locked -q $(FACADE_SEL) --lib --examples
 	@rm -rf target/doc/holoface_headset_client
-	$(CARGO) doc --locked -q -p holoface-headset-client --no-deps --lib
+	$(CARGO) doc --locked -q $(FACADE_SEL) --no-deps --lib
 	@if grep -rqi quinn target/doc/holoface_headset_client; then \
 	  echo "the runtime's app-facing API mentions quinn" >&2; exit 1; fi
 	@echo "holoface-headset-client: the facade alone serves the C ABI, Python and the embedding example; no quinn in it"
@@ -187,7 +193,6 @@ deps-check:
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the
 # `holoface` binary, the examples), with the same package selection and features as the test run, so that
 # nothing is compiled twice with different features (BENCHMARKS.md, "Build time").
-TEST_SEL := --workspace --features holoface-python/extension-module
 test-build: video-deps
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 
