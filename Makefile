@@ -129,6 +129,14 @@ setup-demo: demo-build
 setup-test: test-build
 	target/debug/holoface setup
 
+## ---- main job -----------------------------------------------------------------------------------
+# Server and client on loopback: the bundled sample animated by a synthetic headset, link cut part-way.
+# The demo reads and writes no video and trains nothing, so its binary is built without MP4/H.264 (OpenH264's
+# C build is a fifth of the build), without FFmpeg (no apt packages) and without the trainers; that binary fills
+# the data folder, then runs the demo.
+demo: setup-demo
+	$(DEMO_BIN) demo
+
 ## ---- tests --------------------------------------------------------------------------------------
 golden: venv
 	$(PY) models/dan/golden_crops.py --data $(HOLOFACE_DATA)/faces68/train --out target/golden/dan_crops.bin

@@ -86,8 +86,10 @@ def dry_run(target: str) -> list[str]:
     )
     if out.returncode != 0:
         sys.exit(f"make -n -B {target} failed:\n{out.stderr}")
-    # A recipe line continued with backslashes is one shell command; join them so a command is one line.
-    return out.stdout.replace("\\\n", " ").splitlines()
+    lines = out.stdout.replace("\\\n", " ").splitlines()  # a command continued with backslashes is one line
+    if not lines or "Nothing to be done" in out.stdout:
+        sys.exit(f"make -n -B {target} runs nothing: is the target missing?")
+    return lines
 
 
 def check(target: str) -> list[str]:
