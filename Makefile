@@ -33,7 +33,7 @@ export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
 PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
-.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -82,6 +82,14 @@ $(DAN_FP16): models/assets/dan.onnx models/dan/to_fp16.py $(VENV)/.eval-installe
 	$(PY) models/dan/to_fp16.py --model models/assets/dan.onnx --out $@
 
 dan-fp16: $(DAN_FP16)
+
+# The DAN quantised to int8 for CPUs with VNNI (models/DAN_MODEL_CARD.md, "int8"; the server's engine.precision =
+# "auto" serves it there): from the committed fp32 model, calibrated on training-split crops only, checked against
+# fp32 on the validation faces before it is written. Committed (models/assets/dan.int8.onnx, built into `holoface
+# setup`); its SHA-256 is a known release in inference/src/integrity.rs, which a test keeps equal to the file.
+dan-int8: $(VENV)/.eval-installed
+	$(PY) models/dan/to_int8.py --model models/assets/dan.onnx --data $(HOLOFACE_DATA)/faces68/train \
+	  --out models/assets/dan.int8.onnx
 
 # Several-faces smoke test: the 1927 Solvay conference photograph (Benjamin Couprie; 29 people, faces about
 # 50 px), as the rustface crate ships it (test.png, with rustface's own detection boxes drawn in; the crate is

@@ -115,7 +115,7 @@ def main() -> int:
                             text=True, check=True).stdout.split()
     targets = sys.argv[1:] or [p for p in phases if p != "setup-order"] + [
         "test", "demo", "setup", "setup-demo", "compare", "stability", "speed-vs-dlib", "bench", "wheel",
-        "train-refiner", "train-krfws", "train-blendshapes", "train-dan", "export-dan", "teacher-eval",
+        "train-refiner", "train-krfws", "train-blendshapes", "train-dan", "export-dan", "teacher-eval", "dan-int8",
     ]
     problems = [p for t in targets for p in check(t)]
     for p in problems:

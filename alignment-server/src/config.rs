@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::batcher::{BatchPolicy, BatcherConfig};
 use crate::metrics_http::is_internal_addr;
-use holoface_inference::{OnnxOptions, Provider};
+use holoface_inference::{OnnxOptions, PrecisionChoice, Provider};
 
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
@@ -30,6 +30,12 @@ pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
 /// folder (`holoface setup` installs it; [`holoface_inference::home`]).
 pub fn default_model() -> PathBuf {
     holoface_inference::home::DAN.default_path()
+}
+
+/// The int8 DAN when `engine.int8_model` is not set: `$HOLOFACE_DAN_INT8_MODEL`, else `dan.int8.onnx` in the data
+/// folder.
+pub fn default_int8_model() -> PathBuf {
+    holoface_inference::home::DAN_INT8.default_path()
 }
 
 /// The refinement cascade when `refine.model` is not set: `$HOLOFACE_REFINE_MODEL`, else `refiner.bin` in the
@@ -146,6 +152,34 @@ pub enum BatchPolicyName {
     MaxWait,
 }
 
+/// Which DAN precision serves (the TOML/CLI spelling of [`PrecisionChoice`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PrecisionName {
+    /// int8 (`engine.int8_model`) where the CPU has AVX-512 VNNI or AVX-VNNI, else `engine.model` (default).
+    Auto,
+    /// `engine.model` as it is, whatever its precision.
+    Model,
+    /// `engine.model`, which must be fp32.
+    Fp32,
+    /// `engine.model`, which must be fp16 (GPUs).
+    Fp16,
+    /// `engine.int8_model`, even without VNNI.
+    Int8,
+}
+
+impl From<PrecisionName> for PrecisionChoice {
+    fn from(p: PrecisionName) -> Self {
+        match p {
+            PrecisionName::Auto => Self::Auto,
+            PrecisionName::Model => Self::Model,
+            PrecisionName::Fp32 => Self::Fp32,
+            PrecisionName::Fp16 => Self::Fp16,
+            PrecisionName::Int8 => Self::Int8,
+        }
+    }
+}
+
 /// `[quic]`: endpoint, TLS and handshake.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Args, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -253,6 +287,13 @@ pub struct EngineConfig {
     /// The DAN ONNX model [default: dan.onnx in the holoface data folder].
     #[arg(long, env = "HOLOFACE_DAN_MODEL")]
     pub model: Option<PathBuf>,
+    /// The DAN quantised to int8 [default: $HOLOFACE_DAN_INT8_MODEL, else dan.int8.onnx in the data folder].
+    #[arg(long)]
+    pub int8_model: Option<PathBuf>,
+    /// Which precision serves: `auto` runs the int8 model where the CPU has VNNI (about 3x the crops per core)
+    /// and `model` otherwise; the log says which and why [default: auto].
+    #[arg(long, value_enum, env = "HOLOFACE_PRECISION")]
+    pub precision: Option<PrecisionName>,
     /// libonnxruntime.so [default: $ORT_DYLIB_PATH, else libonnxruntime.so.1.31.1 in the holoface data folder].
     #[arg(long)]
     pub ort_dylib: Option<PathBuf>,
@@ -421,6 +462,8 @@ impl EngineConfig {
             self,
             lo,
             model,
+            int8_model,
+            precision,
             ort_dylib,
             intra_threads,
             cuda,
@@ -674,6 +717,8 @@ impl ServerConfig {
                 spin: self.engine.spin.unwrap_or(false),
             },
             engine_instances,
+            precision: self.engine.precision.unwrap_or(PrecisionName::Auto).into(),
+            int8_model: self.engine.int8_model.unwrap_or_else(default_int8_model),
             refine_model: match (self.refine.enabled.unwrap_or(true), self.refine.model) {
                 (true, model) => Some(model.unwrap_or_else(default_refine_model)),
                 (false, None) => None,
@@ -805,8 +850,13 @@ pub struct Settings {
     pub max_frame_rate: u32,
     /// Batcher limits.
     pub batch: BatcherConfig,
-    /// ONNX Runtime engine options (each instance's).
+    /// ONNX Runtime engine options (each instance's); `engine.model` is the fp32 (or fp16) model, which
+    /// `precision` may replace with `int8_model`.
     pub engine: OnnxOptions,
+    /// Which precision serves.
+    pub precision: PrecisionChoice,
+    /// The int8 model.
+    pub int8_model: PathBuf,
     /// Engine instances fed by the batcher.
     pub engine_instances: usize,
     /// The refinement cascade run after DAN (`None`: off).
@@ -817,8 +867,8 @@ pub struct Settings {
 
 impl Settings {
     /// Settings for tests and benchmarks: loopback on an ephemeral port,
-    /// self-signed certificate, one token, the refinement cascade `refine_model` (`None`: off),
-    /// everything else default.
+    /// self-signed certificate, one token, the refinement cascade `refine_model` (`None`: off), `model` served as
+    /// it is (`engine.precision = "model"`: a benchmark measures the file it names), everything else default.
     pub fn for_loopback(
         token: &str,
         model: PathBuf,
@@ -837,6 +887,7 @@ impl Settings {
             engine: EngineConfig {
                 model: Some(model),
                 ort_dylib: Some(ort_dylib),
+                precision: Some(PrecisionName::Model),
                 ..EngineConfig::default()
             },
             refine: RefineConfig {

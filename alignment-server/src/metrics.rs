@@ -170,8 +170,9 @@ impl Metrics {
         }
     }
 
-    /// Records what the server runs, for `holoface_engine_info` (the first call wins); `refiner` is the
-    /// refinement cascade's identity (`none` when off).
+    /// Records what the server runs, for `holoface_engine_info` (the first call wins): the model and its
+    /// precision, the CPU's int8 instructions (`cpu_int8`: `avx512_vnni`, `avx_vnni` or `none`, which decided
+    /// `engine.precision = "auto"`), the provider; `refiner` is the refinement cascade's identity (`none` when off).
     pub fn set_engine_info(
         &self,
         model: &ModelInfo,
@@ -180,10 +181,11 @@ impl Metrics {
         refiner: Option<&str>,
     ) {
         let _ = self.engine_info.set(format!(
-            "model=\"{}\",version=\"{}\",precision=\"{}\",provider=\"{}\",fallback=\"{}\",instances=\"{instances}\",refiner=\"{}\"",
+            "model=\"{}\",version=\"{}\",precision=\"{}\",cpu_int8=\"{}\",provider=\"{}\",fallback=\"{}\",instances=\"{instances}\",refiner=\"{}\"",
             label_value(&model.name),
             label_value(&model.version),
             label_value(&model.precision),
+            holoface_inference::CpuInt8::detect().label(),
             label_value(&execution.provider),
             execution.fallback.is_some(),
             label_value(refiner.unwrap_or("none")),
@@ -240,8 +242,9 @@ impl Metrics {
         if let Some(labels) = self.engine_info.get() {
             let _ = writeln!(
                 out,
-                "# HELP holoface_engine_info The model and the ONNX Runtime execution provider running it \
-                 (fallback=\"true\": the requested GPU provider could not run; the log says why).\n\
+                "# HELP holoface_engine_info The model, its precision and the ONNX Runtime execution provider \
+                 running it (fallback=\"true\": the requested GPU provider could not run; cpu_int8: the CPU's \
+                 8-bit dot products, which engine.precision = auto reads; the log says why).\n\
                  # TYPE holoface_engine_info gauge\nholoface_engine_info{{{labels}}} 1"
             );
         }
@@ -437,11 +440,12 @@ mod tests {
         m.set_engine_info(&model, &execution, 2, Some("ert 0.1 (crc 0000abcd)"));
         let text = m.render();
         assert!(
-            text.contains(
-                "holoface_engine_info{model=\"da\\\"n\",version=\"0\",precision=\"fp32\",\
-                 provider=\"CPUExecutionProvider\",fallback=\"true\",instances=\"2\",\
-                 refiner=\"ert 0.1 (crc 0000abcd)\"} 1\n"
-            ),
+            text.contains(&format!(
+                "holoface_engine_info{{model=\"da\\\"n\",version=\"0\",precision=\"fp32\",\
+                 cpu_int8=\"{}\",provider=\"CPUExecutionProvider\",fallback=\"true\",instances=\"2\",\
+                 refiner=\"ert 0.1 (crc 0000abcd)\"}} 1\n",
+                holoface_inference::CpuInt8::detect().label()
+            )),
             "{text}"
         );
     }

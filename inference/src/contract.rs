@@ -16,7 +16,8 @@
 //!   `holoface.crop_size` (S), `holoface.mean_shape` (JSON list of L `[x, y]`),
 //!   `holoface.face_threshold`; optional `holoface.licence`,
 //!   `holoface.untrained`, `holoface.precision` (`fp32` when absent; `fp16` for
-//!   `models/dan/to_fp16.py`'s half-precision graph, same inputs and outputs).
+//!   `models/dan/to_fp16.py`'s half-precision graph, `int8` for `models/dan/to_int8.py`'s quantised one; same
+//!   inputs and outputs).
 //!
 //! Everything is checked at load ([`validate_io`], [`ModelInfo::from_metadata`])
 //! with an error that names the offending tensor, dimension or key.
@@ -54,7 +55,7 @@ pub struct ModelInfo {
     pub licence: Option<String>,
     /// `holoface.untrained == "true"` (a random-weights development model).
     pub untrained: bool,
-    /// `holoface.precision`: the arithmetic inside the graph (`fp32` when absent, `fp16`); the inputs and
+    /// `holoface.precision`: the arithmetic inside the graph (`fp32` when absent, `fp16`, `int8`); the inputs and
     /// outputs are the contract's either way.
     pub precision: String,
 }
@@ -77,11 +78,15 @@ impl ModelInfo {
         };
         let name = req("holoface.name")?;
         let version = req("holoface.version")?;
-        for (key, v) in [("holoface.name", &name), ("holoface.version", &version)] {
-            if v.is_empty() || v.len() > MAX_NAME_LEN {
+        // The server's welcome names the release with its precision ("0.4.0+int8", within MAX_NAME_LEN).
+        for (key, v, max) in [
+            ("holoface.name", &name, MAX_NAME_LEN),
+            ("holoface.version", &version, MAX_NAME_LEN - "+fp32".len()),
+        ] {
+            if v.is_empty() || v.len() > max {
                 return Err(EngineError::BadMetadata {
                     key,
-                    problem: format!("length {} outside 1..={MAX_NAME_LEN}", v.len()),
+                    problem: format!("length {} outside 1..={max}", v.len()),
                 });
             }
         }
@@ -131,10 +136,10 @@ impl ModelInfo {
                     problem: format!("{thr:?} is not a finite number"),
                 })?;
         let precision = get("holoface.precision").map_or_else(|| "fp32".to_owned(), |v| v.trim().to_owned());
-        if !matches!(precision.as_str(), "fp32" | "fp16") {
+        if !matches!(precision.as_str(), "fp32" | "fp16" | "int8") {
             return Err(EngineError::BadMetadata {
                 key: "holoface.precision",
-                problem: format!("{precision:?} is neither \"fp32\" nor \"fp16\""),
+                problem: format!("{precision:?} is none of \"fp32\", \"fp16\", \"int8\""),
             });
         }
         Ok(Self {
@@ -490,6 +495,8 @@ mod tests {
         let mut m = meta();
         m.insert("holoface.precision", "fp16".into());
         assert_eq!(info_of(&m).unwrap().precision, "fp16");
+        m.insert("holoface.precision", "int8".into());
+        assert_eq!(info_of(&m).unwrap().precision, "int8");
     }
 
     #[test]

@@ -90,6 +90,14 @@ pub const DAN: Asset = Asset {
     setup: SETUP,
     max_bytes: 1 << 30,
 };
+/// The DAN model quantised to 8 bits (`models/dan/to_int8.py`): what the server runs on a CPU with VNNI.
+pub const DAN_INT8: Asset = Asset {
+    name: "int8 DAN model",
+    env: "HOLOFACE_DAN_INT8_MODEL",
+    file: "dan.int8.onnx",
+    setup: SETUP,
+    max_bytes: 1 << 30,
+};
 /// The server's refinement cascade.
 pub const REFINER: Asset = Asset {
     name: "refinement cascade model",

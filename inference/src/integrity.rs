@@ -116,6 +116,14 @@ pub const KNOWN_MODELS: &[KnownModel] = &[
         sha256: "01269b68e38377bec48e6a267ca24b6f0c45608a721b3614ee0f094e4b64b1a1",
         self_test: [0.157_111_6, 61.585_55, 61.030_037, 67.124_61, 60.174_355],
     },
+    // `models/assets/dan.int8.onnx`, quantised from the release above (`make dan-int8`).
+    KnownModel {
+        name: "holoface-dan",
+        version: "0.4.0",
+        precision: "int8",
+        sha256: "8262860abed29d588665a2d00831f4f747b22fb0ecfac3af155795f4d2f49d9b",
+        self_test: [0.137_254_9, 62.370_506, 61.856_014, 68.379_14, 60.872_463],
+    },
     KnownModel {
         name: "holoface-dan",
         version: "0.3.0",
@@ -249,6 +257,14 @@ mod tests {
                 .contains("does not hold")
         );
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_known_int8_release_is_the_committed_file() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/assets/dan.int8.onnx");
+        let bytes = std::fs::read(&path).unwrap();
+        let k = known("holoface-dan", "0.4.0", "int8").expect("the int8 release is known");
+        verify_known(&path, k, &bytes).unwrap();
     }
 
     #[test]

@@ -4,6 +4,7 @@
 //! * [`contract`]: the [`InferenceEngine`] trait and the DAN model contract (batch, outputs, metadata,
 //!   input/output validation), which every engine below meets.
 //! * [`onnx`]: [`OnnxEngine`] (ort, `load-dynamic`; CUDA with fail-over to the CPU).
+//! * [`precision`]: which DAN file serves (int8 on a CPU with VNNI, else fp32), as a pure rule.
 //! * [`refine`]: [`CascadeEngine`], an engine followed by the refinement cascade (the server's pipeline).
 //! * `fake`: `FakeEngine` under `cfg(test)` / the `test-util` feature.
 //! * [`files`]: bounded reads of the files front ends name (kind and size checked before reading).
@@ -27,6 +28,7 @@ pub mod files;
 pub mod home;
 pub mod integrity;
 pub mod onnx;
+pub mod precision;
 pub mod refine;
 pub mod runtime;
 
@@ -39,5 +41,6 @@ pub use error::EngineError;
 #[cfg(any(test, feature = "test-util"))]
 pub use fake::FakeEngine;
 pub use onnx::{OnnxEngine, OnnxOptions, Provider};
+pub use precision::{CpuInt8, Decision, PrecisionChoice};
 pub use refine::{CascadeEngine, LoadedCascade};
 pub use runtime::{ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

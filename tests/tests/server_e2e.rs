@@ -908,3 +908,124 @@ fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
         );
     }
 }
+
+/// The int8 DAN (`make dan-int8`, committed): `$HOLOFACE_DAN_INT8_MODEL`, else `models/assets/dan.int8.onnx`.
+fn int8_model() -> std::path::PathBuf {
+    let path = std::env::var_os("HOLOFACE_DAN_INT8_MODEL")
+        .filter(|v| !v.is_empty())
+        .map_or_else(
+            || holoface_tests::workspace_root().join("models/assets/dan.int8.onnx"),
+            std::path::PathBuf::from,
+        );
+    assert!(
+        path.is_file(),
+        "int8 DAN not found at {} (run `make dan-int8`)",
+        path.display()
+    );
+    path
+}
+
+#[test]
+fn the_int8_model_loads_under_the_same_contract_and_agrees_with_fp32() {
+    let mut opts = loopback_settings().engine;
+    opts.max_batch = 4;
+    let mut fp32 = OnnxEngine::load(&opts).unwrap();
+    opts.model = int8_model();
+    let mut int8 = OnnxEngine::load(&opts).unwrap();
+    assert_eq!(
+        (fp32.info().precision.as_str(), int8.info().precision.as_str()),
+        ("fp32", "int8")
+    );
+    assert_eq!(
+        int8.info().mean_shape,
+        fp32.info().mean_shape,
+        "same model, same contract"
+    );
+    let mut batch = BatchTensor::new(4, 112 * 112);
+    for seed in [0, 60, 120, 180] {
+        batch.push(&frame(0, seed, 0).crop.data).unwrap();
+    }
+    let mut a = vec![LandmarkOut::default(); 4];
+    let mut b = vec![LandmarkOut::default(); 4];
+    fp32.infer(&batch, &mut a).unwrap();
+    int8.infer(&batch, &mut b).unwrap();
+    for (x, y) in a.iter().zip(&b) {
+        assert!(y.problem(68).is_none());
+        // On the validation faces the int8 graph moves a landmark by 0.05 px on average, 0.32 px at most
+        // (models/dan/to_int8.py); these synthetic frames are no faces, so allow a little more.
+        let shift = x
+            .landmarks
+            .iter()
+            .zip(&y.landmarks)
+            .map(|(p, q)| (p[0] - q[0]).hypot(p[1] - q[1]))
+            .fold(0.0_f32, f32::max);
+        assert!(shift < 1.5, "int8 moved a landmark by {shift} px");
+        assert!(
+            (x.face_prob - y.face_prob).abs() < 0.05,
+            "{} vs {}",
+            x.face_prob,
+            y.face_prob
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_serves_the_precision_it_is_told_or_the_rule_picks_and_says_which() {
+    use holoface_inference::{CpuInt8, PrecisionChoice};
+    let cpu = CpuInt8::detect();
+    for (choice, want) in [
+        (PrecisionChoice::Int8, "int8"),
+        (PrecisionChoice::Fp32, "fp32"),
+        (
+            PrecisionChoice::Auto,
+            if cpu.has_vnni() { "int8" } else { "fp32" },
+        ),
+    ] {
+        let mut s = loopback_settings();
+        s.precision = choice;
+        s.int8_model = int8_model();
+        let server = RunningServer::start(s).await.unwrap();
+        let client = tokio::time::timeout(
+            WAIT,
+            TestClient::connect(server.addr, server.fingerprint, hello(TEST_TOKEN)),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        assert_eq!(
+            client.welcome.model_version,
+            format!("0.4.0+{want}"),
+            "{choice:?}: the model string is all a client sees of the choice"
+        );
+        let text = server.metrics.render();
+        assert!(
+            text.contains(&format!("precision=\"{want}\",cpu_int8=\"{}\"", cpu.label())),
+            "{choice:?}: {text}"
+        );
+        drop(client);
+        server.shutdown().await.unwrap();
+    }
+    // Auto with no int8 file: fp32 serves (the log says where it looked).
+    let mut s = loopback_settings();
+    s.precision = PrecisionChoice::Auto;
+    s.int8_model = std::path::PathBuf::from("/nonexistent/dan.int8.onnx");
+    let server = RunningServer::start(s).await.unwrap();
+    assert!(server.metrics.render().contains("precision=\"fp32\""));
+    server.shutdown().await.unwrap();
+    // A file of another precision than asked for stops the start, naming the setting.
+    let mut s = loopback_settings();
+    s.precision = PrecisionChoice::Fp16;
+    let e = RunningServer::start(s).await.unwrap_err().to_string();
+    assert!(
+        e.contains("fp32 graph") && e.contains("engine.precision = \"fp16\""),
+        "{e}"
+    );
+    // Auto on a VNNI CPU with engine.int8_model pointing at an fp32 file: a wrong file, refused by name.
+    if cpu.has_vnni() {
+        let mut s = loopback_settings();
+        s.precision = PrecisionChoice::Auto;
+        s.int8_model = model_path();
+        let e = RunningServer::start(s).await.unwrap_err().to_string();
+        assert!(e.contains("an fp32 graph") && e.contains("int8_model"), "{e}");
+    }
+}

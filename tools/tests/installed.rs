@@ -132,6 +132,7 @@ fn installed_binaries_find_their_assets_in_the_data_folder_after_setup() {
         "face_detection_front_128x128.onnx",
         "krfws.bin",
         "dan.onnx",
+        "dan.int8.onnx",
         "refiner.bin",
         "candide3.wfm",
         "astronaut.png",

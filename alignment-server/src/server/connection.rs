@@ -218,7 +218,8 @@ async fn send_welcome(
         // Served at the client's version (authorize checked it is one we speak).
         version: hello.version,
         model_id: model.name.clone(),
-        model_version: model.version.clone(),
+        // The release and the precision serving it ("0.4.0+int8"): all a client sees of the choice.
+        model_version: format!("{}+{}", model.version, model.precision),
         landmark_count: u16::try_from(model.landmark_count).unwrap_or(u16::MAX),
         crop_size: u16::try_from(model.crop_size).unwrap_or(u16::MAX),
         mean_shape: model.mean_shape.clone(),

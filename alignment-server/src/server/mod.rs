@@ -66,7 +66,9 @@ use crate::config::{ServerConfig, Settings, TlsSource};
 use crate::metrics::Metrics;
 use crate::tls::{Fingerprint, ServerIdentity, TlsError};
 use crate::{config::ConfigError, metrics_http};
-use holoface_inference::{CascadeEngine, EngineError, InferenceEngine, LoadedCascade, ModelInfo, OnnxEngine};
+use holoface_inference::{
+    CascadeEngine, CpuInt8, EngineError, InferenceEngine, LoadedCascade, ModelInfo, OnnxEngine,
+};
 
 use admission::{Admission, Admit};
 use connection::connection;
@@ -140,19 +142,63 @@ pub async fn run(config: ServerConfig, shutdown: impl Future<Output = ()>) -> Re
 impl AlignmentServer {
     /// Loads the ONNX engine (validating the model) and binds the endpoint.
     pub async fn bind(settings: Settings) -> Result<Self, ServerError> {
-        let opts = settings.engine.clone();
+        // Which file serves: int8 on a CPU with VNNI, else engine.model (holoface_inference::precision).
+        let cpu = CpuInt8::detect();
+        let decision = holoface_inference::precision::decide(
+            settings.precision,
+            &settings.engine.model,
+            &settings.int8_model,
+            settings.int8_model.is_file(),
+            settings.engine.provider,
+            cpu,
+        );
+        let base = settings.engine.clone();
+        let auto = settings.precision == holoface_inference::PrecisionChoice::Auto;
         let instances = settings.engine_instances.max(1);
         let refine_path = settings.refine_model.clone();
         // The server's own names for the files it loads, in its messages.
         const OPTIONS: &[(holoface_inference::home::Asset, &str)] = &[
             (holoface_inference::home::DAN, "engine.model / --model"),
             (
+                holoface_inference::home::DAN_INT8,
+                "engine.int8_model / --int8-model",
+            ),
+            (
                 holoface_inference::home::ORT_LIBRARY,
                 "engine.ort_dylib / --ort-dylib",
             ),
             (holoface_inference::home::REFINER, "refine.model / --refine-model"),
         ];
-        let engines = tokio::task::spawn_blocking(move || {
+        let (decision, engines) = tokio::task::spawn_blocking(move || {
+            let mut decision = decision;
+            // Auto serves the int8 file only as the same release as engine.model: an operator who points
+            // engine.model at another DAN must not be served an older int8 one from the data folder.
+            if auto && decision.expect == Some("int8") {
+                let of = |model: &std::path::Path| {
+                    let mut o = base.clone();
+                    o.model = model.to_path_buf();
+                    OnnxEngine::load(&o).map(|e| e.info().clone())
+                };
+                let (fp, q) = (of(&base.model), of(&decision.model));
+                let (fp, q) = (fp.map_err(|e| e.given_by(OPTIONS))?, q.map_err(|e| e.given_by(OPTIONS))?);
+                if (&fp.name, &fp.version) != (&q.name, &q.version) {
+                    decision = holoface_inference::Decision {
+                        reason: format!(
+                            "auto: the int8 model {} is {} {}, engine.model is {} {}: engine.model serves \
+                             (install the matching int8 file with `holoface setup`, or set engine.int8_model)",
+                            decision.model.display(),
+                            q.name,
+                            q.version,
+                            fp.name,
+                            fp.version
+                        ),
+                        model: base.model.clone(),
+                        expect: None,
+                    };
+                }
+            }
+            let mut opts = base;
+            opts.model = decision.model.clone();
             // One refiner, shared by every instance; a missing or damaged file stops the start here.
             let refiner = refine_path
                 .as_deref()
@@ -162,6 +208,7 @@ impl AlignmentServer {
             (0..instances)
                 .map(|_| {
                     let dan = OnnxEngine::load(&opts)?;
+                    decision.check(dan.info())?;
                     Ok(match &refiner {
                         Some(r) => {
                             Box::new(CascadeEngine::new(dan, r.clone())?.with_threads(opts.intra_threads))
@@ -172,16 +219,19 @@ impl AlignmentServer {
                 })
                 .collect::<Result<Vec<_>, EngineError>>()
                 .map_err(|e| e.given_by(OPTIONS))
+                .map(|engines| (decision, engines))
         })
         .await
         .map_err(|e| ServerError::EngineThread(e.to_string()))??;
         let info = engines[0].info();
         let execution = engines[0].execution();
         info!(
-            model = %settings.engine.model.display(),
+            model = %decision.model.display(),
             name = %info.name,
             version = %info.version,
             precision = %info.precision,
+            why = %decision.reason,
+            cpu_int8 = cpu.label(),
             refiner = engines[0].refiner().unwrap_or("off"),
             refiner_model = %settings.refine_model.as_deref().map_or_else(|| "-".into(), |p| p.display().to_string()),
             untrained = info.untrained,
@@ -191,6 +241,9 @@ impl AlignmentServer {
             engine_instances = instances,
             "model loaded"
         );
+        if info.precision == "int8" && !cpu.has_vnni() {
+            warn!("{}", decision.reason);
+        }
         if let Some(why) = &execution.fallback {
             warn!(
                 "the CUDA execution provider was requested but cannot run, so the CPU runs the model \

@@ -246,6 +246,9 @@ impl ServerChild {
         cmd.args(["--listen", "127.0.0.1:0", "--token", TOKEN, "--log-level", "warn"])
             .arg("--model")
             .arg(model(cli))
+            // The file named, at its own precision: the server must run what the raw baseline measures, not
+            // switch to int8 on a VNNI CPU (`engine.precision = "auto"`).
+            .args(["--precision", "model"])
             .arg("--ort-dylib")
             .arg(dylib(cli))
             .args(["--intra-threads", &cli.threads.to_string()])

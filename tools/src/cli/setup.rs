@@ -142,9 +142,10 @@ macro_rules! ours {
 }
 
 /// Our models and their cards, as this binary was built.
-const OURS: [(&str, &[u8]); 6] = [
+const OURS: [(&str, &[u8]); 7] = [
     (home::KRFWS.file, ours!("assets/krfws.bin")),
     (home::DAN.file, ours!("assets/dan.onnx")),
+    (home::DAN_INT8.file, ours!("assets/dan.int8.onnx")),
     (home::REFINER.file, ours!("assets/refiner.bin")),
     ("KRFWS_MODEL_CARD.md", ours!("KRFWS_MODEL_CARD.md")),
     ("DAN_MODEL_CARD.md", ours!("DAN_MODEL_CARD.md")),
