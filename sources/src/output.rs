@@ -1,13 +1,16 @@
-//! Files the tools write appear whole or not at all: an [`Output`] writes into a temporary file beside its
-//! destination and renames it over the destination only on [`Output::commit`]; dropped uncommitted (an error
-//! part-way, a panic), it removes the temporary file. So a failed command leaves no half-written `.jsonl`,
-//! `.hfrec`, `.mp4` or model behind that a later `[ -s file ]` check would take for a result, and a reader
-//! never sees a file being written. [`write_atomic`] does the same for bytes already in memory.
+//! Files the tools write. Two kinds:
 //!
-//! Interrupted commands leave nothing behind either: every temporary file is registered while it exists,
-//! and [`remove_temporaries`] (called by the binaries' Ctrl-C / SIGTERM handling) removes them; a temporary
-//! file left by a process that was killed outright (`.NAME.tmp-PID` whose process is gone) is removed the
-//! next time the same destination is written.
+//! * **Whole or nothing** ([`Output::create`], [`write_atomic`]): a result computed from a finished input (a
+//!   report, a model, the lines of a video file) is written into a temporary file beside its destination
+//!   (`.NAME.tmp-PID`) and renamed over it only on [`Output::commit`]; dropped uncommitted (an error part-way, a
+//!   panic), the temporary file is removed. So a failed command leaves no half-written `.jsonl`, `.hfrec`, `.mp4`
+//!   or model behind that a later `[ -s file ]` check would take for a result.
+//! * **A journal** ([`Output::live`]): what a live run (a camera on standard input) sees, written under its real
+//!   name (or to standard output for `-`) one whole frame at a time and flushed per frame
+//!   ([`Output::end_frame`]), so that `tail -f`, a pipe reader and a crash all see every frame written so far.
+//!
+//! A temporary file another run left (killed outright, it could not remove it) is never removed here: the next
+//! command writing the same destination names it on standard error and leaves it to the user.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -48,11 +51,11 @@ fn tmp_name(name: &std::ffi::OsStr, pid: u32) -> std::ffi::OsString {
     tmp
 }
 
-/// Removes the temporary files that processes no longer running left for `path` (killed outright, they could
-/// not remove them). Returns how many were removed.
-pub fn remove_stale_temporaries(path: &Path) -> usize {
+/// The temporary files that processes no longer running left for `path` (killed outright, they could not remove
+/// them): kept, since they may hold all a killed run wrote; [`Output::create`] names them.
+pub fn stale_temporaries(path: &Path) -> Vec<PathBuf> {
     let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
-        return 0;
+        return Vec::new();
     };
     let dir = if dir.as_os_str().is_empty() {
         Path::new(".")
@@ -63,21 +66,32 @@ pub fn remove_stale_temporaries(path: &Path) -> usize {
     let prefix = prefix.to_string_lossy();
     let prefix = prefix.trim_end_matches('0');
     let Ok(entries) = std::fs::read_dir(dir) else {
-        return 0;
+        return Vec::new();
     };
-    let mut removed = 0;
-    for e in entries.flatten() {
-        let file = e.file_name();
-        let file = file.to_string_lossy();
-        let Some(pid) = file.strip_prefix(prefix).and_then(|p| p.parse::<u32>().ok()) else {
-            continue;
-        };
-        let alive = pid == std::process::id() || Path::new("/proc").join(pid.to_string()).exists();
-        if !alive && std::fs::remove_file(e.path()).is_ok() {
-            removed += 1;
-        }
-    }
-    removed
+    let mut found: Vec<PathBuf> = entries
+        .flatten()
+        .filter(|e| {
+            let file = e.file_name();
+            let file = file.to_string_lossy();
+            file.strip_prefix(prefix)
+                .and_then(|p| p.parse::<u32>().ok())
+                .is_some_and(|pid| {
+                    pid != std::process::id() && !Path::new("/proc").join(pid.to_string()).exists()
+                })
+        })
+        .map(|e| e.path())
+        .collect();
+    found.sort();
+    found
+}
+
+/// Whether an [`Output::live`] writes to standard output: then standard output carries data only, and the
+/// commands print their human messages to standard error.
+static STDOUT_CARRIES_DATA: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Whether standard output carries a command's data (`--out -`).
+pub fn stdout_carries_data() -> bool {
+    STDOUT_CARRIES_DATA.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 /// A file being written; see the module docs.
@@ -115,7 +129,14 @@ impl Output {
         let name = path
             .file_name()
             .with_context(|| format!("{} is not a file name", path.display()))?;
-        remove_stale_temporaries(path);
+        for stale in stale_temporaries(path) {
+            let size = std::fs::metadata(&stale).map_or(0, |m| m.len());
+            eprintln!(
+                "note: {} ({size} bytes) was left unfinished by an earlier run that was killed; it is kept: \
+                 remove it, or rename it to read what that run wrote",
+                stale.display()
+            );
+        }
         let tmp = path.with_file_name(tmp_name(name, std::process::id()));
         temporaries().push(tmp.clone());
         let file = File::create(&tmp).with_context(|| {
@@ -130,6 +151,40 @@ impl Output {
             tmp: Some(tmp),
             file: Some(BufWriter::new(file)),
         })
+    }
+
+    /// Starts a journal at `path`, for a run whose source has no end (a camera): the file is created (or
+    /// truncated) under its real name and written one frame at a time ([`Output::end_frame`]); `-` is standard
+    /// output. Nothing is renamed or removed later: a stopped or killed run leaves every whole frame it wrote.
+    pub fn live(path: &Path) -> anyhow::Result<Self> {
+        if path == Path::new("-") {
+            use std::os::fd::AsFd as _;
+            let fd = std::io::stdout()
+                .as_fd()
+                .try_clone_to_owned()
+                .context("standard output")?;
+            STDOUT_CARRIES_DATA.store(true, std::sync::atomic::Ordering::Relaxed);
+            return Ok(Self {
+                path: path.to_path_buf(),
+                tmp: None,
+                file: Some(BufWriter::new(File::from(fd))),
+            });
+        }
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+        let file = File::create(path).with_context(|| format!("writing {}", path.display()))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tmp: None,
+            file: Some(BufWriter::new(file)),
+        })
+    }
+
+    /// Writes one frame's bytes whole and flushes them, so that a reader (or a crash) sees whole frames only.
+    pub fn end_frame(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.write_all(bytes)?;
+        self.flush()
     }
 
     /// Where the file will be once committed.
@@ -223,6 +278,14 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
+    /// The temporary-file registry is process-wide and `remove_temporaries` empties it: the tests that create
+    /// outputs take turns, so that one test's interrupt does not remove another's file.
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    fn turn() -> std::sync::MutexGuard<'static, ()> {
+        TURN.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
     fn dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("holoface-output-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
@@ -231,6 +294,7 @@ mod tests {
 
     #[test]
     fn a_committed_output_appears_whole_and_an_abandoned_one_not_at_all() {
+        let _turn = turn();
         let d = dir("commit");
         let path = d.join("sub/out.jsonl");
         let mut out = Output::create(&path).unwrap();
@@ -270,35 +334,58 @@ mod tests {
     }
 
     #[test]
-    fn interrupted_runs_leave_nothing_behind() {
+    fn a_killed_runs_temporary_file_is_kept_and_this_runs_own_are_removed_on_interrupt() {
+        let _turn = turn();
         let d = dir("interrupted");
         std::fs::create_dir_all(&d).unwrap();
         let path = d.join("o.jsonl");
-        // A run killed outright left its temporary file (pid 999999999 runs nowhere); a live process's is kept.
+        // A run killed outright left its temporary file (pid 999999999 runs nowhere): it may hold all that run
+        // wrote, so it is found and kept, never removed behind the user's back.
         let dead = d.join(".o.jsonl.tmp-999999999");
         let live = d.join(format!(".o.jsonl.tmp-{}", std::process::id()));
         std::fs::write(&dead, b"half").unwrap();
+        assert_eq!(stale_temporaries(&path), vec![dead.clone()]);
         let mut out = Output::create(&path).unwrap();
-        assert!(
-            !dead.exists(),
-            "the stale temporary file is removed when the same file is written again"
-        );
+        assert!(dead.exists(), "another run's temporary file is kept");
         assert!(live.exists(), "this process's own temporary file is not stale");
+        assert_eq!(stale_temporaries(&path), vec![dead.clone()], "ours is not stale");
         out.write_all(b"partial").unwrap();
-        // Ctrl-C: the handler removes every temporary file still open.
+        // Ctrl-C in a whole-or-nothing command: the handler removes this process's temporary files.
         assert!(remove_temporaries() >= 1);
         assert!(!live.exists());
         drop(out);
-        // Another file's temporaries are not touched.
+        assert!(dead.exists());
+        // Another file's temporaries are not this file's.
         let other = d.join(".p.jsonl.tmp-999999999");
         std::fs::write(&other, b"x").unwrap();
-        assert_eq!(remove_stale_temporaries(&path), 0);
-        assert!(other.exists());
+        assert_eq!(stale_temporaries(&path), vec![dead]);
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_live_output_holds_every_whole_frame_under_its_name_as_it_is_written() {
+        let _turn = turn();
+        let d = dir("live");
+        let path = d.join("sub/live.jsonl");
+        let mut out = Output::live(&path).unwrap();
+        assert!(path.exists(), "under its real name from the start");
+        out.end_frame(b"{\"frame\":0}\n").unwrap();
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            b"{\"frame\":0}\n",
+            "flushed with its frame"
+        );
+        out.end_frame(b"{\"frame\":1}\n").unwrap();
+        // Dropped without a commit (a stop, an error): nothing is removed.
+        drop(out);
+        assert_eq!(std::fs::read(&path).unwrap(), b"{\"frame\":0}\n{\"frame\":1}\n");
+        assert!(!stdout_carries_data(), "a file is not standard output");
         std::fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]
     fn a_write_error_names_the_file() {
+        let _turn = turn();
         // /dev/full: every write fails with "no space left on device", as on a full disk.
         let mut out = Output::create(Path::new("/dev/full")).unwrap();
         let err = out

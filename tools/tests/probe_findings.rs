@@ -5,7 +5,6 @@
 
 mod common;
 
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -199,62 +198,6 @@ fn a_closed_standard_output_ends_quietly_and_setup_still_installs_everything() {
     let out = child.wait_with_output().unwrap();
     let (ok, text) = finished(&out);
     assert!(ok, "{text}");
-}
-
-/// Finding 7: Ctrl-C left `.NAME.tmp-PID` files that no later run removed.
-#[test]
-fn interrupted_runs_leave_no_temporary_files() {
-    let d = tmp("interrupt");
-    let out = d.join("o.jsonl");
-    // A temporary file of a run killed outright (no such process) is removed by the next run.
-    let stale = d.join(".o.jsonl.tmp-999999999");
-    std::fs::write(&stale, b"half").unwrap();
-    // A live stream that never ends: a y4m header and one frame on a pipe that stays open.
-    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(["track", "--source", "-", "--out", out.to_str().unwrap()])
-        .current_dir(workspace())
-        .stdin(Stdio::piped())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stdin = child.stdin.take().unwrap();
-    stdin
-        .write_all(b"YUV4MPEG2 W64 H48 F25:1 Cmono\nFRAME\n")
-        .unwrap();
-    stdin.write_all(&[128u8; 64 * 48]).unwrap();
-    stdin.flush().unwrap();
-    // Wait until the run has created its own temporary file (and removed the stale one).
-    let t0 = Instant::now();
-    let own = d.join(format!(".o.jsonl.tmp-{}", child.id()));
-    while !own.exists() && t0.elapsed() < Duration::from_secs(60) {
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    assert!(own.exists(), "no temporary output appeared");
-    assert!(
-        !stale.exists(),
-        "the stale temporary file of an earlier run is still there"
-    );
-    assert!(
-        Command::new("kill")
-            .args(["-INT", &child.id().to_string()])
-            .status()
-            .unwrap()
-            .success()
-    );
-    let res = child.wait_with_output().unwrap();
-    drop(stdin);
-    assert_eq!(
-        res.status.code(),
-        Some(130),
-        "{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
-    let left: Vec<_> = std::fs::read_dir(&d)
-        .unwrap()
-        .map(|e| e.unwrap().file_name())
-        .collect();
-    assert!(left.is_empty(), "left behind: {left:?}");
 }
 
 /// Finding 7: a stalled download waited up to 600 s without a word.

@@ -5,6 +5,6 @@ use clap::Parser;
 fn main() -> anyhow::Result<()> {
     let cli = holoface_tools::cli::Cli::parse();
     holoface_tools::cli::init_logging(&cli.log);
-    holoface_tools::cli::clean_up_on_interrupt();
+    holoface_tools::cli::handle_signals();
     holoface_tools::cli::run(cli)
 }

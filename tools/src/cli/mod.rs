@@ -100,39 +100,65 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     }
 }
 
-/// Ctrl-C and SIGTERM end a command without leaving its temporary files behind: a thread waits for either,
-/// removes the temporary files of every output not yet committed, and exits with the shell's code for the
-/// signal (130 / 143). Binaries only.
-pub fn clean_up_on_interrupt() {
-    let spawned = std::thread::Builder::new().name("interrupt".into()).spawn(|| {
+/// Whether the running command stops gracefully on a signal ([`stop_gracefully`]).
+static GRACEFUL: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Called by a command that reads a live source (`track --source -`): the first Ctrl-C or SIGTERM then asks it
+/// to stop after the frame in hand ([`holoface_sources::stop`]), as if its source had ended, so that it finishes
+/// its outputs with every frame seen; a second signal ends the process at once, keeping what is on disk.
+pub fn stop_gracefully() {
+    GRACEFUL.store(true, std::sync::atomic::Ordering::SeqCst);
+}
+
+/// Ctrl-C and SIGTERM (binaries only). A command that called [`stop_gracefully`] is asked to stop after the
+/// current frame by the first one and ended at once by a second, its journals (live outputs, flushed per frame)
+/// kept. Any other command ends at once without leaving its own temporary files behind (whole-or-nothing outputs
+/// not yet committed); the exit code is the shell's for the signal (130 / 143).
+pub fn handle_signals() {
+    let spawned = std::thread::Builder::new().name("signals".into()).spawn(|| {
         let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
             return;
         };
         rt.block_on(async {
+            use holoface_sources::stop;
             use tokio::signal::unix::{SignalKind, signal};
             let (Ok(mut int), Ok(mut term)) =
                 (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
             else {
                 return;
             };
-            let code = tokio::select! {
-                _ = int.recv() => 130,
-                _ = term.recv() => 143,
-            };
-            let removed = holoface_sources::output::remove_temporaries();
-            eprintln!(
-                "interrupted{}",
-                if removed > 0 {
-                    format!("; removed {removed} unfinished output file(s)")
-                } else {
-                    String::new()
+            loop {
+                let sig = tokio::select! {
+                    _ = int.recv() => 2,
+                    _ = term.recv() => 15,
+                };
+                if GRACEFUL.load(std::sync::atomic::Ordering::SeqCst) && stop::request(sig) {
+                    eprintln!(
+                        "{}: finishing the frame in hand and keeping every frame so far (send it again to stop \
+                         at once)",
+                        stop::name(sig)
+                    );
+                    continue;
                 }
-            );
-            std::process::exit(code);
+                let graceful = GRACEFUL.load(std::sync::atomic::Ordering::SeqCst);
+                let removed = if graceful { 0 } else { holoface_sources::output::remove_temporaries() };
+                eprintln!(
+                    "{}: stopped at once{}",
+                    stop::name(sig),
+                    if graceful {
+                        "; every frame written so far is kept".to_owned()
+                    } else if removed > 0 {
+                        format!("; removed {removed} unfinished output file(s)")
+                    } else {
+                        String::new()
+                    }
+                );
+                std::process::exit(stop::exit_code(sig));
+            }
         });
     });
     if let Err(e) = spawned {
-        tracing::warn!(error = %e, "no interrupt handler: an interrupted command may leave temporary files");
+        tracing::warn!(error = %e, "no signal handler: an interrupted command may leave temporary files");
     }
 }
 
@@ -140,10 +166,15 @@ pub fn clean_up_on_interrupt() {
 /// work is the files it installs, not what it prints).
 static STOP_ON_CLOSED_STDOUT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
 
-/// Writes one line to standard output. When the reader has gone (`holoface eval | head -1`), the command
-/// ends quietly (exit 0, its unfinished outputs removed) instead of panicking, unless it asked to carry on.
+/// Writes one line to standard output, or to standard error when standard output carries the command's data
+/// (`--out -`). When the reader has gone (`holoface eval | head -1`), the command ends quietly (exit 0, its
+/// unfinished outputs removed) instead of panicking, unless it asked to carry on.
 pub fn say(args: std::fmt::Arguments<'_>) {
     use std::io::Write as _;
+    if holoface_sources::output::stdout_carries_data() {
+        eprintln!("{args}");
+        return;
+    }
     let mut out = std::io::stdout().lock();
     let result = out
         .write_fmt(args)

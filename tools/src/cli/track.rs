@@ -13,6 +13,7 @@ use holoface_headset_client::{
     AlignerChoice, AnsweredBy, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
 };
 use holoface_sources::source::open_source;
+use holoface_sources::stop;
 
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
@@ -57,7 +58,11 @@ pub struct Args {
     /// in `.mp4` gets an H.264 video at `--fps`, any other path a folder of PNGs (`frame_000000.png`, ...).
     #[arg(long)]
     pub annotate: Option<PathBuf>,
-    /// JSON-lines output, one line per frame.
+    /// JSON-lines output, one line per frame; `-` is standard output (then every human message goes to standard
+    /// error). From a live source (`--source -`) each line is written and flushed as its frame is tracked, under
+    /// the file's real name: Ctrl-C or SIGTERM ends the run after the frame in hand, keeping every line (a second
+    /// signal stops at once), and even a killed run leaves whole lines. From a file or folder the lines appear
+    /// when every frame was tracked (whole or nothing).
     #[arg(long, default_value = "runs/track.jsonl")]
     pub out: PathBuf,
     /// Alignment server for `--aligner remote`.
@@ -154,15 +159,33 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         AlignerKind::Dan => crate::args::tracker_with(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
     };
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
-    // The lines appear at --out only when every frame was tracked: a failed run leaves no file.
-    let mut out = Output::create(&args.out)?;
+    // A live source has no end but the user's: its lines are a journal (written per frame under the real name, or
+    // to standard output), and a signal ends the run as the source's end would. From a file, the lines appear at
+    // --out only when every frame was tracked: a failed run leaves no file.
+    let stdout = args.out == std::path::Path::new("-");
+    let live = args.source == std::path::Path::new("-") || stdout;
+    let mut out = if live {
+        crate::cli::stop_gracefully();
+        Output::live(&args.out)?
+    } else {
+        Output::create(&args.out)?
+    };
     let mut annotated = args
         .annotate
         .as_deref()
         .map(|p| Annotated::open(p, args.fps))
         .transpose()?;
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
-    while let Some(sf) = source.next_frame()? {
+    let mut reader_gone = false;
+    let mut line_bytes = Vec::new();
+    while stop::requested().is_none() {
+        let sf = match source.next_frame() {
+            Ok(Some(sf)) => sf,
+            Ok(None) => break,
+            // The signal reached the whole pipeline: ffmpeg, stopped mid-frame, ends the stream short.
+            Err(_) if stop::requested().is_some() => break,
+            Err(e) => return Err(e.into()),
+        };
         let frame = sf.view();
         let step = tracker
             .process_step(&frame)
@@ -174,7 +197,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .iter()
             .filter(|f| f.update.answered_by == AnsweredBy::RemoteDan)
             .count();
-        frames += 1;
         let no_face = step.faces.no_face_reason();
         if let Some(out) = annotated.as_mut() {
             let canvas = crate::annotate::annotate(
@@ -187,7 +209,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
             out.push(sf.index, &canvas)?;
         }
-        faces += step.faces.faces.len();
         let mut line = json!({
             "frame": sf.index,
             "timestamp_us": sf.timestamp_us,
@@ -204,13 +225,43 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(reason) = no_face {
             line["reason"] = json!(reason);
         }
-        serde_json::to_writer(&mut out, &line)?;
-        out.write_all(b"\n")?;
+        line_bytes.clear();
+        serde_json::to_writer(&mut line_bytes, &line)?;
+        line_bytes.push(b'\n');
+        if live {
+            match out.end_frame(&line_bytes) {
+                // The reader of standard output has gone (`| head -n 100`): the run is over, not failed.
+                Err(e) if stdout && e.kind() == std::io::ErrorKind::BrokenPipe => {
+                    reader_gone = true;
+                    break;
+                }
+                r => r?,
+            }
+        } else {
+            out.write_all(&line_bytes)?;
+        }
+        frames += 1;
+        faces += step.faces.faces.len();
     }
-    // The annotation first: when it fails, the lines are not committed either.
+    // The annotation first: when it fails, the lines of a file source are not committed either.
     let annotated = annotated.map(Annotated::finish).transpose()?;
-    out.commit()?;
-    crate::say!("{frames} frames, {faces} faces; wrote {}", args.out.display());
+    if !reader_gone {
+        out.commit()?;
+    }
+    let stopped = stop::requested();
+    match stopped {
+        Some(sig) => crate::say!(
+            "stopped by {} after {frames} frames, {faces} faces; kept every one in {}",
+            stop::name(sig),
+            if stdout {
+                "standard output".into()
+            } else {
+                args.out.display().to_string()
+            }
+        ),
+        None if stdout => crate::say!("{frames} frames, {faces} faces"),
+        None => crate::say!("{frames} frames, {faces} faces; wrote {}", args.out.display()),
+    }
     if let Some(a) = annotated {
         crate::say!("{a}");
     }
@@ -228,6 +279,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                  aligned remotely, the rest by the local aligner"
             );
         }
+    }
+    if let Some(sig) = stopped {
+        // The shell's code for the signal, as for any command it ends; the outputs are complete.
+        std::process::exit(stop::exit_code(sig));
     }
     Ok(())
 }

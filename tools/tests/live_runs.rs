@@ -1,0 +1,251 @@
+//! A live run keeps what it saw (issue 57): `holoface track --source -` fed like a camera through ffmpeg (a
+//! YUV4MPEG2 stream on standard input, one frame every 30 ms), then stopped the ways a live run ends: Ctrl-C
+//! (SIGINT), a service stop (SIGTERM), two signals, `kill -9`, and a reader of standard output.
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use std::io::{BufRead as _, Write as _};
+use std::path::Path;
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use common::{tmp, workspace};
+
+const W: usize = 64;
+const H: usize = 48;
+
+/// `holoface track --source - --out OUT` with piped standard input.
+fn track(out: &str, stdout: Stdio) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(["track", "--source", "-", "--out", out])
+        .current_dir(workspace())
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::piped())
+        .stdout(stdout)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// A camera: the stream header, then a gray frame every 30 ms until `stop` (or the reader has gone). Counts
+/// the frames it wrote whole.
+fn camera(
+    mut stdin: ChildStdin,
+    stop: Arc<AtomicBool>,
+    sent: Arc<AtomicUsize>,
+) -> std::thread::JoinHandle<()> {
+    std::thread::spawn(move || {
+        if stdin
+            .write_all(format!("YUV4MPEG2 W{W} H{H} F30:1 Cmono\n").as_bytes())
+            .is_err()
+        {
+            return;
+        }
+        let mut k = 0u8;
+        while !stop.load(Ordering::SeqCst) {
+            let mut frame = b"FRAME\n".to_vec();
+            frame.extend(std::iter::repeat_n(100u8.wrapping_add(k), W * H));
+            if stdin.write_all(&frame).and_then(|()| stdin.flush()).is_err() {
+                return;
+            }
+            sent.fetch_add(1, Ordering::SeqCst);
+            k = k.wrapping_add(1);
+            std::thread::sleep(Duration::from_millis(30));
+        }
+        // The camera stays open and idle: ended only by the signal, not by the stream.
+        std::thread::sleep(Duration::from_secs(30));
+    })
+}
+
+/// Every line of `path` parses as a frame's JSON, numbered 0, 1, 2, ...; returns how many.
+fn whole_lines(path: &Path) -> usize {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    assert!(
+        text.is_empty() || text.ends_with('\n'),
+        "the last line is cut: {text:?}"
+    );
+    for (i, line) in text.lines().enumerate() {
+        let v: serde_json::Value =
+            serde_json::from_str(line).unwrap_or_else(|e| panic!("line {i}: {e}: {line}"));
+        assert_eq!(v["frame"], i, "{line}");
+    }
+    text.lines().count()
+}
+
+/// Waits until `path` holds at least `n` lines (under its real name, while the run goes on).
+fn wait_for_lines(path: &Path, n: usize, child: &mut Child) {
+    let t0 = Instant::now();
+    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) < n {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended early");
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "no {n} lines in {} after 60 s",
+            path.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn kill(child: &Child, signal: &str) {
+    assert!(
+        Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .unwrap()
+            .success()
+    );
+}
+
+/// Stops a live run with `signal` while the camera keeps sending; returns its exit code, the lines seen before
+/// the signal, the lines kept, and its standard error.
+fn stop_with(signal: &str, name: &str) -> (Option<i32>, usize, usize, String) {
+    let d = tmp(name);
+    let out = d.join("o.jsonl");
+    // A temporary file an earlier, killed run left beside the output: never removed behind the user's back.
+    let earlier = d.join(".o.jsonl.tmp-999999999");
+    std::fs::write(&earlier, b"{\"frame\":0}\n").unwrap();
+    let mut child = track(out.to_str().unwrap(), Stdio::piped());
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    wait_for_lines(&out, 3, &mut child);
+    let before = whole_lines(&out);
+    kill(&child, signal);
+    let t0 = Instant::now();
+    let res = child.wait_with_output().unwrap();
+    assert!(
+        t0.elapsed() < Duration::from_secs(10),
+        "the run took {:?} to stop",
+        t0.elapsed()
+    );
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    let kept = whole_lines(&out);
+    assert!(earlier.exists(), "an earlier run's file was removed");
+    assert!(kept <= sent.load(Ordering::SeqCst), "more lines than frames sent");
+    (
+        res.status.code(),
+        before,
+        kept,
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&res.stdout),
+            String::from_utf8_lossy(&res.stderr)
+        ),
+    )
+}
+
+#[test]
+fn ctrl_c_ends_a_live_run_after_the_frame_in_hand_keeping_every_line() {
+    let (code, before, kept, stderr) = stop_with("-INT", "live-int");
+    assert_eq!(code, Some(130), "{stderr}");
+    assert!(
+        kept >= before,
+        "{kept} lines kept of {before} seen before the signal: {stderr}"
+    );
+    assert!(
+        stderr.contains(&format!("stopped by SIGINT after {kept} frames")),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn sigterm_ends_a_live_run_the_same_way() {
+    let (code, before, kept, stderr) = stop_with("-TERM", "live-term");
+    assert_eq!(code, Some(143), "{stderr}");
+    assert!(kept >= before, "{kept} of {before}: {stderr}");
+    assert!(
+        stderr.contains(&format!("stopped by SIGTERM after {kept} frames")),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn a_second_signal_stops_at_once_and_keeps_what_is_on_disk() {
+    let d = tmp("live-twice");
+    let out = d.join("o.jsonl");
+    let mut child = track(out.to_str().unwrap(), Stdio::null());
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    wait_for_lines(&out, 3, &mut child);
+    // The camera goes quiet, and the run has tracked every frame it sent: the first signal then waits for a
+    // frame that does not come, the second ends the run.
+    stop.store(true, Ordering::SeqCst);
+    std::thread::sleep(Duration::from_millis(100)); // a frame being written when the camera stopped is sent
+    let t0 = Instant::now();
+    while std::fs::read_to_string(&out).map_or(0, |t| t.lines().count()) < sent.load(Ordering::SeqCst) {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the run did not catch up with the camera"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    kill(&child, "-INT");
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "one signal on an idle source waits for the frame in hand"
+    );
+    kill(&child, "-INT");
+    let res = child.wait_with_output().unwrap();
+    drop(cam);
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert_eq!(res.status.code(), Some(130), "{stderr}");
+    assert!(whole_lines(&out) >= 3, "{stderr}");
+    assert!(stderr.contains("stopped at once"), "{stderr}");
+}
+
+#[test]
+fn a_killed_live_run_leaves_whole_lines_under_the_files_name() {
+    let d = tmp("live-kill");
+    let out = d.join("o.jsonl");
+    let mut child = track(out.to_str().unwrap(), Stdio::null());
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    wait_for_lines(&out, 5, &mut child);
+    kill(&child, "-KILL");
+    child.wait().unwrap();
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    assert!(whole_lines(&out) >= 5);
+}
+
+#[test]
+fn out_dash_streams_json_lines_on_standard_output_and_nothing_else() {
+    let d = tmp("live-stdout");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(["track", "--source", "-", "--out", "-"])
+        .current_dir(&d)
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    // Each frame arrives on standard output as it is tracked: read 10, then go away (`| head -n 10`).
+    let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
+    for i in 0..10 {
+        let line = lines.next().unwrap().unwrap();
+        let v: serde_json::Value = serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"));
+        assert_eq!(v["frame"], i);
+    }
+    drop(lines);
+    let res = child.wait_with_output().unwrap();
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert_eq!(
+        res.status.code(),
+        Some(0),
+        "a reader that has gone ends the run: {stderr}"
+    );
+    assert!(
+        stderr.contains("frames"),
+        "the summary goes to standard error: {stderr}"
+    );
+    assert!(!d.join("-").exists(), "`--out -` wrote a file named -");
+}
