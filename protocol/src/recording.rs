@@ -597,6 +597,13 @@ impl<W: Write> RecordingWriter<W> {
         Ok(())
     }
 
+    /// Flushes the records written so far to the underlying writer (a live recording flushes after each
+    /// record, so that a killed writer leaves every whole record on disk).
+    pub fn flush(&mut self) -> Result<(), RecordingError> {
+        self.inner.flush()?;
+        Ok(())
+    }
+
     /// Number of records written so far.
     pub fn records_written(&self) -> u64 {
         self.records
@@ -609,7 +616,8 @@ impl<W: Write> RecordingWriter<W> {
     }
 }
 
-/// Streams a recording record by record. Opening reads and checks the header.
+/// Streams a recording record by record. Opening reads and checks the header; a file cut inside a record is an
+/// error unless [`RecordingReader::tolerate_cut`] forgives a missing tail.
 ///
 /// After the end of the file or the first error, [`RecordingReader::next_record`]
 /// keeps returning `Ok(None)` (and the iterator `None`).
@@ -623,6 +631,19 @@ pub struct RecordingReader<R: Read> {
     frames: u64,
     skipped: u64,
     done: bool,
+    /// Whether a file that ends inside a record ends the reading instead of failing it.
+    tolerate_cut: bool,
+    cut: Option<Cut>,
+}
+
+/// Where a recording cut short ends: inside record `record_index`, which starts at byte `offset` (every record
+/// before it is whole). What a writer killed part-way leaves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cut {
+    /// The record the file ends inside (0-based, counting every kind).
+    pub record_index: u64,
+    /// The byte at which that record starts: the length of the file's whole part.
+    pub offset: u64,
 }
 
 impl<R: Read> RecordingReader<R> {
@@ -639,7 +660,23 @@ impl<R: Read> RecordingReader<R> {
             frames: 0,
             skipped: 0,
             done: false,
+            tolerate_cut: false,
+            cut: None,
         })
+    }
+
+    /// Reads a file that may have been cut short (a recording whose writer was killed): one that ends inside a
+    /// record then ends after its last whole record, as at a clean end, and [`RecordingReader::cut`] says
+    /// where. A damaged record (checksum, content) is still an error: only a missing tail is forgiven.
+    #[must_use]
+    pub fn tolerate_cut(mut self) -> Self {
+        self.tolerate_cut = true;
+        self
+    }
+
+    /// Where the file was cut, once the reading has reached it ([`RecordingReader::tolerate_cut`]).
+    pub fn cut(&self) -> Option<Cut> {
+        self.cut
     }
 
     /// The file header.
@@ -682,7 +719,13 @@ impl<R: Read> RecordingReader<R> {
         if !matches!(res, Ok(Some(_))) {
             self.done = true;
         }
-        res
+        match res {
+            Err(RecordingError::Truncated { record_index, offset }) if self.tolerate_cut => {
+                self.cut = Some(Cut { record_index, offset });
+                Ok(None)
+            }
+            res => res,
+        }
     }
 
     fn read_next(&mut self) -> Result<Option<FrameRecord>, RecordingError> {

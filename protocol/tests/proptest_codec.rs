@@ -483,6 +483,33 @@ proptest! {
     }
 
     #[test]
+    fn a_file_cut_anywhere_is_read_up_to_its_last_whole_record_when_cuts_are_tolerated(header in recording_header(), records in prop::collection::vec(frame_record(), 1..4)) {
+        // What a writer killed part-way leaves: every whole record is read, then the reading ends and says where
+        // the file was cut; never an error, never more than the file holds.
+        let file = encode_file(&header, &records);
+        let header_len = header.encode().unwrap().len();
+        let offsets = record_offsets(header_len, &records);
+        for cut in header_len..=file.len() {
+            let mut reader = RecordingReader::new(&file[..cut]).unwrap().tolerate_cut();
+            let mut got = Vec::new();
+            while let Some(r) = reader.next_record().unwrap() {
+                got.push(r);
+            }
+            let k = offsets.iter().rposition(|&o| o <= cut).unwrap();
+            prop_assert_eq!(&got, &records[..k].to_vec(), "cut {}", cut);
+            if offsets.contains(&cut) {
+                prop_assert_eq!(reader.cut(), None, "cut {} is a record boundary", cut);
+            } else {
+                prop_assert_eq!(
+                    reader.cut(),
+                    Some(holoface_protocol::recording::Cut { record_index: k as u64, offset: offsets[k] as u64 }),
+                    "cut {}", cut
+                );
+            }
+        }
+    }
+
+    #[test]
     fn every_bit_flip_in_a_record_is_detected(header in recording_header(), records in prop::collection::vec(frame_record(), 1..3)) {
         let file = encode_file(&header, &records);
         let header_len = header.encode().unwrap().len();

@@ -102,8 +102,10 @@ impl RecordedStream {
     /// Opens a recording and reads its header.
     pub fn open(path: &Path) -> anyhow::Result<Self> {
         let file = File::open(path).with_context(|| format!("opening recording {}", path.display()))?;
+        // A recording whose writer was killed ends inside a record: its whole records are read (and the cut named).
         let reader = RecordingReader::new(BufReader::new(file))
-            .with_context(|| format!("reading the header of {}", path.display()))?;
+            .with_context(|| format!("reading the header of {}", path.display()))?
+            .tolerate_cut();
         let c = reader.header().intrinsics;
         let intrinsics = Intrinsics {
             fx: f64::from(c.fx),
@@ -124,6 +126,18 @@ impl RecordedStream {
     }
 }
 
+/// What a reader of a recording cut short says: where it ends and that its whole records were used.
+pub fn cut_note(path: &Path, cut: holoface_protocol::recording::Cut) -> String {
+    format!(
+        "note: {} ends inside record {} (byte {}): a recording cut short, as a killed run leaves it; its {} \
+         whole records were read",
+        path.display(),
+        cut.record_index,
+        cut.offset,
+        cut.record_index
+    )
+}
+
 impl RecordedStream {
     fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
         loop {
@@ -139,6 +153,9 @@ impl RecordedStream {
                         self.path.display(),
                         self.crops
                     );
+                }
+                if let Some(cut) = self.reader.cut() {
+                    eprintln!("{}", cut_note(&self.path, cut));
                 }
                 return Ok(None);
             };

@@ -207,7 +207,7 @@ fn eval_with_a_model_of_the_wrong_shape_says_so() {
 }
 
 #[test]
-fn track_rejects_missing_bad_and_truncated_sources() {
+fn track_rejects_missing_and_bad_sources_and_reads_a_cut_recording_to_its_last_whole_record() {
     let d = tmp("track");
     let (ok, text) = holoface(&["track", "--source", d.join("nope").to_str().unwrap()]);
     assert!(!ok && text.contains("does not exist"), "{text}");
@@ -247,9 +247,14 @@ fn track_rejects_missing_bad_and_truncated_sources() {
         "--out",
         d.join("o.jsonl").to_str().unwrap(),
     ]);
-    assert!(!ok && text.contains("file ends inside record"), "{text}");
-    // A failed run leaves no output (issue 30): not even an empty .jsonl, nor a temporary file.
-    assert!(!d.join("o.jsonl").exists(), "a failed track left its output");
+    // A recording cut short is what a killed `holoface record` leaves (issue 57): its whole records are
+    // tracked, and the reader says where the file ends.
+    assert!(
+        ok && text.contains("ends inside record 1") && text.contains("a recording cut short"),
+        "{text}"
+    );
+    let lines = std::fs::read_to_string(d.join("o.jsonl")).unwrap();
+    assert_eq!(lines.lines().count(), 1, "{lines}");
     assert_no_temporary_files(&d);
 }
 

@@ -31,7 +31,7 @@ fn track(out: &str, stdout: Stdio) -> Child {
 }
 
 /// A camera: the stream header, then a gray frame every 30 ms until `stop` (or the reader has gone). Counts
-/// the frames it wrote whole.
+/// the frames it sends (at most one of them not delivered).
 fn camera(
     mut stdin: ChildStdin,
     stop: Arc<AtomicBool>,
@@ -48,10 +48,11 @@ fn camera(
         while !stop.load(Ordering::SeqCst) {
             let mut frame = b"FRAME\n".to_vec();
             frame.extend(std::iter::repeat_n(100u8.wrapping_add(k), W * H));
+            // Counted before it is sent: the run may track it before this thread runs again.
+            sent.fetch_add(1, Ordering::SeqCst);
             if stdin.write_all(&frame).and_then(|()| stdin.flush()).is_err() {
                 return;
             }
-            sent.fetch_add(1, Ordering::SeqCst);
             k = k.wrapping_add(1);
             std::thread::sleep(Duration::from_millis(30));
         }
@@ -248,4 +249,106 @@ fn out_dash_streams_json_lines_on_standard_output_and_nothing_else() {
         "the summary goes to standard error: {stderr}"
     );
     assert!(!d.join("-").exists(), "`--out -` wrote a file named -");
+}
+
+/// `holoface record --source - --out OUT` with piped standard input.
+fn record(out: &Path) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(["record", "--source", "-", "--out", out.to_str().unwrap()])
+        .current_dir(workspace())
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// The whole frame records of a recording, read strictly (`Err` names the first problem).
+fn strict_records(path: &Path) -> Result<usize, String> {
+    let file = std::io::BufReader::new(std::fs::File::open(path).unwrap());
+    let reader = holoface_protocol::RecordingReader::new(file).map_err(|e| e.to_string())?;
+    let mut n = 0;
+    for r in reader {
+        r.map_err(|e| e.to_string())?;
+        n += 1;
+    }
+    Ok(n)
+}
+
+/// Waits until the recording at `path` holds at least `n` whole frame records (read as it grows).
+fn wait_for_records(path: &Path, n: usize, child: &mut Child) {
+    let t0 = Instant::now();
+    let whole = || {
+        let Ok(file) = std::fs::File::open(path) else {
+            return 0;
+        };
+        let Ok(reader) = holoface_protocol::RecordingReader::new(std::io::BufReader::new(file)) else {
+            return 0;
+        };
+        reader.tolerate_cut().map_while(Result::ok).count()
+    };
+    while whole() < n {
+        assert!(child.try_wait().unwrap().is_none(), "the recording ended early");
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "{} did not grow",
+            path.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its_last_record() {
+    let d = tmp("live-record");
+    // SIGTERM (a service stop): every frame so far, a file any reader takes whole.
+    let out = d.join("r.hfrec");
+    let mut child = record(&out);
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    wait_for_records(&out, 5, &mut child);
+    kill(&child, "-TERM");
+    let res = child.wait_with_output().unwrap();
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&res.stdout),
+        String::from_utf8_lossy(&res.stderr)
+    );
+    assert_eq!(res.status.code(), Some(143), "{text}");
+    let kept = strict_records(&out).unwrap_or_else(|e| panic!("{e}: {text}"));
+    assert!(kept >= 5 && kept <= sent.load(Ordering::SeqCst), "{kept}: {text}");
+    assert!(
+        text.contains(&format!("stopped by SIGTERM after {kept} frames")),
+        "{text}"
+    );
+
+    // kill -9 part-way through a record: the readers take every whole record and say where the file ends.
+    let cut = d.join("cut.hfrec");
+    let mut child = record(&cut);
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    wait_for_records(&cut, 5, &mut child);
+    kill(&child, "-KILL");
+    child.wait().unwrap();
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    // Cut it inside its last record, as a kill mid-write leaves it.
+    let bytes = std::fs::read(&cut).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() - 10]).unwrap();
+    let strict = strict_records(&cut);
+    assert!(strict.as_ref().is_err_and(|e| e.contains("inside")), "{strict:?}");
+    let lines = d.join("cut.jsonl");
+    let (ok, text) = common::holoface(&[
+        "track",
+        "--source",
+        cut.to_str().unwrap(),
+        "--out",
+        lines.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    assert!(text.contains("a recording cut short"), "{text}");
+    assert!(whole_lines(&lines) >= 4, "{text}");
 }

@@ -11,6 +11,8 @@ use holoface_protocol::recording::{
 };
 
 use holoface_sources::source::open_source;
+use holoface_sources::stop;
+use holoface_sources::{FrameSource, OwnedFrame};
 
 /// How full frames are stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -74,7 +76,7 @@ impl CropCutter {
     }
 
     /// The crop payload of `f`, or `None` when no face is tracked.
-    fn cut(&mut self, f: &holoface_headset_client::OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
+    fn cut(&mut self, f: &OwnedFrame) -> anyhow::Result<Option<FramePayload>> {
         let frame = f.view();
         let step = self.tracker.process_step(&frame)?;
         let Some(first) = step.first_candidate() else {
@@ -115,8 +117,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis() as u64),
     };
-    // The recording appears at --out only when it is complete: a failed run leaves no file.
-    let mut writer = RecordingWriter::new(Output::create(&args.out)?, &header)?;
+    // From a live source (`-`) the recording is a journal: written under its real name (or to standard output)
+    // and flushed record by record, and a signal ends the run as the stream's end would. From a file it appears
+    // at --out only when it is complete: a failed run leaves no file.
+    let stdout = args.out == std::path::Path::new("-");
+    let live = args.source == std::path::Path::new("-") || stdout;
+    let out = if live {
+        crate::cli::stop_gracefully();
+        Output::live(&args.out)?
+    } else {
+        Output::create(&args.out)?
+    };
+    let mut writer = RecordingWriter::new(out, &header)?;
+    // The next frame, or none once a stop was asked for (a source cut by the same signal is its end).
+    let next = |source: &mut Box<dyn FrameSource>| -> anyhow::Result<Option<OwnedFrame>> {
+        if stop::requested().is_some() {
+            return Ok(None);
+        }
+        match source.next_frame() {
+            Err(_) if stop::requested().is_some() => Ok(None),
+            r => Ok(r?),
+        }
+    };
     let mut cutter = args.crops.map(|c| CropCutter::new(c, &args)).transpose()?;
     let mut frame = Some(first);
     let mut count = 0usize;
@@ -135,9 +157,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                         face_present: Some(true),
                     })
                     .with_context(|| format!("writing frame {}", f.index))?;
+                if live {
+                    writer.flush()?;
+                }
                 count += 1;
             }
-            frame = source.next_frame()?;
+            frame = next(&mut source)?;
             continue;
         }
         let (w, h) = (f.image.width() as u32, f.image.height() as u32);
@@ -171,13 +196,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         writer
             .write_record(&record)
             .with_context(|| format!("writing frame {}", f.index))?;
+        if live {
+            writer.flush()?;
+        }
         count += 1;
-        frame = source.next_frame()?;
+        frame = next(&mut source)?;
     }
     writer
         .finish()
         .with_context(|| format!("finishing {}", args.out.display()))?
         .commit()?;
-    crate::say!("wrote {count} frames to {}", args.out.display());
+    let to = if stdout {
+        "standard output".to_owned()
+    } else {
+        args.out.display().to_string()
+    };
+    match stop::requested() {
+        Some(sig) => {
+            crate::say!(
+                "stopped by {} after {count} frames; kept every one in {to}",
+                stop::name(sig)
+            );
+            std::process::exit(stop::exit_code(sig));
+        }
+        None => crate::say!("wrote {count} frames to {to}"),
+    }
     Ok(())
 }
