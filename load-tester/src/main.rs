@@ -112,13 +112,57 @@ struct Args {
 fn main() -> ExitCode {
     let args = Args::parse();
     holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
-    match run(args) {
+    stop_on_signals();
+    let result = run(args);
+    if let (Some(sig), Ok(_)) = (holoface_sources::stop::requested(), &result) {
+        // Ended by a signal, its report written: the shell's code for the signal.
+        return ExitCode::from(u8::try_from(holoface_sources::stop::exit_code(sig)).unwrap_or(1));
+    }
+    match result {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::from(3),
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Ctrl-C and SIGTERM: the first ends the test early, with the report (table, `--out`, `--plot`) for the time
+/// it ran; a second ends the process at once.
+fn stop_on_signals() {
+    let spawned = std::thread::Builder::new().name("signals".into()).spawn(|| {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            return;
+        };
+        rt.block_on(async {
+            use holoface_sources::stop;
+            use tokio::signal::unix::{SignalKind, signal};
+            let (Ok(mut int), Ok(mut term)) =
+                (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
+            else {
+                return;
+            };
+            loop {
+                let sig = tokio::select! {
+                    _ = int.recv() => 2,
+                    _ = term.recv() => 15,
+                };
+                if stop::request(sig) {
+                    eprintln!(
+                        "{}: ending the test and writing its report for the time it ran (send it again to stop \
+                         at once)",
+                        stop::name(sig)
+                    );
+                    continue;
+                }
+                eprintln!("{}: stopped at once, no report", stop::name(sig));
+                std::process::exit(stop::exit_code(sig));
+            }
+        });
+    });
+    if let Err(e) = spawned {
+        eprintln!("warning: no signal handler ({e}): Ctrl-C ends the test without a report");
     }
 }
 
@@ -219,8 +263,17 @@ fn run(args: Args) -> anyhow::Result<bool> {
     );
     let tasks = swarm::launch(&rt, &args, &target, &streams, &window, stagger, &stats);
     let measured = report::monitor(&stats, &window, args.interval_s, rss_pid, &tasks);
+    if measured.stopped_by.is_some() {
+        // A signal ended the test: the headsets stop now, not at the planned end.
+        for t in &tasks {
+            t.abort();
+        }
+    }
     for t in tasks {
-        rt.block_on(t).context("headset task panicked")??;
+        match rt.block_on(t) {
+            Err(e) if e.is_cancelled() => {}
+            r => r.context("headset task panicked")??,
+        }
     }
     if let Some((tx, task)) = target.spawned {
         let _ = tx.send(());

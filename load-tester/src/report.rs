@@ -107,8 +107,11 @@ pub(crate) struct Measured {
     timeline: Vec<serde_json::Value>,
     /// Resident memory at the end of the warm-up and at the last interval, KiB.
     rss: (Option<u64>, Option<u64>),
-    /// Length of the measured window (shorter when every headset left on the server's Goaway).
+    /// Length of the measured window (shorter when every headset left on the server's Goaway, or when a
+    /// signal ended the test).
     duration: Duration,
+    /// The signal that ended the test early, if one did (the report covers the time it ran).
+    pub(crate) stopped_by: Option<i32>,
 }
 
 /// The run's clock: headsets start at `t0`, measuring starts after `warmup` and stops at `end`.
@@ -160,7 +163,23 @@ pub(crate) fn monitor(
             rss_start = rss();
             warmed = true;
         }
-        std::thread::sleep(next.saturating_duration_since(Instant::now()));
+        // Sleep to the row's time in short steps: Ctrl-C or SIGTERM ends the test with a report of the time it ran.
+        while Instant::now() < next && holoface_sources::stop::requested().is_none() {
+            std::thread::sleep(
+                next.saturating_duration_since(Instant::now())
+                    .min(Duration::from_millis(50)),
+            );
+        }
+        if holoface_sources::stop::requested().is_some() {
+            let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
+            s.measuring = false;
+            duration = if warmed {
+                Instant::now().saturating_duration_since(warm_at).min(duration)
+            } else {
+                Duration::ZERO
+            };
+            break;
+        }
         let now_rss = rss();
         rss_end = now_rss;
         let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
@@ -202,6 +221,7 @@ pub(crate) fn monitor(
         timeline,
         rss: (rss_start, rss_end),
         duration,
+        stopped_by: holoface_sources::stop::requested(),
     }
 }
 
@@ -218,6 +238,7 @@ pub(crate) fn finish(
         timeline,
         rss: (rss_start, rss_end),
         duration,
+        stopped_by,
     } = measured;
     let s = stats.lock().unwrap_or_else(PoisonError::into_inner);
     let secs = duration.as_secs_f64();
@@ -291,7 +312,16 @@ pub(crate) fn finish(
         "timeline": timeline,
         "outages": outages,
         "slo": {"broken": broken},
+        // A signal ended the test early: the totals cover the `measured_s` it ran.
+        "interrupted": stopped_by.map(holoface_sources::stop::name),
+        "measured_s": secs,
     });
+    if let Some(sig) = stopped_by {
+        println!(
+            "interrupted by {} after {secs:.1} s of measurement: the report covers that time",
+            holoface_sources::stop::name(sig)
+        );
+    }
     println!(
         "total: {} sent, {} unsent, {} answered ({throughput:.1}/s), {dropped} dropped, {lost} unanswered, {} \
          deadline misses; latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",

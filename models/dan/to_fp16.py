@@ -83,28 +83,38 @@ def main() -> None:
     tmp = args.out + ".tmp"
     onnx.save(half, tmp)
 
-    crops, truth = validation_crops(args.data)
-    lm32, p32 = run(args.model, crops)
-    lm16, p16 = run(tmp, crops)
+    gate(args.model, tmp, args.out, args.data, "fp16", args.max_shift, args.max_nme_increase)
+
+
+def gate(model: str, tmp: str, out: str, data: str, tag: str, max_shift: float, max_nme_increase: float,
+         **extra) -> dict:
+    """Runs the fp32 `model` and the converted `tmp` on the validation crops, prints one JSON line of what it
+    measured (with `extra`), and moves `tmp` to `out` only if no landmark moved more than `max_shift` px and the
+    NME (outer eye corners) worsened by at most `max_nme_increase` (relative); else removes it and fails."""
+    crops, truth = validation_crops(data)
+    lm32, p32 = run(model, crops)
+    lmx, px = run(tmp, crops)
     report = {
-        "model": os.path.relpath(args.model, REPO),
-        "out": args.out,
-        "bytes_fp32": os.path.getsize(args.model),
-        "bytes_fp16": os.path.getsize(tmp),
+        "model": os.path.relpath(model, REPO),
+        "out": out,
+        "bytes_fp32": os.path.getsize(model),
+        f"bytes_{tag}": os.path.getsize(tmp),
+        **extra,
         "faces": len(crops),
-        "max_landmark_shift_px": float(np.abs(lm16 - lm32).max()),
-        "mean_landmark_shift_px": float(np.linalg.norm(lm16 - lm32, axis=2).mean()),
-        "max_face_prob_change": float(np.abs(p16 - p32).max()),
+        "max_landmark_shift_px": float(np.abs(lmx - lm32).max()),
+        "mean_landmark_shift_px": float(np.linalg.norm(lmx - lm32, axis=2).mean()),
+        "max_face_prob_change": float(np.abs(px - p32).max()),
         "nme68_corners_fp32": nme_corners(lm32, truth),
-        "nme68_corners_fp16": nme_corners(lm16, truth),
+        f"nme68_corners_{tag}": nme_corners(lmx, truth),
     }
-    print(json.dumps(report))
-    increase = report["nme68_corners_fp16"] / report["nme68_corners_fp32"] - 1.0
-    if report["max_landmark_shift_px"] > args.max_shift or increase > args.max_nme_increase:
+    print(json.dumps(report), flush=True)
+    increase = report[f"nme68_corners_{tag}"] / report["nme68_corners_fp32"] - 1.0
+    if report["max_landmark_shift_px"] > max_shift or increase > max_nme_increase:
         os.remove(tmp)
-        raise SystemExit(f"the fp16 graph moves landmarks by up to {report['max_landmark_shift_px']:.3f} px "
+        raise SystemExit(f"the {tag} graph moves landmarks by up to {report['max_landmark_shift_px']:.3f} px "
                          f"(NME {increase:+.2%}): not written")
-    os.replace(tmp, args.out)
+    os.replace(tmp, out)
+    return report
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import data as D  # noqa: E402
 import geometry as g  # noqa: E402
-from to_fp16 import REPO, nme_corners, run, validation_crops  # noqa: E402
+from to_fp16 import REPO, gate  # noqa: E402
 
 
 # The landmark head stays in float: its output is the landmarks themselves, and an 8-bit output over the crop's
@@ -176,30 +176,8 @@ def main() -> None:
     t0 = time.perf_counter()
     quantise(args.model, tmp, training_crops(args.data, args.calib, args.seed),
              [n for n in args.exclude.split(",") if n], not args.per_tensor, not args.optimize_first, args.method)
-    crops, truth = validation_crops(args.data)
-    lm32, p32 = run(args.model, crops)
-    lm8, p8 = run(tmp, crops)
-    report = {
-        "model": os.path.relpath(args.model, REPO),
-        "out": args.out,
-        "bytes_fp32": os.path.getsize(args.model),
-        "bytes_int8": os.path.getsize(tmp),
-        "calibration_faces": args.calib,
-        "faces": len(crops),
-        "max_landmark_shift_px": float(np.abs(lm8 - lm32).max()),
-        "mean_landmark_shift_px": float(np.linalg.norm(lm8 - lm32, axis=2).mean()),
-        "max_face_prob_change": float(np.abs(p8 - p32).max()),
-        "nme68_corners_fp32": nme_corners(lm32, truth),
-        "nme68_corners_int8": nme_corners(lm8, truth),
-        "seconds": round(time.perf_counter() - t0, 1),
-    }
-    print(json.dumps(report), flush=True)
-    increase = report["nme68_corners_int8"] / report["nme68_corners_fp32"] - 1.0
-    if report["max_landmark_shift_px"] > args.max_shift or increase > args.max_nme_increase:
-        os.remove(tmp)
-        raise SystemExit(f"the int8 graph moves landmarks by up to {report['max_landmark_shift_px']:.3f} px "
-                         f"(NME {increase:+.2%}): not written")
-    os.replace(tmp, args.out)
+    gate(args.model, tmp, args.out, args.data, "int8", args.max_shift, args.max_nme_increase,
+         calibration_faces=args.calib, seconds=round(time.perf_counter() - t0, 1))
     if args.bench:
         bench([args.model, args.out])
 

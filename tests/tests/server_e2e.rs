@@ -867,19 +867,20 @@ fn fp16_model() -> std::path::PathBuf {
     path
 }
 
-#[test]
-fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
+/// `other` (a conversion of the shipped fp32 model to `precision`) loads under the same contract, declares its
+/// precision and answers four crops within `max_shift` px and `max_prob` of the fp32 model.
+fn agrees_with_fp32(other: std::path::PathBuf, precision: &str, max_shift: f32, max_prob: f32) {
     let mut opts = loopback_settings().engine;
     opts.max_batch = 4;
     let mut fp32 = OnnxEngine::load(&opts).unwrap();
-    opts.model = fp16_model();
-    let mut fp16 = OnnxEngine::load(&opts).unwrap();
+    opts.model = other;
+    let mut conv = OnnxEngine::load(&opts).unwrap();
     assert_eq!(
-        (fp32.info().precision.as_str(), fp16.info().precision.as_str()),
-        ("fp32", "fp16")
+        (fp32.info().precision.as_str(), conv.info().precision.as_str()),
+        ("fp32", precision)
     );
     assert_eq!(
-        fp16.info().mean_shape,
+        conv.info().mean_shape,
         fp32.info().mean_shape,
         "same model, same contract"
     );
@@ -890,7 +891,7 @@ fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
     let mut a = vec![LandmarkOut::default(); 4];
     let mut b = vec![LandmarkOut::default(); 4];
     fp32.infer(&batch, &mut a).unwrap();
-    fp16.infer(&batch, &mut b).unwrap();
+    conv.infer(&batch, &mut b).unwrap();
     for (x, y) in a.iter().zip(&b) {
         assert!(y.problem(68).is_none());
         let shift = x
@@ -899,14 +900,19 @@ fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
             .zip(&y.landmarks)
             .map(|(p, q)| (p[0] - q[0]).hypot(p[1] - q[1]))
             .fold(0.0_f32, f32::max);
-        assert!(shift < 0.5, "fp16 moved a landmark by {shift} px");
+        assert!(shift < max_shift, "{precision} moved a landmark by {shift} px");
         assert!(
-            (x.face_prob - y.face_prob).abs() < 1e-2,
+            (x.face_prob - y.face_prob).abs() < max_prob,
             "{} vs {}",
             x.face_prob,
             y.face_prob
         );
     }
+}
+
+#[test]
+fn the_fp16_model_loads_under_the_same_contract_and_agrees_with_fp32() {
+    agrees_with_fp32(fp16_model(), "fp16", 0.5, 1e-2);
 }
 
 /// The int8 DAN (`make dan-int8`, committed): `$HOLOFACE_DAN_INT8_MODEL`, else `models/assets/dan.int8.onnx`.
@@ -927,46 +933,9 @@ fn int8_model() -> std::path::PathBuf {
 
 #[test]
 fn the_int8_model_loads_under_the_same_contract_and_agrees_with_fp32() {
-    let mut opts = loopback_settings().engine;
-    opts.max_batch = 4;
-    let mut fp32 = OnnxEngine::load(&opts).unwrap();
-    opts.model = int8_model();
-    let mut int8 = OnnxEngine::load(&opts).unwrap();
-    assert_eq!(
-        (fp32.info().precision.as_str(), int8.info().precision.as_str()),
-        ("fp32", "int8")
-    );
-    assert_eq!(
-        int8.info().mean_shape,
-        fp32.info().mean_shape,
-        "same model, same contract"
-    );
-    let mut batch = BatchTensor::new(4, 112 * 112);
-    for seed in [0, 60, 120, 180] {
-        batch.push(&frame(0, seed, 0).crop.data).unwrap();
-    }
-    let mut a = vec![LandmarkOut::default(); 4];
-    let mut b = vec![LandmarkOut::default(); 4];
-    fp32.infer(&batch, &mut a).unwrap();
-    int8.infer(&batch, &mut b).unwrap();
-    for (x, y) in a.iter().zip(&b) {
-        assert!(y.problem(68).is_none());
-        // On the validation faces the int8 graph moves a landmark by 0.05 px on average, 0.32 px at most
-        // (models/dan/to_int8.py); these synthetic frames are no faces, so allow a little more.
-        let shift = x
-            .landmarks
-            .iter()
-            .zip(&y.landmarks)
-            .map(|(p, q)| (p[0] - q[0]).hypot(p[1] - q[1]))
-            .fold(0.0_f32, f32::max);
-        assert!(shift < 1.5, "int8 moved a landmark by {shift} px");
-        assert!(
-            (x.face_prob - y.face_prob).abs() < 0.05,
-            "{} vs {}",
-            x.face_prob,
-            y.face_prob
-        );
-    }
+    // On the validation faces the int8 graph moves a landmark by 0.05 px on average, 0.32 px at most
+    // (models/dan/to_int8.py); these synthetic frames are no faces, so allow a little more.
+    agrees_with_fp32(int8_model(), "int8", 1.5, 0.05);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
