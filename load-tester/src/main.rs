@@ -131,37 +131,19 @@ fn main() -> ExitCode {
 /// Ctrl-C and SIGTERM: the first ends the test early, with the report (table, `--out`, `--plot`) for the time
 /// it ran; a second ends the process at once.
 fn stop_on_signals() {
-    let spawned = std::thread::Builder::new().name("signals".into()).spawn(|| {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+    use holoface_sources::stop;
+    let installed = holoface_toolkit::signals::on_signals(|sig| {
+        if stop::request(sig) {
+            eprintln!(
+                "{}: ending the test and writing its report for the time it ran (send it again to stop at once)",
+                stop::name(sig)
+            );
             return;
-        };
-        rt.block_on(async {
-            use holoface_sources::stop;
-            use tokio::signal::unix::{SignalKind, signal};
-            let (Ok(mut int), Ok(mut term)) =
-                (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
-            else {
-                return;
-            };
-            loop {
-                let sig = tokio::select! {
-                    _ = int.recv() => 2,
-                    _ = term.recv() => 15,
-                };
-                if stop::request(sig) {
-                    eprintln!(
-                        "{}: ending the test and writing its report for the time it ran (send it again to stop \
-                         at once)",
-                        stop::name(sig)
-                    );
-                    continue;
-                }
-                eprintln!("{}: stopped at once, no report", stop::name(sig));
-                std::process::exit(stop::exit_code(sig));
-            }
-        });
+        }
+        eprintln!("{}: stopped at once, no report", stop::name(sig));
+        std::process::exit(stop::exit_code(sig));
     });
-    if let Err(e) = spawned {
+    if let Err(e) = installed {
         eprintln!("warning: no signal handler ({e}): Ctrl-C ends the test without a report");
     }
 }

@@ -115,49 +115,35 @@ pub fn stop_gracefully() {
 /// kept. Any other command ends at once without leaving its own temporary files behind (whole-or-nothing outputs
 /// not yet committed); the exit code is the shell's for the signal (130 / 143).
 pub fn handle_signals() {
-    let spawned = std::thread::Builder::new().name("signals".into()).spawn(|| {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+    use holoface_sources::stop;
+    let installed = holoface_toolkit::signals::on_signals(|sig| {
+        let graceful = GRACEFUL.load(std::sync::atomic::Ordering::SeqCst);
+        if graceful && stop::request(sig) {
+            eprintln!(
+                "{}: finishing the frame in hand and keeping every frame so far (send it again to stop at once)",
+                stop::name(sig)
+            );
             return;
+        }
+        let removed = if graceful {
+            0
+        } else {
+            holoface_sources::output::remove_temporaries()
         };
-        rt.block_on(async {
-            use holoface_sources::stop;
-            use tokio::signal::unix::{SignalKind, signal};
-            let (Ok(mut int), Ok(mut term)) =
-                (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
-            else {
-                return;
-            };
-            loop {
-                let sig = tokio::select! {
-                    _ = int.recv() => 2,
-                    _ = term.recv() => 15,
-                };
-                if GRACEFUL.load(std::sync::atomic::Ordering::SeqCst) && stop::request(sig) {
-                    eprintln!(
-                        "{}: finishing the frame in hand and keeping every frame so far (send it again to stop \
-                         at once)",
-                        stop::name(sig)
-                    );
-                    continue;
-                }
-                let graceful = GRACEFUL.load(std::sync::atomic::Ordering::SeqCst);
-                let removed = if graceful { 0 } else { holoface_sources::output::remove_temporaries() };
-                eprintln!(
-                    "{}: stopped at once{}",
-                    stop::name(sig),
-                    if graceful {
-                        "; every frame written so far is kept".to_owned()
-                    } else if removed > 0 {
-                        format!("; removed {removed} unfinished output file(s)")
-                    } else {
-                        String::new()
-                    }
-                );
-                std::process::exit(stop::exit_code(sig));
+        eprintln!(
+            "{}: stopped at once{}",
+            stop::name(sig),
+            if graceful {
+                "; every frame written so far is kept".to_owned()
+            } else if removed > 0 {
+                format!("; removed {removed} unfinished output file(s)")
+            } else {
+                String::new()
             }
-        });
+        );
+        std::process::exit(stop::exit_code(sig));
     });
-    if let Err(e) = spawned {
+    if let Err(e) = installed {
         tracing::warn!(error = %e, "no signal handler: an interrupted command may leave temporary files");
     }
 }

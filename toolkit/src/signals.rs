@@ -1,0 +1,31 @@
+//! Ctrl-C and SIGTERM for the binaries (`holoface`, `holoface-load`): one thread waits for either and hands each
+//! to the binary's own rule; the stop state they share is `holoface_sources::stop`.
+
+/// Calls `on_signal(signal)` (2 = SIGINT, 15 = SIGTERM) for every Ctrl-C or SIGTERM, on a thread of its own,
+/// for the life of the process. Without the thread (none could be started) a signal keeps its default action;
+/// the error says so.
+pub fn on_signals(on_signal: impl Fn(i32) + Send + 'static) -> std::io::Result<()> {
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+                return;
+            };
+            rt.block_on(async {
+                use tokio::signal::unix::{SignalKind, signal};
+                let (Ok(mut int), Ok(mut term)) =
+                    (signal(SignalKind::interrupt()), signal(SignalKind::terminate()))
+                else {
+                    return;
+                };
+                loop {
+                    let sig = tokio::select! {
+                        _ = int.recv() => 2,
+                        _ = term.recv() => 15,
+                    };
+                    on_signal(sig);
+                }
+            });
+        })?;
+    Ok(())
+}
