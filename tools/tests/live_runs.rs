@@ -17,10 +17,15 @@ use common::{tmp, workspace};
 const W: usize = 64;
 const H: usize = 48;
 
-/// `holoface track --source - --out OUT` with piped standard input.
+/// `holoface track --source - --out OUT` (and `extra`) with piped standard input.
 fn track(out: &str, stdout: Stdio) -> Child {
+    track_with(out, stdout, &[])
+}
+
+fn track_with(out: &str, stdout: Stdio, extra: &[&str]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_holoface"))
         .args(["track", "--source", "-", "--out", out])
+        .args(extra)
         .current_dir(workspace())
         .env("RUST_BACKTRACE", "0")
         .stdin(Stdio::piped())
@@ -150,6 +155,42 @@ fn ctrl_c_ends_a_live_run_after_the_frame_in_hand_keeping_every_line() {
         stderr.contains(&format!("stopped by SIGINT after {kept} frames")),
         "{stderr}"
     );
+}
+
+#[test]
+fn ctrl_c_finishes_the_annotated_video_of_a_live_run() {
+    let d = tmp("live-mp4");
+    let (out, mp4) = (d.join("o.jsonl"), d.join("a.mp4"));
+    let mut child = track_with(
+        out.to_str().unwrap(),
+        Stdio::piped(),
+        &["--annotate", mp4.to_str().unwrap()],
+    );
+    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    wait_for_lines(&out, 5, &mut child);
+    kill(&child, "-INT");
+    let res = child.wait_with_output().unwrap();
+    stop.store(true, Ordering::SeqCst);
+    drop(cam);
+    assert_eq!(
+        res.status.code(),
+        Some(130),
+        "{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    let kept = whole_lines(&out);
+    // The video is finished (its index written), so it plays: tracked again, it gives one line per frame kept.
+    let again = d.join("again.jsonl");
+    let (ok, text) = common::holoface(&[
+        "track",
+        "--source",
+        mp4.to_str().unwrap(),
+        "--out",
+        again.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    assert_eq!(whole_lines(&again), kept, "{text}");
 }
 
 #[test]
