@@ -35,35 +35,57 @@ fn track_with(out: &str, stdout: Stdio, extra: &[&str]) -> Child {
         .unwrap()
 }
 
-/// A camera: the stream header, then a gray frame every 30 ms until `stop` (or the reader has gone). Counts
-/// the frames it sends (at most one of them not delivered).
-fn camera(
-    mut stdin: ChildStdin,
-    stop: Arc<AtomicBool>,
+/// A camera feeding a run's standard input: the stream header, then a gray frame every 30 ms until it goes quiet
+/// (or the reader has gone); then it stays open and idle, so only a signal ends the run. Goes quiet when dropped.
+struct Camera {
+    quiet: Arc<AtomicBool>,
     sent: Arc<AtomicUsize>,
-) -> std::thread::JoinHandle<()> {
-    std::thread::spawn(move || {
-        if stdin
-            .write_all(format!("YUV4MPEG2 W{W} H{H} F30:1 Cmono\n").as_bytes())
-            .is_err()
-        {
-            return;
-        }
-        let mut k = 0u8;
-        while !stop.load(Ordering::SeqCst) {
-            let mut frame = b"FRAME\n".to_vec();
-            frame.extend(std::iter::repeat_n(100u8.wrapping_add(k), W * H));
-            // Counted before it is sent: the run may track it before this thread runs again.
-            sent.fetch_add(1, Ordering::SeqCst);
-            if stdin.write_all(&frame).and_then(|()| stdin.flush()).is_err() {
+}
+
+impl Camera {
+    fn start(child: &mut Child) -> Self {
+        let mut stdin: ChildStdin = child.stdin.take().unwrap();
+        let (quiet, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
+        let (q, n) = (quiet.clone(), sent.clone());
+        std::thread::spawn(move || {
+            if stdin
+                .write_all(format!("YUV4MPEG2 W{W} H{H} F30:1 Cmono\n").as_bytes())
+                .is_err()
+            {
                 return;
             }
-            k = k.wrapping_add(1);
-            std::thread::sleep(Duration::from_millis(30));
-        }
-        // The camera stays open and idle: ended only by the signal, not by the stream.
-        std::thread::sleep(Duration::from_secs(30));
-    })
+            let mut k = 0u8;
+            while !q.load(Ordering::SeqCst) {
+                let mut frame = b"FRAME\n".to_vec();
+                frame.extend(std::iter::repeat_n(100u8.wrapping_add(k), W * H));
+                // Counted before it is sent: the run may track it before this thread runs again.
+                n.fetch_add(1, Ordering::SeqCst);
+                if stdin.write_all(&frame).and_then(|()| stdin.flush()).is_err() {
+                    return;
+                }
+                k = k.wrapping_add(1);
+                std::thread::sleep(Duration::from_millis(30));
+            }
+            std::thread::sleep(Duration::from_secs(30));
+        });
+        Self { quiet, sent }
+    }
+
+    /// Frames sent so far (at most one of them not delivered).
+    fn sent(&self) -> usize {
+        self.sent.load(Ordering::SeqCst)
+    }
+
+    /// Stops sending frames (the stream stays open).
+    fn go_quiet(&self) {
+        self.quiet.store(true, Ordering::SeqCst);
+    }
+}
+
+impl Drop for Camera {
+    fn drop(&mut self) {
+        self.go_quiet();
+    }
 }
 
 /// Every line of `path` parses as a frame's JSON, numbered 0, 1, 2, ...; returns how many.
@@ -114,8 +136,7 @@ fn stop_with(signal: &str, name: &str) -> (Option<i32>, usize, usize, String) {
     let earlier = d.join(".o.jsonl.tmp-999999999");
     std::fs::write(&earlier, b"{\"frame\":0}\n").unwrap();
     let mut child = track(out.to_str().unwrap(), Stdio::piped());
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    let cam = Camera::start(&mut child);
     wait_for_lines(&out, 3, &mut child);
     let before = whole_lines(&out);
     kill(&child, signal);
@@ -126,11 +147,10 @@ fn stop_with(signal: &str, name: &str) -> (Option<i32>, usize, usize, String) {
         "the run took {:?} to stop",
         t0.elapsed()
     );
-    stop.store(true, Ordering::SeqCst);
-    drop(cam);
+    cam.go_quiet();
     let kept = whole_lines(&out);
     assert!(earlier.exists(), "an earlier run's file was removed");
-    assert!(kept <= sent.load(Ordering::SeqCst), "more lines than frames sent");
+    assert!(kept <= cam.sent(), "more lines than frames sent");
     (
         res.status.code(),
         before,
@@ -166,12 +186,10 @@ fn ctrl_c_finishes_the_annotated_video_of_a_live_run() {
         Stdio::piped(),
         &["--annotate", mp4.to_str().unwrap()],
     );
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    let cam = Camera::start(&mut child);
     wait_for_lines(&out, 5, &mut child);
     kill(&child, "-INT");
     let res = child.wait_with_output().unwrap();
-    stop.store(true, Ordering::SeqCst);
     drop(cam);
     assert_eq!(
         res.status.code(),
@@ -209,15 +227,14 @@ fn a_second_signal_stops_at_once_and_keeps_what_is_on_disk() {
     let d = tmp("live-twice");
     let out = d.join("o.jsonl");
     let mut child = track(out.to_str().unwrap(), Stdio::null());
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    let cam = Camera::start(&mut child);
     wait_for_lines(&out, 3, &mut child);
     // The camera goes quiet, and the run has tracked every frame it sent: the first signal then waits for a
     // frame that does not come, the second ends the run.
-    stop.store(true, Ordering::SeqCst);
+    cam.go_quiet();
     std::thread::sleep(Duration::from_millis(100)); // a frame being written when the camera stopped is sent
     let t0 = Instant::now();
-    while std::fs::read_to_string(&out).map_or(0, |t| t.lines().count()) < sent.load(Ordering::SeqCst) {
+    while std::fs::read_to_string(&out).map_or(0, |t| t.lines().count()) < cam.sent() {
         assert!(
             t0.elapsed() < Duration::from_secs(60),
             "the run did not catch up with the camera"
@@ -244,12 +261,10 @@ fn a_killed_live_run_leaves_whole_lines_under_the_files_name() {
     let d = tmp("live-kill");
     let out = d.join("o.jsonl");
     let mut child = track(out.to_str().unwrap(), Stdio::null());
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    let cam = Camera::start(&mut child);
     wait_for_lines(&out, 5, &mut child);
     kill(&child, "-KILL");
     child.wait().unwrap();
-    stop.store(true, Ordering::SeqCst);
     drop(cam);
     assert!(whole_lines(&out) >= 5);
 }
@@ -266,8 +281,7 @@ fn out_dash_streams_json_lines_on_standard_output_and_nothing_else() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    let cam = Camera::start(&mut child);
     // Each frame arrives on standard output as it is tracked: read 10, then go away (`| head -n 10`).
     let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
     for i in 0..10 {
@@ -277,7 +291,6 @@ fn out_dash_streams_json_lines_on_standard_output_and_nothing_else() {
     }
     drop(lines);
     let res = child.wait_with_output().unwrap();
-    stop.store(true, Ordering::SeqCst);
     drop(cam);
     let stderr = String::from_utf8_lossy(&res.stderr);
     assert_eq!(
@@ -346,13 +359,11 @@ fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its
     // SIGTERM (a service stop): every frame so far, a file any reader takes whole.
     let out = d.join("r.hfrec");
     let mut child = record(&out);
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent.clone());
+    let cam = Camera::start(&mut child);
     wait_for_records(&out, 5, &mut child);
     kill(&child, "-TERM");
     let res = child.wait_with_output().unwrap();
-    stop.store(true, Ordering::SeqCst);
-    drop(cam);
+    cam.go_quiet();
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&res.stdout),
@@ -360,7 +371,7 @@ fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its
     );
     assert_eq!(res.status.code(), Some(143), "{text}");
     let kept = strict_records(&out).unwrap_or_else(|e| panic!("{e}: {text}"));
-    assert!(kept >= 5 && kept <= sent.load(Ordering::SeqCst), "{kept}: {text}");
+    assert!(kept >= 5 && kept <= cam.sent(), "{kept}: {text}");
     assert!(
         text.contains(&format!("stopped by SIGTERM after {kept} frames")),
         "{text}"
@@ -369,12 +380,10 @@ fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its
     // kill -9 part-way through a record: the readers take every whole record and say where the file ends.
     let cut = d.join("cut.hfrec");
     let mut child = record(&cut);
-    let (stop, sent) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicUsize::new(0)));
-    let cam = camera(child.stdin.take().unwrap(), stop.clone(), sent);
+    let cam = Camera::start(&mut child);
     wait_for_records(&cut, 5, &mut child);
     kill(&child, "-KILL");
     child.wait().unwrap();
-    stop.store(true, Ordering::SeqCst);
     drop(cam);
     // Cut it inside its last record, as a kill mid-write leaves it.
     let bytes = std::fs::read(&cut).unwrap();
