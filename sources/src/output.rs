@@ -2,9 +2,10 @@
 //!
 //! * **Whole or nothing** ([`Output::create`], [`write_atomic`]): a result computed from a finished input (a
 //!   report, a model, the lines of a video file) is written into a temporary file beside its destination
-//!   (`.NAME.tmp-PID`) and renamed over it only on [`Output::commit`]; dropped uncommitted (an error part-way, a
-//!   panic), the temporary file is removed. So a failed command leaves no half-written `.jsonl`, `.hfrec`, `.mp4`
-//!   or model behind that a later `[ -s file ]` check would take for a result.
+//!   (`NAME.partial-PID`, a visible name that says what it is) and renamed over it only on [`Output::commit`];
+//!   dropped uncommitted (an error part-way, a panic), the temporary file is removed. So a failed command leaves
+//!   no half-written `.jsonl`, `.hfrec`, `.mp4` or model behind that a later `[ -s file ]` check would take for
+//!   a result.
 //! * **A journal** ([`Output::live`]): what a live run (a camera on standard input) sees, written under its real
 //!   name (or to standard output for `-`) one whole frame at a time and flushed per frame
 //!   ([`Output::end_frame`]), so that `tail -f`, a pipe reader and a crash all see every frame written so far.
@@ -43,11 +44,11 @@ pub fn remove_temporaries() -> usize {
     n
 }
 
-/// The temporary-file name of `name` written by process `pid`.
+/// The temporary-file name of `name` written by process `pid`: visible, so that what a killed run leaves is
+/// found and says that it is unfinished.
 fn tmp_name(name: &std::ffi::OsStr, pid: u32) -> std::ffi::OsString {
-    let mut tmp = std::ffi::OsString::from(".");
-    tmp.push(name);
-    tmp.push(format!(".tmp-{pid}"));
+    let mut tmp = name.to_os_string();
+    tmp.push(format!(".partial-{pid}"));
     tmp
 }
 
@@ -341,8 +342,8 @@ mod tests {
         let path = d.join("o.jsonl");
         // A run killed outright left its temporary file (pid 999999999 runs nowhere): it may hold all that run
         // wrote, so it is found and kept, never removed behind the user's back.
-        let dead = d.join(".o.jsonl.tmp-999999999");
-        let live = d.join(format!(".o.jsonl.tmp-{}", std::process::id()));
+        let dead = d.join("o.jsonl.partial-999999999");
+        let live = d.join(format!("o.jsonl.partial-{}", std::process::id()));
         std::fs::write(&dead, b"half").unwrap();
         assert_eq!(stale_temporaries(&path), vec![dead.clone()]);
         let mut out = Output::create(&path).unwrap();
@@ -356,7 +357,7 @@ mod tests {
         drop(out);
         assert!(dead.exists());
         // Another file's temporaries are not this file's.
-        let other = d.join(".p.jsonl.tmp-999999999");
+        let other = d.join("p.jsonl.partial-999999999");
         std::fs::write(&other, b"x").unwrap();
         assert_eq!(stale_temporaries(&path), vec![dead]);
         std::fs::remove_dir_all(&d).unwrap();

@@ -391,3 +391,22 @@ pub async fn refused_with(
         Err(_) => app_close_code(&conn.closed().await),
     }
 }
+
+/// The shipped `holoface-server` binary of the same build as the running test (`target/<profile>/`), for tests
+/// that treat the server as an operator's process (signals, exit codes, logs).
+///
+/// # Panics
+/// If it has not been built (`cargo build --bins -p holoface-alignment-server` with the test's profile; `make
+/// test` builds every binary first).
+pub fn server_binary() -> PathBuf {
+    let exe = std::env::current_exe().unwrap_or_default();
+    // target/<profile>/deps/<test binary>
+    let profile_dir = exe.parent().and_then(Path::parent).unwrap_or(Path::new("."));
+    let bin = profile_dir.join(format!("holoface-server{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.is_file(),
+        "{} not built (cargo build --bins -p holoface-alignment-server, same profile as the tests)",
+        bin.display()
+    );
+    bin
+}

@@ -258,12 +258,12 @@ fn track_rejects_missing_and_bad_sources_and_reads_a_cut_recording_to_its_last_w
     assert_no_temporary_files(&d);
 }
 
-/// No `.NAME.tmp-PID` file of an abandoned output is left in `dir`.
+/// No `NAME.partial-PID` file of an abandoned output is left in `dir`.
 fn assert_no_temporary_files(dir: &Path) {
     let left: Vec<_> = std::fs::read_dir(dir)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .filter(|n| n.contains(".tmp-"))
+        .filter(|n| n.contains(".partial-"))
         .collect();
     assert!(left.is_empty(), "temporary files left: {left:?}");
 }

@@ -133,7 +133,7 @@ fn stop_with(signal: &str, name: &str) -> (Option<i32>, usize, usize, String) {
     let d = tmp(name);
     let out = d.join("o.jsonl");
     // A temporary file an earlier, killed run left beside the output: never removed behind the user's back.
-    let earlier = d.join(".o.jsonl.tmp-999999999");
+    let earlier = d.join("o.jsonl.partial-999999999");
     std::fs::write(&earlier, b"{\"frame\":0}\n").unwrap();
     let mut child = track(out.to_str().unwrap(), Stdio::piped());
     let cam = Camera::start(&mut child);
