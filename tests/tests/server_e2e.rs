@@ -331,6 +331,35 @@ async fn replies_on_a_stream_when_configured() {
     server.shutdown().await.unwrap();
 }
 
+/// A server whose handshake stream ends a moment before its close code arrives (ours dropped the stream
+/// first): the client still reports the refusal, so a wrong token is a permanent failure, not a retryable
+/// "stream ended" (found by the container smoke test, `make image-test`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refusal_whose_stream_ends_before_the_close_is_still_the_refusal() {
+    use holoface_headset_client::link::FailureKind;
+    let id = holoface_alignment_server::tls::ServerIdentity::self_signed(&["localhost".to_owned()]).unwrap();
+    let config = quinn::ServerConfig::with_crypto(id.quic_server_config().unwrap());
+    let endpoint = quinn::Endpoint::server(config, "127.0.0.1:0".parse().unwrap()).unwrap();
+    let addr = endpoint.local_addr().unwrap();
+    let refuser = tokio::spawn(async move {
+        let conn = endpoint.accept().await.unwrap().await.unwrap();
+        let (mut send, _recv) = conn.accept_bi().await.unwrap();
+        send.finish().unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        conn.close(CloseCode::Unauthorized.as_u32().into(), b"token rejected");
+        endpoint.wait_idle().await;
+    });
+    let err = within(
+        "the refusal",
+        TestClient::connect(addr, id.fingerprint, hello("wrong")),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(err.kind(), FailureKind::Unauthorized, "{err}");
+    assert!(err.kind().is_permanent());
+    within("the refusing server", refuser).await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn handshake_failures_get_their_close_codes_before_inference() {
     let server = RunningServer::start(settings()).await.unwrap();

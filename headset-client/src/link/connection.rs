@@ -365,6 +365,9 @@ async fn connect_inner(endpoint: &Endpoint, cfg: &ConnectConfig) -> Result<Estab
     Ok(established)
 }
 
+/// How long a handshake whose stream ended waits for the server's close code.
+const REFUSAL_GRACE: Duration = Duration::from_millis(500);
+
 /// The HoloFace handshake on a QUIC connection: `hello` on a new control stream, then the server's welcome.
 /// A server that refuses closes the connection: the error is then [`LinkError::Connection`] with its close
 /// code (see [`app_close_code`]). The welcome's version is not checked here (see [`connect`]).
@@ -381,12 +384,15 @@ pub async fn handshake(conn: Connection, hello: &ClientHello) -> Result<Establis
                 "expected ServerWelcome, got {other:?}"
             )));
         }
-        // A refusal closes the connection with a code; report that rather than the stream error.
+        // A refusal closes the connection with a code; report that rather than the stream error. The
+        // stream can end a moment before the close arrives (a server that drops the stream first), so wait
+        // briefly for it: a wrong token must read "unauthorized" (permanent), not a retryable stream end.
         Err(e) => {
-            return Err(match conn.close_reason() {
-                Some(reason) => LinkError::Connection(reason),
-                None => e,
-            });
+            let reason = match conn.close_reason() {
+                Some(reason) => Some(reason),
+                None => tokio::time::timeout(REFUSAL_GRACE, conn.closed()).await.ok(),
+            };
+            return Err(reason.map_or(e, LinkError::Connection));
         }
     };
     Ok(Established {
