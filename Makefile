@@ -220,6 +220,29 @@ unit: setup-test venv golden ort-gpu dan-fp16 group-photo ffmpeg test-build
 .PHONY: deploy-check
 deploy-check: $(VENV)/.deploy-installed
 	PY=$(PY) bash deploy/validate.sh
+	@echo "deploy-check: the container image is built and smoke-tested by 'make image-test' (podman or docker;" \
+	  "not part of make test, which builds no image)"
+
+# The server's container image (deploy/Dockerfile, deploy/image.sh; deploy/README.md "Container image"): the host's
+# release binaries and `holoface setup` on Debian 12, from debian:12.12-slim or, with no registry reachable, a
+# base debootstrap makes from the package archive. `image-test` starts it, load-tests it and stops it.
+PODMAN_VERSION := 4.3.1+ds1-8+deb12u1+b3
+RUNC_VERSION := 1.1.5+ds1-1+deb12u1
+DEBOOTSTRAP_VERSION := 1.0.128+nmu2+deb12u2
+CONTAINER_TOOLS := podman=$(PODMAN_VERSION) runc=$(RUNC_VERSION) debootstrap=$(DEBOOTSTRAP_VERSION)
+.PHONY: container-tools image image-test
+container-tools:
+	@if command -v podman >/dev/null || docker info >/dev/null 2>&1; then \
+	  echo "container-tools: $$(command -v podman >/dev/null && podman --version || docker --version)"; else \
+	  echo "no podman or docker: installing Debian's podman, runc and debootstrap (pinned)"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends $(CONTAINER_TOOLS) >/dev/null || \
+	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $(CONTAINER_TOOLS) >/dev/null; }; fi
+image: container-tools setup-demo
+	$(CARGO) build --locked --release -p holoface-alignment-server -p holoface-load-tester
+	bash deploy/image.sh build
+image-test: image venv
+	PY=$(PY) bash deploy/image.sh test
 
 # Type-checks every fuzz target against the current decoders (and the fuzz lockfile); without libFuzzer's C++
 # (`cargo fuzz run` links it through the crate's default feature).
@@ -270,7 +293,7 @@ PKG_CONFIG_VERSION := 1.8.1-1
 VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) libavutil-dev=$(FFMPEG_VERSION) \
   libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
 # Every package the set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare again).
-APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime
+APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime podman runc debootstrap
 .PHONY: video-deps
 video-deps:
 	@if pkg-config --exists libavcodec libavformat libavutil 2>/dev/null && \

@@ -16,7 +16,7 @@
 # Run when the tool is on this machine, skipped with a message otherwise:
 #   * kubectl kustomize deploy/k8s, and the rendered output through kubernetes-validate;
 #   * promtool check config / check rules / test rules;
-#   * systemd-analyze verify on the unit.
+#   * systemd-analyze verify on the unit, and systemd-analyze security --offline=yes (exposure <= 1.5).
 # Exits non-zero when any check fails.
 set -uo pipefail
 
@@ -146,6 +146,25 @@ if command -v systemd-analyze >/dev/null; then
         [ "$rc" -eq 0 ] && [ -z "$out" ]
     }
     step "systemd-analyze verify deploy/systemd/holoface-server.service" systemd_verify
+    # systemd's own exposure score for the unit's sandboxing (0 = fully confined, 10 = none): it must stay
+    # at or below SYSTEMD_MAX_EXPOSURE (deploy/README.md, "systemd", has the score and its findings).
+    systemd_security() {
+        local out score
+        out=$(systemd-analyze security --offline=yes --no-pager deploy/systemd/holoface-server.service 2>&1) || {
+            echo "$out"
+            return 1
+        }
+        score=$(sed -n 's/.*Overall exposure level for holoface-server.service: \([0-9.]*\).*/\1/p' <<<"$out")
+        grep '✗' <<<"$out" || true
+        echo "overall exposure ${score:-unknown} (at most $SYSTEMD_MAX_EXPOSURE)"
+        [ -n "$score" ] && awk -v s="$score" -v m="$SYSTEMD_MAX_EXPOSURE" 'BEGIN { exit !(s <= m) }'
+    }
+    SYSTEMD_MAX_EXPOSURE=${SYSTEMD_MAX_EXPOSURE:-1.5}
+    if systemd-analyze security --help 2>/dev/null | grep -q -- '--offline'; then
+        step "systemd-analyze security --offline=yes (exposure <= $SYSTEMD_MAX_EXPOSURE)" systemd_security
+    else
+        skip "systemd-analyze security --offline=yes" "this systemd ($(systemd-analyze --version | head -1)) predates --offline (systemd 252)"
+    fi
 else
     skip "systemd-analyze verify" "systemd-analyze not installed (unit settings are still checked by validate.py systemd)"
 fi

@@ -39,6 +39,7 @@ PROVIDERS = [
     (r"to_fp16\.py", {"dan-fp16"}),
     (r"golden_crops\.py", {"golden"}),
     (r"rustface-\S*\.crate", {"group-photo"}),
+    (r"apt-get install .*\bpodman=", {"container-tools"}),
 ]
 
 # Commands that compile the `holoface` CLI (holoface-tools) with its default features, which bind the system's
@@ -75,6 +76,8 @@ CONSUMERS = [
     (lambda l: re.search(r"(^|\s)mono [^-]", l) is not None, {"mono", "home"}, "runs C#"),
     (lambda l: "-m pytest" in l, {"home"}, "runs pytest"),
     (lambda l: re.search(r"(^|[|;&]\s*)ffmpeg -", l) is not None, {"ffmpeg-cli"}, "runs ffmpeg"),
+    (lambda l: "deploy/image.sh build" in l, {"container-tools", "home"}, "builds the container image"),
+    (lambda l: "deploy/image.sh test" in l, {"container-tools", "home", "venv", "py-eval"}, "smoke-tests the image"),
 ]
 
 
@@ -116,6 +119,7 @@ def main() -> int:
     targets = sys.argv[1:] or [p for p in phases if p != "setup-order"] + [
         "test", "demo", "setup", "setup-demo", "compare", "stability", "speed-vs-dlib", "bench", "wheel",
         "train-refiner", "train-krfws", "train-blendshapes", "train-dan", "export-dan", "teacher-eval", "dan-int8",
+        "image", "image-test",
     ]
     problems = [p for t in targets for p in check(t)]
     for p in problems:
