@@ -26,7 +26,7 @@ use holoface_models::GrayView;
 use holoface_models::crop::warp_bilinear;
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
 use holoface_models::metrics::{nme49, nme68, summarise};
-use holoface_models::refine::train::{RefineConfig, RefineSample, train};
+use holoface_models::refine::train::{RefineConfig, RefineSample, borrowed_error_starts, train};
 use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
 use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
@@ -108,6 +108,11 @@ pub struct Args {
     /// weighs the two kinds of label).
     #[arg(long, default_value_t = 2)]
     pub teacher_crops: usize,
+    /// More training starts per crop, each DAN's error on another crop carried over into this face's frame
+    /// (`borrowed_error_starts`): the same crops met from several DAN-like starts, against memorising one
+    /// correction per crop. 0 = DAN's own start only.
+    #[arg(long, default_value_t = 0)]
+    pub borrowed_starts: usize,
     /// At most this many faces from each teacher-label file (evenly spaced over it).
     #[arg(long)]
     pub teacher_limit: Option<usize>,
@@ -526,6 +531,10 @@ struct Report {
     teacher_faces: usize,
     teacher_crops_per_face: usize,
     training_crops: usize,
+    /// Starts per crop borrowed from other crops' errors (`--borrowed-starts`).
+    borrowed_starts_per_crop: usize,
+    /// Crops times starts: what the cascade is trained on.
+    training_samples: usize,
     rejected_crops: usize,
     crop_size: usize,
     crops_per_face: usize,
@@ -755,6 +764,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let m = dan_mean_shape();
         std::array::from_fn(|i| Point2::new(m[i].x * size as f32 / 112.0, m[i].y * size as f32 / 112.0))
     };
+    let samples = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
     let cfg = RefineConfig {
         stages: args.stages,
         trees: args.trees,
@@ -850,7 +860,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         teacher_labels: args.teacher_labels.clone(),
         teacher_faces: teacher_faces.len(),
         teacher_crops_per_face: 2 * args.teacher_crops,
-        training_crops: samples.len(),
+        training_crops: answered.len(),
+        borrowed_starts_per_crop: args.borrowed_starts,
+        training_samples: samples.len(),
         rejected_crops: runner.rejected,
         crop_size: size,
         crops_per_face: 2 * args.crops,
