@@ -467,7 +467,8 @@ unsafe fn opt_str(p: *const c_char, what: &str) -> Result<Option<String>, HfStat
         .map_err(|_| fail(HfStatus::InvalidArgument, format!("{what} is not UTF-8")))
 }
 
-/// Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead).
+/// Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead): the Rust
+/// facade's `TrackerOptions::default()` and `defaults`.
 ///
 /// # Safety
 /// `out` is NULL or points to writable memory for one `HfOptions`.
@@ -477,8 +478,13 @@ pub unsafe extern "C" fn hf_options_default(out: *mut HfOptions) -> HfStatus {
         if out.is_null() {
             return fail(HfStatus::NullPointer, "hf_options_default: out is NULL");
         }
+        // The facade's defaults, never typed again here (the test below compares them).
+        let d = TrackerOptions::default();
         let o = HfOptions {
-            mode: 1,
+            mode: match d.mode {
+                RunningMode::Image => 0,
+                RunningMode::Video | RunningMode::LiveStream => 1,
+            },
             ort_dylib: std::ptr::null(),
             detector_model: std::ptr::null(),
             krfws_model: std::ptr::null(),
@@ -486,9 +492,9 @@ pub unsafe extern "C" fn hf_options_default(out: *mut HfOptions) -> HfStatus {
             server: std::ptr::null(),
             server_fingerprint: std::ptr::null(),
             token: std::ptr::null(),
-            deadline_ms: 33,
-            lookahead_ms: 120.0,
-            motion_compensation: 1,
+            deadline_ms: u32::try_from(defaults::DEADLINE_MS).unwrap_or(u32::MAX),
+            lookahead_ms: (d.session.lookahead_s * 1e3) as f32,
+            motion_compensation: u8::from(d.session.motion_compensation),
         };
         // SAFETY: checked non-NULL; the caller guarantees it is writable.
         unsafe { out.write(o) };
@@ -1168,6 +1174,22 @@ mod tests {
         // SAFETY: valid pointers.
         assert_eq!(unsafe { hf_tracker_new(&o, &mut t) }, HfStatus::InvalidArgument);
         assert!(last_error().contains("server_fingerprint"));
+    }
+
+    /// `hf_options_default` is the facade's defaults, read back through the ABI's own conversion.
+    #[test]
+    fn the_c_defaults_are_the_facades() {
+        let mut o = std::mem::MaybeUninit::<HfOptions>::zeroed();
+        // SAFETY: valid, writable memory.
+        assert_eq!(unsafe { hf_options_default(o.as_mut_ptr()) }, HfStatus::Ok);
+        // SAFETY: initialised by hf_options_default.
+        let o = unsafe { o.assume_init() };
+        let facade = TrackerOptions::default();
+        let c = options_from(&o, None).unwrap();
+        assert_eq!(c.mode, facade.mode);
+        assert_eq!(c.session, facade.session);
+        assert_eq!(c.aligner, facade.aligner);
+        assert_eq!(u64::from(o.deadline_ms), defaults::DEADLINE_MS);
     }
 
     #[test]
