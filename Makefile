@@ -171,11 +171,11 @@ deps-check:
 	@if $(CARGO) tree --locked -p holoface-protocol -e normal | grep -qE 'tokio|quinn'; then \
 	  echo "holoface-protocol depends on tokio or quinn" >&2; exit 1; fi
 	@echo "holoface-protocol: no tokio, no quinn"
-	@for c in holoface-headset-client holoface-ffi holoface-python; do \
+	@for c in holoface-runtime holoface-headset-client holoface-ffi holoface-python; do \
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-alignment-server|holoface-tools|rcgen|toml|hdrhistogram) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-alignment-server, holoface-tools, rcgen, toml or hdrhistogram"; done
-	@for c in holoface-headset-client holoface-ffi; do \
+	@for c in holoface-runtime holoface-headset-client holoface-ffi; do \
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|ffmpeg-next|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-sources, openh264, mp4, ffmpeg-next or anyhow"; done
@@ -183,15 +183,16 @@ deps-check:
 	@if $(CARGO) tree --locked -p holoface-python -e normal --prefix none | grep -q '^ffmpeg-next '; then \
 	  echo "holoface-python (the users' wheel) links the system's FFmpeg (ffmpeg-next)" >&2; exit 1; fi
 	@echo "holoface-python: no ffmpeg-next (the wheel reads MP4 through OpenH264)"
-	@for c in holoface-headset-client holoface-ffi holoface-python holoface-alignment-server; do \
+	@for c in holoface-runtime holoface-headset-client holoface-ffi holoface-python holoface-alignment-server; do \
 	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-models feature "train"'; then \
 	    echo "$$c compiles the models' trainers (holoface-models/train)" >&2; exit 1; fi; done
-	@echo "holoface-headset-client, holoface-ffi, holoface-python, holoface-alignment-server: no trainers"
-	@# The facade: without the tools feature only the runtime's root is public, and the C ABI, the Python
-	@# module and the embedding example compile against it alone; no quinn type in its documented API.
-	@for c in holoface-ffi holoface-python; do \
-	  if $(CARGO) tree --locked -p $$c -e features --prefix none | grep -q '^holoface-headset-client feature "tools"'; then \
-	    echo "$$c enables holoface-headset-client/tools: it must use the facade only" >&2; exit 1; fi; done
+	@echo "holoface-runtime, holoface-headset-client, holoface-ffi, holoface-python, holoface-alignment-server: no trainers"
+	@# The facade: the C ABI, the Python module and the embedding example name holoface-headset-client only (never
+	@# the runtime's modules directly) and compile against it alone; no quinn type in its documented API.
+	@for c in holoface-ffi holoface-python holoface-headset-client; do \
+	  if $(CARGO) tree --locked -p $$c -e normal --depth 1 --prefix none | grep -q '^holoface-runtime '; then \
+	    test $$c = holoface-headset-client || { echo "$$c depends on holoface-runtime directly: it must use the facade" >&2; exit 1; }; \
+	  elif test $$c = holoface-headset-client; then echo "the facade does not stand on holoface-runtime" >&2; exit 1; fi; done
 	$(CARGO) check --locked -q $(FACADE_SEL) --lib --examples
 	@rm -rf target/doc/holoface_headset_client
 	$(CARGO) doc --locked -q $(FACADE_SEL) --no-deps --lib

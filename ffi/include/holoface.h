@@ -448,7 +448,8 @@ extern "C" {
 const char *hf_blendshape_name(uint32_t i);
 
 /**
- * Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead).
+ * Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead): the Rust
+ * facade's `TrackerOptions::default()` and `defaults`.
  *
  * # Safety
  * `out` is NULL or points to writable memory for one `HfOptions`.

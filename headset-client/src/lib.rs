@@ -33,83 +33,31 @@
 //! in the *camera* frame (OpenCV axes: x right, y down, z forward; metres). `world`, `predicted_position` and
 //! `display` are in the *world* frame of the `world_from_camera` poses the caller supplies.
 //!
-//! The modules themselves are private; the feature `tools` makes them public for the workspace's tools, load
-//! tester and tests (the aligners, the detector, the session, the link's connection): not a stable API.
+//! This crate is the facade over `holoface-runtime`, whose modules (the aligners, the detector, the session,
+//! the link's connection) the workspace's tools, load tester and tests use; an app needs only the names here.
 #![deny(missing_docs)]
+#![deny(unreachable_pub)]
 
-/// Declares modules public with the `tools` feature and private without it.
-macro_rules! tools_modules {
-    ($($name:ident;)*) => {$(
-        #[cfg(feature = "tools")]
-        pub mod $name;
-        #[cfg(not(feature = "tools"))]
-        #[allow(dead_code, unused_imports, unreachable_pub)]
-        mod $name;
-    )*};
-}
-
-tools_modules! {
-    align;
-    assets;
-    crop_codec;
-    detect;
-    frame;
-    frame_step;
-    link;
-    session;
-    tracker;
-}
-
-/// The defaults of every binding, defined once: [`TrackerOptions::default`], the C ABI's
-/// `hf_options_default`/`hf_settings_default`, Python's `TrackerOptions()` and the `holoface` CLI's flags all
-/// take them from here. The landmark filter's defaults are [`SteadyParams::default`].
-pub mod defaults {
-    /// Per-frame deadline for the alignment server, ms: one frame interval at 30 fps, so a missed frame is
-    /// still answered (deadline + the local aligner) well within two intervals.
-    pub const DEADLINE_MS: u64 = 33;
-    /// How far ahead the displayed position is predicted, ms (HoloFace: 120).
-    pub const LOOKAHEAD_MS: f64 = 120.0;
-    /// Crop encoding on the wire: JPEG q75, within 3.3 KB per frame at +1 % relative NME (BENCHMARKS.md).
-    pub const CROP_ENCODING: &str = "jpeg:75";
-    /// Faces tracked at once.
-    pub const MAX_FACES: usize = 1;
-    /// While some but fewer than `max_faces` faces are tracked, the detector runs every this many frames.
-    pub const DETECT_EVERY: u32 = 10;
-    /// Headset-motion compensation of each frame's initial shape.
-    pub const MOTION_COMPENSATION: bool = true;
-    /// The landmark filter is on.
-    pub const STEADY: bool = true;
-}
+/// The defaults of every binding, defined once ([`TrackerOptions::default`], the C ABI, Python, the CLI).
+#[doc(inline)]
+pub use holoface_runtime::defaults;
 
 // The app-facing API.
-pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
-pub use assets::{
-    Asset, AssetError, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, MissingAsset,
-    ORT_DYLIB_ENV, home, parse_face_model,
-};
-pub use crop_codec::CropCodec;
-pub use frame::{Frame, FrameSource, OwnedFrame, SourceError, default_intrinsics};
-pub use frame_step::Timings;
-pub use link::{
-    FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,
-    RemoteStartError,
-};
-pub use session::{
-    Blendshape, BlendshapeParams, Blendshapes, FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S,
-    MAX_TRACKED_FACES, NoFaceReason, OneEuroParams, SessionOptions, SessionOptionsError, SteadyParams,
-    SteadySettings, TrackedFace,
-};
-pub use tracker::{
-    AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,
-    TrackerError, TrackerOptions,
+#[doc(inline)]
+pub use holoface_runtime::{
+    AlignerChoice, AnsweredBy, Asset, AssetError, AssetPaths, Blendshape, BlendshapeParams, Blendshapes,
+    CANDIDE_ENV, Confidence, CropCodec, DETECTOR_ENV, DetectorOptions, FaceResult, FaceTracker, FaceUpdate,
+    FailureKind, FilterParams, Frame, FrameResult, FrameSource, HOME_ENV, InitSource, KRFWS_ENV, LandmarkSet,
+    LinkFailure, LinkInfo, LinkState, LiveTracker, MAX_DEADLINE, MAX_DETECT_TILES, MAX_LOOKAHEAD_S,
+    MAX_TRACKED_FACES, MissingAsset, NoFaceReason, ORT_DYLIB_ENV, OneEuroParams, OwnedFrame, RemoteOptions,
+    RemoteOptionsError, RemoteStartError, RunningMode, SessionOptions, SessionOptionsError, SourceError,
+    SteadyParams, SteadySettings, Timings, TrackedFace, TrackerError, TrackerOptions, default_intrinsics,
+    home, parse_face_model,
 };
 
-// The types the API takes and returns, from the algorithms crate.
-pub use holoface_models::camera::Intrinsics;
-pub use holoface_models::candide::FitResult;
-pub use holoface_models::expression::{ExpressionWeights, Unit};
-pub use holoface_models::geometry::Point2;
-pub use holoface_models::image::{GrayImage, GrayView};
-pub use holoface_models::math3::{Pose, Quat, Vec3};
-pub use holoface_models::pose::{Attributes, WorldPose};
-pub use holoface_quic::Fingerprint;
+// The types the API takes and returns, from the algorithms crate (through the runtime).
+#[doc(inline)]
+pub use holoface_runtime::{
+    Attributes, ExpressionWeights, Fingerprint, FitResult, GrayImage, GrayView, Intrinsics, Point2, Pose,
+    Quat, Unit, Vec3, WorldPose,
+};

@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use holoface_headset_client::assets::home;
 use holoface_quic::Fingerprint;
+use holoface_runtime::assets::home;
 
 use crate::report::{Stats, Window};
 

@@ -6,9 +6,9 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use holoface_headset_client::link::Backoff;
-use holoface_headset_client::link::connection::{ConnectConfig, client_endpoint, connect, send_frame};
 use holoface_protocol::{FrameRequest, Message, ReplyOutcome};
+use holoface_runtime::link::Backoff;
+use holoface_runtime::link::connection::{ConnectConfig, client_endpoint, connect, send_frame};
 
 use crate::replay::ReplayFrame;
 use crate::report::{Outage, Stats};
@@ -66,7 +66,7 @@ pub(crate) async fn headset(plan: Plan, stats: Arc<Mutex<Stats>>) -> anyhow::Res
             break;
         }
         let attempt = attempt.unwrap_or_else(|_| {
-            Err(holoface_headset_client::link::LinkError::Timeout(
+            Err(holoface_runtime::link::LinkError::Timeout(
                 plan.cfg.connect_timeout,
             ))
         });
@@ -159,7 +159,7 @@ fn skip_unsent(plan: &Plan, mut next: u64, until: Instant, stats: &Mutex<Stats>)
 /// One connection: replays frames from `next_frame` until the end, a Goaway or the connection breaking.
 async fn run_session(
     plan: &Plan,
-    session: holoface_headset_client::link::connection::Established,
+    session: holoface_runtime::link::connection::Established,
     next_frame: &mut u64,
     stats: &Arc<Mutex<Stats>>,
 ) -> SessionEnd {

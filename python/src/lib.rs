@@ -1,4 +1,4 @@
-//! Python bindings of the headset client's task API ([`holoface_headset_client::tracker`]): `FaceTracker(options)`,
+//! Python bindings of the headset client's task API ([`holoface_headset_client::FaceTracker`]): `FaceTracker(options)`,
 //! `process(image, timestamp_us, camera_to_world=None, intrinsics=None) -> FaceResult`, numpy in and out.
 //!
 //! Images are borrowed, not copied: a C-contiguous `uint8` array of shape `(height, width)` becomes the

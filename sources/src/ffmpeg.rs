@@ -22,9 +22,9 @@ use std::sync::Once;
 use anyhow::{Context, anyhow, bail};
 use ff::format::Pixel;
 use ffmpeg_next as ff;
-use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
+use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
 
 /// Largest frame side accepted (the same bound as the y4m reader's).
 pub const MAX_SIDE: usize = 16_384;

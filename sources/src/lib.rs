@@ -6,7 +6,7 @@
 //! or not at all.
 //!
 //! Every source implements the runtime's [`FrameSource`] trait and hands over
-//! [`OwnedFrame`]s; the headset runtime (`holoface-headset-client`) knows only that trait, so a headset app never
+//! [`OwnedFrame`]s; the headset runtime (`holoface-runtime`) knows only that trait, so a headset app never
 //! compiles a video decoder. Constructors report errors with `anyhow` (this is a tools crate: messages name
 //! the file and the frame); [`FrameSource::next_frame`] wraps them in [`SourceError::Other`], whole chain in its
 //! message.
@@ -26,7 +26,7 @@ pub mod video;
 pub mod video;
 pub mod y4m;
 
-pub use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
+pub use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
 
 /// A decoded video frame as the runtime takes it: no pose (the identity until a sidecar gives one), the given
 /// intrinsics or a 60° horizontal field of view.
@@ -37,8 +37,8 @@ pub(crate) fn video_frame(
     image: holoface_models::image::GrayImage,
     intrinsics: Option<holoface_models::camera::Intrinsics>,
 ) -> OwnedFrame {
-    let intrinsics = intrinsics
-        .unwrap_or_else(|| holoface_headset_client::default_intrinsics(image.width(), image.height()));
+    let intrinsics =
+        intrinsics.unwrap_or_else(|| holoface_runtime::default_intrinsics(image.width(), image.height()));
     OwnedFrame {
         index,
         timestamp_us,

@@ -27,7 +27,7 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 
 use crate::output::Output;
-use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
+use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;

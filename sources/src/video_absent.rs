@@ -6,9 +6,9 @@ use std::convert::Infallible;
 use std::path::Path;
 
 use anyhow::bail;
-use holoface_headset_client::{FrameSource, OwnedFrame, SourceError};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
+use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
 
 fn absent<T>(path: &Path) -> anyhow::Result<T> {
     bail!(

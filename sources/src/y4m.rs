@@ -14,7 +14,7 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
-use holoface_headset_client::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
+use holoface_runtime::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
 
 /// The stream's first bytes.
 pub const MAGIC: &[u8] = b"YUV4MPEG2";

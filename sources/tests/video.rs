@@ -4,9 +4,9 @@
 
 use std::path::Path;
 
-use holoface_headset_client::FrameSource;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
+use holoface_runtime::FrameSource;
 use holoface_sources::poses::write_line;
 use holoface_sources::source::open_source;
 use holoface_sources::video::Mp4Writer;
@@ -40,7 +40,7 @@ fn pose(i: usize) -> Pose {
     }
 }
 
-fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_headset_client::OwnedFrame>> {
+fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_runtime::OwnedFrame>> {
     let mut out = Vec::new();
     while let Some(f) = src.next_frame()? {
         out.push(f);
@@ -255,7 +255,7 @@ fn ffmpeg_luma(clip: &Path, w: usize, h: usize, pix_fmt: &str) -> Vec<Vec<u8>> {
 }
 
 /// Every frame came out, in display order, with increasing times.
-fn assert_complete_and_ordered(name: &str, frames: &[holoface_headset_client::OwnedFrame], n: usize) {
+fn assert_complete_and_ordered(name: &str, frames: &[holoface_runtime::OwnedFrame], n: usize) {
     assert_eq!(frames.len(), n, "{name}: every frame");
     for (i, f) in frames.iter().enumerate() {
         assert_eq!(f.index, i, "{name}");

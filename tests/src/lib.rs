@@ -1,6 +1,6 @@
 //! End-to-end test support: start the real alignment server on loopback with
 //! the real ONNX model, and a test client built on the headset link's own
-//! connection code (`holoface_headset_client::link::connection`: pinned TLS 1.3
+//! connection code (`holoface_runtime::link::connection`: pinned TLS 1.3
 //! endpoint, handshake, frame streams, reply reader), with the raw access
 //! misbehaviour tests need: [`TestClient::connect`] does the handshake with any
 //! hello, [`TestClient::send_frame`] opens one stream per frame,
@@ -21,13 +21,13 @@ use bytes::{Bytes, BytesMut};
 use holoface_alignment_server::AlignmentServer;
 use holoface_alignment_server::config::Settings;
 use holoface_alignment_server::metrics::Metrics;
-use holoface_headset_client::link::connection::{self, Control, ReplyReader};
-use holoface_headset_client::link::{ConnectConfig, LinkError};
 use holoface_protocol::{
     ClientHello, CloseCode, Crop, CropEncoding, FrameReply, FrameRequest, Message, PROTOCOL_VERSION,
     ServerWelcome, encode_framed,
 };
 use holoface_quic::Fingerprint;
+use holoface_runtime::link::connection::{self, Control, ReplyReader};
+use holoface_runtime::link::{ConnectConfig, LinkError};
 use quinn::{Connection, Endpoint, SendStream};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
@@ -256,7 +256,7 @@ pub fn frame(frame_id: u64, seed: u8, deadline_ms: u16) -> FrameRequest {
 }
 
 /// The application close code a connection ended with, if any (the client's own helper).
-pub use holoface_headset_client::link::connection::app_close_code;
+pub use holoface_runtime::link::connection::app_close_code;
 
 /// Sends one frame on its own stream of `conn` (usable from a task that
 /// does not own the [`TestClient`]).
@@ -274,7 +274,7 @@ pub async fn send_stream_bytes_on(conn: &Connection, bytes: &[u8]) -> Result<(),
 }
 
 /// A HoloFace client after a successful handshake: the headset link's own connection code
-/// (`holoface_headset_client::link::connection`), with the raw access misbehaviour tests need.
+/// (`holoface_runtime::link::connection`), with the raw access misbehaviour tests need.
 #[derive(Debug)]
 pub struct TestClient {
     /// The client endpoint (kept alive with the connection).

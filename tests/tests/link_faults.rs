@@ -9,13 +9,13 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use holoface_headset_client::align::{Aligner, AnsweredBy, KrfwsAligner};
-use holoface_headset_client::link::{
-    Backoff, ConnectConfig, FailureKind, LinkInfo, LinkOptions, LinkState, LinkedAligner, Mode, RemoteLink,
-};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_quic::Fingerprint;
+use holoface_runtime::align::{Aligner, AnsweredBy, KrfwsAligner};
+use holoface_runtime::link::{
+    Backoff, ConnectConfig, FailureKind, LinkInfo, LinkOptions, LinkState, LinkedAligner, Mode, RemoteLink,
+};
 use holoface_tests::{TEST_TOKEN, workspace_root};
 use holoface_toolkit::data::{Split, default_data_root, load_folder};
 use holoface_toolkit::relay::UdpRelay;

@@ -117,11 +117,11 @@ async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
 /// did move them away from DAN's.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_servers_answer_is_what_eval_remote_measures() {
-    use holoface_headset_client::align::{Aligner, crop_from_image, landmarks_from_crop};
-    use holoface_headset_client::link::CropCodec;
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
+    use holoface_runtime::align::{Aligner, crop_from_image, landmarks_from_crop};
+    use holoface_runtime::link::CropCodec;
     use holoface_toolkit::data::{Split, default_data_root, load_folder};
 
     let faces = load_folder(
@@ -336,7 +336,7 @@ async fn replies_on_a_stream_when_configured() {
 /// "stream ended" (found by the container smoke test, `make image-test`).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refusal_whose_stream_ends_before_the_close_is_still_the_refusal() {
-    use holoface_headset_client::link::FailureKind;
+    use holoface_runtime::link::FailureKind;
     let id = holoface_alignment_server::tls::ServerIdentity::self_signed(&["localhost".to_owned()]).unwrap();
     let config = quinn::ServerConfig::with_crypto(id.quic_server_config().unwrap());
     let endpoint = quinn::Endpoint::server(config, "127.0.0.1:0".parse().unwrap()).unwrap();

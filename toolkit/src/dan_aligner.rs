@@ -2,9 +2,6 @@
 //! headset would send, one ONNX Runtime call, the landmarks mapped back. A headset never runs DAN itself (it
 //! asks the alignment server), so this lives here and not in the runtime.
 
-use holoface_headset_client::align::{
-    AlignError, Aligner, Alignment, Candidate, Neighbours, crop_from_image, landmarks_from_crop,
-};
 use holoface_inference::{
     BatchTensor, CascadeEngine, EngineError, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine,
     OnnxOptions,
@@ -12,6 +9,9 @@ use holoface_inference::{
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayView;
+use holoface_runtime::align::{
+    AlignError, Aligner, Alignment, Candidate, Neighbours, crop_from_image, landmarks_from_crop,
+};
 
 /// DAN alone, in this process (`engine`: CPU, batch 1).
 pub fn dan_alone(engine: &OnnxOptions) -> Result<DanAligner<OnnxEngine>, EngineError> {
@@ -29,7 +29,7 @@ pub fn server_pipeline(
     let dan = OnnxEngine::load(engine)?;
     let mut aligner = DanAligner::new(CascadeEngine::new(dan, refiner)?)
         .map_err(|e| EngineError::BadOutput(e.to_string()))?;
-    aligner.set_wire_codec(Some(holoface_headset_client::CropCodec::default()));
+    aligner.set_wire_codec(Some(holoface_runtime::CropCodec::default()));
     Ok(aligner)
 }
 
@@ -42,7 +42,7 @@ pub struct DanAligner<E> {
     crop: Crop112,
     batch: BatchTensor,
     out: Vec<LandmarkOut>,
-    wire: Option<holoface_headset_client::CropCodec>,
+    wire: Option<holoface_runtime::CropCodec>,
     wire_bytes: (u64, u64),
 }
 
@@ -90,7 +90,7 @@ impl<E: InferenceEngine> DanAligner<E> {
 
     /// Passes every crop through `codec` (encode, then decode as the server does) before inference, to
     /// measure the accuracy cost of a wire encoding in-process; `None` (the default) feeds the crop as is.
-    pub fn set_wire_codec(&mut self, codec: Option<holoface_headset_client::CropCodec>) {
+    pub fn set_wire_codec(&mut self, codec: Option<holoface_runtime::CropCodec>) {
         self.wire = codec;
     }
 

@@ -19,17 +19,17 @@ use std::path::PathBuf;
 use criterion::{Criterion, Throughput, criterion_group};
 use std::sync::{Arc, Mutex};
 
-use holoface_headset_client::align::{AlignError, Aligner, Alignment, crop_from_image};
-use holoface_headset_client::detect::BlazeFace;
-use holoface_headset_client::{
-    AnsweredBy, AssetPaths, Confidence, CropCodec, FaceResult, FaceTracker, Frame, GrayView, LandmarkSet,
-    SessionOptions, TrackerOptions,
-};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::shape::dan_mean_shape;
+use holoface_runtime::align::{AlignError, Aligner, Alignment, crop_from_image};
+use holoface_runtime::detect::BlazeFace;
+use holoface_runtime::{
+    AnsweredBy, AssetPaths, Confidence, CropCodec, FaceResult, FaceTracker, Frame, GrayView, LandmarkSet,
+    SessionOptions, TrackerOptions,
+};
 use holoface_sources::images::read_gray;
 use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_tools::render::PlanarScene;
@@ -274,7 +274,7 @@ fn bench_faces(c: &mut Criterion) {
             .collect();
         if n == 5 {
             // What a detection costs on such a frame: the whole frame, and with the several-face tiles.
-            use holoface_headset_client::detect::FaceDetector as _;
+            use holoface_runtime::detect::FaceDetector as _;
             let mut whole = BlazeFace::load(&det, &ort, 1).unwrap();
             let mut tiled = BlazeFace::load(&det, &ort, 1).unwrap();
             tiled.for_several_faces();

@@ -7,8 +7,8 @@ use holoface_models::image::GrayImage;
 use holoface_models::math3::Vec3;
 
 use crate::plot::Canvas;
-use holoface_headset_client::align::AnsweredBy;
-use holoface_headset_client::session::{FaceUpdate, NoFaceReason, TrackedFace};
+use holoface_runtime::align::AnsweredBy;
+use holoface_runtime::session::{FaceUpdate, NoFaceReason, TrackedFace};
 
 /// Length of the drawn pose axes, metres.
 const AXIS_M: f64 = 0.05;
@@ -82,7 +82,7 @@ pub fn annotate(
 
 /// The six strongest blendshape coefficients (above 0.05) as labelled bars, one per line from `y0`: the full
 /// bar (coefficient 1) is 100 px.
-fn blendshape_bars(cv: &mut Canvas, b: &holoface_headset_client::Blendshapes, y0: i64) {
+fn blendshape_bars(cv: &mut Canvas, b: &holoface_runtime::Blendshapes, y0: i64) {
     let mut top: Vec<_> = b.iter().filter(|&(_, v)| v > 0.05).collect();
     top.sort_by(|a, b| b.1.total_cmp(&a.1));
     for (row, (shape, v)) in top.into_iter().take(6).enumerate() {
@@ -119,8 +119,8 @@ fn draw_face(cv: &mut Canvas, u: &FaceUpdate, model: &FaceModel, k: &Intrinsics)
         }
     }
     let first = match u.landmark_set {
-        holoface_headset_client::align::LandmarkSet::Ibug68 => 0,
-        holoface_headset_client::align::LandmarkSet::Inner51 => 17,
+        holoface_runtime::align::LandmarkSet::Ibug68 => 0,
+        holoface_runtime::align::LandmarkSet::Inner51 => 17,
     };
     for p in &u.landmarks[first..] {
         cv.dot(f64::from(p.x), f64::from(p.y), 1, colour);

@@ -1,23 +1,23 @@
 //! The command-line options naming the runtime assets (same environment variables and data-folder defaults
-//! as `holoface_headset_client::assets`) and how the tools build engines from them.
+//! as `holoface_runtime::assets`) and how the tools build engines from them.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use holoface_headset_client::{
+use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
+use holoface_models::steady::SteadyParams;
+use holoface_runtime::{
     AssetPaths, CANDIDE_ENV, DETECTOR_ENV, FaceTracker, KRFWS_ENV, SessionOptions, SteadySettings,
     TrackerError, TrackerOptions, home,
 };
-use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
-use holoface_models::steady::SteadyParams;
 
 use crate::dan_aligner::DanAligner;
-use holoface_headset_client::align::KrfwsAligner;
-use holoface_headset_client::detect::DetectError;
+use holoface_runtime::align::KrfwsAligner;
+use holoface_runtime::detect::DetectError;
 
 /// The command line's names for the files it loads, in the runtime's messages (each front end names its own).
-pub const CLI_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
+pub const CLI_OPTIONS: &[(holoface_runtime::Asset, &str)] = &[
     (home::ORT_LIBRARY, "--ort-dylib"),
     (home::DETECTOR, "--detector"),
     (home::KRFWS, "--krfws-model"),
@@ -32,16 +32,16 @@ pub fn tracker(opts: TrackerOptions) -> Result<FaceTracker, TrackerError> {
 }
 
 /// [`FaceTracker::with_aligner`], its errors naming the command line's options.
-pub fn tracker_with<A: holoface_headset_client::align::Aligner + ?Sized>(
+pub fn tracker_with<A: holoface_runtime::align::Aligner + ?Sized>(
     opts: &TrackerOptions,
     aligner: Box<A>,
-    link: Option<holoface_headset_client::link::LinkWatch>,
+    link: Option<holoface_runtime::link::LinkWatch>,
 ) -> Result<FaceTracker<A>, TrackerError> {
     FaceTracker::with_aligner(opts, aligner, link).map_err(|e| e.given_by(CLI_OPTIONS))
 }
 
 /// Paths and threads of the runtime assets: each path is the option, else its environment variable, else its
-/// file in the holoface data folder, which `holoface setup` fills (`holoface_headset_client::assets::home`).
+/// file in the holoface data folder, which `holoface setup` fills (`holoface_runtime::assets::home`).
 #[derive(Debug, Clone, Args)]
 pub struct RuntimeArgs {
     /// ONNX Runtime shared library (`holoface setup` fetches it from the pinned PyPI wheel).
@@ -117,8 +117,8 @@ impl RuntimeArgs {
     }
 
     /// BlazeFace through ONNX Runtime (1 thread).
-    pub fn detector(&self) -> anyhow::Result<holoface_headset_client::detect::BlazeFace> {
-        holoface_headset_client::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
+    pub fn detector(&self) -> anyhow::Result<holoface_runtime::detect::BlazeFace> {
+        holoface_runtime::detect::BlazeFace::load(&self.detector, &self.ort_dylib, 1)
             .map_err(|e| match e {
                 DetectError::Missing(m) => DetectError::Missing(m.given_by(CLI_OPTIONS)),
                 e => e,
@@ -128,8 +128,8 @@ impl RuntimeArgs {
 
     /// KRFWS from its model file.
     pub fn krfws_aligner(&self) -> anyhow::Result<KrfwsAligner> {
-        let model = holoface_headset_client::assets::load_krfws(&self.krfws_model)
-            .map_err(|e| e.given_by(CLI_OPTIONS))?;
+        let model =
+            holoface_runtime::assets::load_krfws(&self.krfws_model).map_err(|e| e.given_by(CLI_OPTIONS))?;
         Ok(KrfwsAligner::new(model))
     }
 }
@@ -145,8 +145,7 @@ pub struct CandideArg {
 impl CandideArg {
     /// Loads the model.
     pub fn load(&self) -> anyhow::Result<holoface_models::candide::FaceModel> {
-        Ok(holoface_headset_client::assets::load_face_model(&self.candide)
-            .map_err(|e| e.given_by(CLI_OPTIONS))?)
+        Ok(holoface_runtime::assets::load_face_model(&self.candide).map_err(|e| e.given_by(CLI_OPTIONS))?)
     }
 }
 

@@ -5,7 +5,7 @@
 //! nothing else in the workspace depends on this crate; what the load tester and the end-to-end tests share
 //! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-toolkit`.
 //!
-//! The headset runtime they drive is `holoface-headset-client`; the demo's in-process alignment server is
+//! The headset runtime they drive is `holoface-runtime`; the demo's in-process alignment server is
 //! `holoface-server`. A headset app depends on neither this crate nor the server.
 #![deny(missing_docs)]
 

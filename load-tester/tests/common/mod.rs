@@ -3,10 +3,10 @@
 
 use std::path::{Path, PathBuf};
 
-use holoface_headset_client::link::CropCodec;
 use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
+use holoface_runtime::link::CropCodec;
 
 pub(crate) fn workspace() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")

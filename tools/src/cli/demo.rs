@@ -27,12 +27,12 @@ use crate::args::RuntimeArgs;
 use crate::plot::Canvas;
 use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
-use holoface_headset_client::align::{Aligner, AnsweredBy};
-use holoface_headset_client::assets::home;
-use holoface_headset_client::detect::{FaceDetector, shape_from_detection};
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::link::{CropCodec, RemoteOptions};
-use holoface_headset_client::{FaceResult, SessionOptions};
+use holoface_runtime::align::{Aligner, AnsweredBy};
+use holoface_runtime::assets::home;
+use holoface_runtime::detect::{FaceDetector, shape_from_detection};
+use holoface_runtime::frame::Frame;
+use holoface_runtime::link::{CropCodec, RemoteOptions};
+use holoface_runtime::{FaceResult, SessionOptions};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -54,10 +54,10 @@ pub struct Args {
     #[arg(long, default_value_t = 120)]
     pub cut_frames: usize,
     /// Per-frame deadline for the server's answer, milliseconds (one frame interval at 30 fps).
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
-    #[arg(long, default_value = holoface_headset_client::defaults::CROP_ENCODING)]
+    #[arg(long, default_value = holoface_runtime::defaults::CROP_ENCODING)]
     pub crop_encoding: CropCodec,
     /// ONNX Runtime threads of the in-process server.
     #[arg(long, default_value_t = 1)]
@@ -157,9 +157,9 @@ struct Record {
 
 /// Each blendshape coefficient's mean over the frames with a face, as JSON, and a line naming the five
 /// strongest.
-fn mean_blendshapes(frames: &[holoface_headset_client::Blendshapes]) -> (serde_json::Value, String) {
+fn mean_blendshapes(frames: &[holoface_runtime::Blendshapes]) -> (serde_json::Value, String) {
     let n = frames.len().max(1) as f64;
-    let mut mean: Vec<(&'static str, f64)> = holoface_headset_client::Blendshape::ALL
+    let mut mean: Vec<(&'static str, f64)> = holoface_runtime::Blendshape::ALL
         .iter()
         .enumerate()
         .map(|(k, b)| {

@@ -17,8 +17,8 @@ use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, list_folder};
 use crate::expressions::{CoefficientAgreement, agreement, overall_abs_diff};
 use crate::plot::{Curve, ced_plot_png};
-use holoface_headset_client::align::{Aligner, Confidence};
-use holoface_headset_client::detect::{BlazeFace, FaceDetector, shape_from_detection};
+use holoface_runtime::align::{Aligner, Confidence};
+use holoface_runtime::detect::{BlazeFace, FaceDetector, shape_from_detection};
 
 /// How the initial shape is placed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -59,7 +59,7 @@ pub struct Args {
     pub runtime: RuntimeArgs,
     /// KRFWS starts per face (several starts with the median answer, as on a tracker's detection frames;
     /// 1 = a single alignment, the headset's per-frame cost when tracking).
-    #[arg(long, default_value_t = holoface_headset_client::align::KRFWS_DETECTION_STARTS)]
+    #[arg(long, default_value_t = holoface_runtime::align::KRFWS_DETECTION_STARTS)]
     pub krfws_starts: usize,
     /// Time this many passes over the faces (accuracy is from the first); `ms_per_face` is the mean.
     #[arg(long, default_value_t = 1)]
@@ -73,7 +73,7 @@ pub struct Args {
     /// Pass DAN's crops through this wire encoding first (`raw`, `png`, `jpeg`, `jpeg:Q`), as the server
     /// would receive them; measures the accuracy cost of an encoding. Default: the crop as is.
     #[arg(long)]
-    pub crop_encoding: Option<holoface_headset_client::link::CropCodec>,
+    pub crop_encoding: Option<holoface_runtime::link::CropCodec>,
 }
 
 #[derive(Debug, Serialize)]
@@ -236,12 +236,12 @@ fn evaluate(
         align_time += t0.elapsed();
         aligned += 1;
         let n68 = match a.set {
-            holoface_headset_client::LandmarkSet::Ibug68 => nme68(&a.landmarks, &c.gt),
-            holoface_headset_client::LandmarkSet::Inner51 => None,
+            holoface_runtime::LandmarkSet::Ibug68 => nme68(&a.landmarks, &c.gt),
+            holoface_runtime::LandmarkSet::Inner51 => None,
         };
         let n49 = nme49(&a.landmarks, &c.gt);
         // A still has no person to calibrate: both against the mean face (a fresh estimator's first frame).
-        let jaw_line = a.set == holoface_headset_client::LandmarkSet::Ibug68;
+        let jaw_line = a.set == holoface_runtime::LandmarkSet::Ibug68;
         let fresh = || BlendshapeEstimator::new(Default::default());
         shapes_ours.push(fresh().update(&a.landmarks, jaw_line, None));
         shapes_truth.push(fresh().update(&c.gt, jaw_line, None));
@@ -462,9 +462,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use holoface_headset_client::align::{AlignError, Alignment};
-    use holoface_headset_client::{AnsweredBy, LandmarkSet};
     use holoface_models::image::{GrayImage, GrayView};
+    use holoface_runtime::align::{AlignError, Alignment};
+    use holoface_runtime::{AnsweredBy, LandmarkSet};
 
     /// Answers its initial shape moved `dx` pixels to the right.
     struct Shifted(f32);

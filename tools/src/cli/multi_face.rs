@@ -33,9 +33,9 @@ use super::tracking_losses::{SequenceExport, cut_face_with_margin};
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
-use holoface_headset_client::align::Aligner;
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::{SessionOptions, TrackedFace};
+use holoface_runtime::align::Aligner;
+use holoface_runtime::frame::Frame;
+use holoface_runtime::{SessionOptions, TrackedFace};
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -56,7 +56,7 @@ pub struct Args {
     #[arg(long, default_value_t = 4.0)]
     pub headset_yaw_deg: f64,
     /// While fewer than N faces are tracked, run the detector every this many frames.
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DETECT_EVERY)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DETECT_EVERY)]
     pub detect_every: u32,
     /// Horizontal spacing of the pictures' rest positions, centimetres. At the default the pictures touch
     /// and their motion makes them cover each other at times; five fill the 640-px view.
@@ -80,7 +80,7 @@ pub struct Args {
     pub snapshots: Option<PathBuf>,
     /// With `--aligner remote`: how long a frame waits for the server's replies before KRFWS answers the
     /// faces it missed, ms.
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Deliver frames at `--fps`, as a live camera does (otherwise as fast as they are processed).
     #[arg(long)]
@@ -368,7 +368,7 @@ fn track(
             .push((timings.prepare + timings.align + timings.complete).as_secs_f64() * 1e3);
         for a in step.alignments.iter().flatten() {
             run.aligned += 1;
-            run.remote += usize::from(a.answered_by == holoface_headset_client::align::AnsweredBy::RemoteDan);
+            run.remote += usize::from(a.answered_by == holoface_runtime::align::AnsweredBy::RemoteDan);
         }
         if let Some(dir) = args
             .snapshots
@@ -574,9 +574,9 @@ fn remote_aligner(
     args: &Args,
 ) -> anyhow::Result<(
     crate::loopback::LoopbackServer,
-    holoface_headset_client::link::LinkedAligner<holoface_headset_client::align::KrfwsAligner>,
+    holoface_runtime::link::LinkedAligner<holoface_runtime::align::KrfwsAligner>,
 )> {
-    use holoface_headset_client::link::{Mode, RemoteOptions};
+    use holoface_runtime::link::{Mode, RemoteOptions};
     let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
     let mut remote = RemoteOptions::new(server.addr, server.fingerprint, server.token.clone());
     remote.client_name = "holoface-multi-face".into();

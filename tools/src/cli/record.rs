@@ -46,7 +46,7 @@ pub struct Args {
     /// `jpeg:Q`): the tracker runs locally (detector, KRFWS) and each frame's 112x112 crop is stored with
     /// its crop-to-image similarity. Frames without a face are skipped. The load tester replays these.
     #[arg(long)]
-    pub crops: Option<holoface_headset_client::CropCodec>,
+    pub crops: Option<holoface_runtime::CropCodec>,
     /// CANDIDE-3 model.
     #[command(flatten)]
     pub candide: crate::args::CandideArg,
@@ -57,14 +57,14 @@ pub struct Args {
 
 /// Cuts the client's crop of each frame by running the tracker locally.
 struct CropCutter {
-    codec: holoface_headset_client::CropCodec,
-    tracker: holoface_headset_client::FaceTracker,
+    codec: holoface_runtime::CropCodec,
+    tracker: holoface_runtime::FaceTracker,
     mean: [holoface_models::geometry::Point2; 68],
     crop: holoface_models::crop::Crop112,
 }
 
 impl CropCutter {
-    fn new(codec: holoface_headset_client::CropCodec, args: &Args) -> anyhow::Result<Self> {
+    fn new(codec: holoface_runtime::CropCodec, args: &Args) -> anyhow::Result<Self> {
         let mean = holoface_models::shape::dan_mean_shape();
         Ok(Self {
             codec,
@@ -82,7 +82,7 @@ impl CropCutter {
         let Some(first) = step.first_candidate() else {
             return Ok(None);
         };
-        let sim = holoface_headset_client::align::crop_from_image(&first.init, &self.mean)?;
+        let sim = holoface_runtime::align::crop_from_image(&first.init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
         let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;

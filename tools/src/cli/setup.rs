@@ -1,4 +1,4 @@
-//! `holoface setup`: fills the holoface data folder ([`holoface_headset_client::assets::home`]) so that an installed
+//! `holoface setup`: fills the holoface data folder ([`holoface_runtime::assets::home`]) so that an installed
 //! `holoface`, `holoface-server`, the C ABI and the runtime find their assets from any directory.
 //!
 //! * Third-party assets come from the same pinned registry files the project has always used, each checked
@@ -20,8 +20,8 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
-use holoface_headset_client::assets::home;
 use holoface_inference::integrity::{self, sha256_hex};
+use holoface_runtime::assets::home;
 use holoface_sources::output::write_atomic;
 
 /// Arguments of `holoface setup`.
@@ -444,7 +444,7 @@ fn install_candide(from: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
         return Ok(());
     };
     let bytes = holoface_inference::files::read_bounded(from, home::CANDIDE.max_bytes, home::CANDIDE.name)?;
-    holoface_headset_client::assets::parse_face_model(&bytes, from)?;
+    holoface_runtime::assets::parse_face_model(&bytes, from)?;
     install(&dest, &bytes)?;
     report(home::CANDIDE.file, "installed", &dest);
     Ok(())

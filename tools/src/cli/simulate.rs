@@ -35,7 +35,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1.0)]
     pub noise_px: f64,
     /// Capture-to-display delay the prediction must cover (milliseconds).
-    #[arg(long, default_value_t = holoface_headset_client::defaults::LOOKAHEAD_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::LOOKAHEAD_MS)]
     pub delay_ms: f64,
     /// Headset yaw amplitude (degrees): how far the wearer turns their head.
     #[arg(long, default_value_t = 20.0)]

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
-use holoface_headset_client::{
+use holoface_runtime::{
     AlignerChoice, AnsweredBy, BlendshapeParams, Blendshapes, FaceTracker, InitSource, RemoteOptions,
     SessionOptions, TrackerOptions,
 };
@@ -49,7 +49,7 @@ pub struct Args {
     #[command(flatten)]
     pub steady: crate::args::SteadyArgs,
     /// Per-frame deadline for the server's answer, milliseconds (`remote`).
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Intra-op threads of the in-process server (`remote`).
     #[arg(long, default_value_t = 1)]
@@ -155,7 +155,7 @@ fn pct(s: Option<Summary>, f: impl Fn(&Summary) -> f64) -> String {
 /// the frame count.
 fn track_clip(
     runs: &mut [Run],
-    source: &mut dyn holoface_headset_client::FrameSource,
+    source: &mut dyn holoface_runtime::FrameSource,
     max_frames: usize,
     paced: bool,
 ) -> anyhow::Result<usize> {

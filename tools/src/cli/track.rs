@@ -9,7 +9,7 @@ use clap::Args as ClapArgs;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use holoface_headset_client::{
+use holoface_runtime::{
     AlignerChoice, AnsweredBy, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
 };
 use holoface_sources::source::open_source;
@@ -41,13 +41,13 @@ pub struct Args {
     #[arg(long)]
     pub no_motion_compensation: bool,
     /// Prediction horizon in milliseconds.
-    #[arg(long, default_value_t = holoface_headset_client::defaults::LOOKAHEAD_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::LOOKAHEAD_MS)]
     pub lookahead_ms: f64,
     /// Most faces tracked at once, each with a stable id.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
     pub max_faces: u16,
     /// While fewer than `--max-faces` are tracked (and at least one), run the detector every N frames.
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DETECT_EVERY, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DETECT_EVERY, value_parser = clap::value_parser!(u32).range(1..))]
     pub detect_every: u32,
     /// Detector tiles per side besides the whole frame (default: none for one face, 3 x 3 for several).
     /// BlazeFace sees 128 px; a face narrower than about a tenth of a tile's side is missed, so a group
@@ -75,11 +75,11 @@ pub struct Args {
     #[arg(long, env = "HOLOFACE_TOKEN", default_value = "")]
     pub token: String,
     /// Per-frame deadline for the server's answer, milliseconds.
-    #[arg(long, default_value_t = holoface_headset_client::defaults::DEADLINE_MS)]
+    #[arg(long, default_value_t = holoface_runtime::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
-    #[arg(long, default_value = holoface_headset_client::defaults::CROP_ENCODING)]
-    pub crop_encoding: holoface_headset_client::link::CropCodec,
+    #[arg(long, default_value = holoface_runtime::defaults::CROP_ENCODING)]
+    pub crop_encoding: holoface_runtime::link::CropCodec,
     /// The landmark filter.
     #[command(flatten)]
     pub steady: crate::args::SteadyArgs,
@@ -270,7 +270,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             crate::say!("{remote_frames} of {faces} faces aligned by the remote DAN");
         } else {
             let why = match (&status, status.failure()) {
-                (holoface_headset_client::LinkInfo::Failed(f), _) => format!("gave up: {f}"),
+                (holoface_runtime::LinkInfo::Failed(f), _) => format!("gave up: {f}"),
                 (_, Some(f)) => format!("retrying: {f}"),
                 (_, None) => "still connecting".to_owned(),
             };

@@ -32,8 +32,8 @@ use serde_json::json;
 use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, default_data_root, load_folder};
 use crate::render::PlanarScene;
-use holoface_headset_client::frame::Frame;
-use holoface_headset_client::{FaceResult, FaceTracker, InitSource, SessionOptions};
+use holoface_runtime::frame::Frame;
+use holoface_runtime::{FaceResult, FaceTracker, InitSource, SessionOptions};
 
 /// Arguments of `holoface tracking-losses`.
 #[derive(Debug, ClapArgs)]

@@ -19,8 +19,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use holoface_headset_client::align::crop_from_image;
-use holoface_headset_client::link::CropCodec;
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use holoface_models::GrayView;
 use holoface_models::crop::warp_bilinear;
@@ -30,6 +28,8 @@ use holoface_models::refine::train::{RefineConfig, RefineSample, borrowed_error_
 use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
 use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
+use holoface_runtime::align::crop_from_image;
+use holoface_runtime::link::CropCodec;
 use serde::Serialize;
 
 use crate::args::RuntimeArgs;
@@ -439,7 +439,7 @@ fn answer_training_crops(
     first: usize,
     args: &Args,
     runner: &mut DanRunner,
-    detector: &mut holoface_headset_client::detect::BlazeFace,
+    detector: &mut holoface_runtime::detect::BlazeFace,
 ) -> anyhow::Result<()> {
     let mean = dan_mean_shape();
     for (fi, face) in faces.iter().enumerate() {
@@ -569,7 +569,7 @@ fn val_answers(
     faces: &[Sample],
     args: &Args,
     runner: &mut DanRunner,
-    detector: &mut holoface_headset_client::detect::BlazeFace,
+    detector: &mut holoface_runtime::detect::BlazeFace,
 ) -> anyhow::Result<ValAnswers> {
     runner.answered.clear();
     let mean = dan_mean_shape();

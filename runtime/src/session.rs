@@ -15,6 +15,8 @@
 //! The session never reads a clock: time comes from the frames' timestamps. The three steps are driven in one
 //! place, [`crate::frame_step::step_faces`]; call that rather than writing the sequence out again.
 
+pub use holoface_models::blendshapes::{Blendshape, BlendshapeParams, Blendshapes};
+use holoface_models::blendshapes::{BlendshapeEstimator, HeadTurn};
 use holoface_models::camera::Intrinsics;
 use holoface_models::candide::{FaceModel, FitOptions, FitResult, fit};
 use holoface_models::expression::ExpressionWeights;
@@ -25,8 +27,6 @@ use holoface_models::pose::{
     AttributeThresholds, Attributes, WorldPose, compensate_headset_motion, world_pose,
 };
 use holoface_models::shape::OUTER_EYE_CORNERS;
-pub use holoface_models::blendshapes::{Blendshape, BlendshapeParams, Blendshapes};
-use holoface_models::blendshapes::{BlendshapeEstimator, HeadTurn};
 pub use holoface_models::steady::{FilterParams, OneEuroParams, SteadyParams};
 use holoface_models::steady::{LandmarkFilter, Source};
 use serde::Serialize;
@@ -560,8 +560,12 @@ impl TrackerSession {
             .unwrap_or_else(|| BlendshapeEstimator::new(self.opts.blendshapes));
         let turn = HeadTurn::from_pose(fitted.rotation, fitted.translation);
         // Each aligner calibrates its own neutral: they place a resting face a little differently.
-        let blendshapes =
-            expressions.update_from(a.answered_by as u8, &shown, a.set == LandmarkSet::Ibug68, Some(turn));
+        let blendshapes = expressions.update_from(
+            a.answered_by as u8,
+            &shown,
+            a.set == LandmarkSet::Ibug68,
+            Some(turn),
+        );
         let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
             Some(mut t) => {
                 let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;

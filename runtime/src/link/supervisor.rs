@@ -198,7 +198,10 @@ mod tests {
             let mut s = Supervisor::new(Backoff::default());
             let d = s.failed(Instant::now(), LinkFailure::new(kind, "no"));
             assert_eq!(d.next, Next::GiveUp, "{kind}");
-            assert!(matches!(s.status(), LinkInfo::Failed(f) if f.kind == kind), "{kind}");
+            assert!(
+                matches!(s.status(), LinkInfo::Failed(f) if f.kind == kind),
+                "{kind}"
+            );
         }
         for kind in [
             FailureKind::ServerFull,

@@ -107,7 +107,10 @@ mod tests {
 
     #[test]
     fn the_default_is_the_documented_default() {
-        assert_eq!(crate::defaults::CROP_ENCODING.parse::<CropCodec>(), Ok(CropCodec::default()));
+        assert_eq!(
+            crate::defaults::CROP_ENCODING.parse::<CropCodec>(),
+            Ok(CropCodec::default())
+        );
         assert_eq!(CropCodec::default().to_string(), crate::defaults::CROP_ENCODING);
     }
 

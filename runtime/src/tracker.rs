@@ -2,13 +2,13 @@
 //! [`FrameResult`] per frame.
 //!
 //! ```no_run
-//! use holoface_headset_client::tracker::{FaceTracker, RunningMode, TrackerOptions};
-//! use holoface_headset_client::frame::Frame;
+//! use holoface_runtime::tracker::{FaceTracker, RunningMode, TrackerOptions};
+//! use holoface_runtime::frame::Frame;
 //! use holoface_models::camera::Intrinsics;
 //! use holoface_models::image::GrayView;
 //! use holoface_models::math3::Pose;
 //!
-//! # fn main() -> Result<(), holoface_headset_client::tracker::TrackerError> {
+//! # fn main() -> Result<(), holoface_runtime::tracker::TrackerError> {
 //! let mut tracker = FaceTracker::new(TrackerOptions { mode: RunningMode::Video, ..TrackerOptions::default() })?;
 //! let pixels = vec![0u8; 640 * 480];
 //! let frame = Frame {
@@ -39,8 +39,8 @@ use crate::detect::DetectError;
 use crate::frame::{Frame, OwnedFrame};
 use crate::frame_step::StepError;
 pub use crate::frame_step::Timings;
-use crate::link::{LinkState, LinkInfo, LinkWatch, RemoteOptions};
-use crate::session::{FaceUpdate, FaceResult, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
+use crate::link::{LinkInfo, LinkState, LinkWatch, RemoteOptions};
+use crate::session::{FaceResult, FaceUpdate, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -245,10 +245,20 @@ impl Parts {
     }
 
     /// The one place a [`TrackerSession`] is made.
-    fn assemble<A: ?Sized>(self, opts: &TrackerOptions, aligner: Box<A>, link: Option<LinkWatch>) -> FaceTracker<A> {
+    fn assemble<A: ?Sized>(
+        self,
+        opts: &TrackerOptions,
+        aligner: Box<A>,
+        link: Option<LinkWatch>,
+    ) -> FaceTracker<A> {
         FaceTracker {
             mode: opts.mode,
-            session: TrackerSession::new(Box::new(self.detector), self.model, dan_mean_shape(), opts.session),
+            session: TrackerSession::new(
+                Box::new(self.detector),
+                self.model,
+                dan_mean_shape(),
+                opts.session,
+            ),
             link,
             last_timestamp: None,
             aligner,
@@ -276,19 +286,20 @@ impl FaceTracker {
 impl<A: Aligner + ?Sized> FaceTracker<A> {
     /// A tracker around an aligner of the caller's (`opts.aligner` is not used); `link` reports the state
     /// of a remote aligner's link in each result. For the tools, which also run DAN in-process.
-    #[cfg(feature = "tools")]
-    pub fn with_aligner(opts: &TrackerOptions, aligner: Box<A>, link: Option<LinkWatch>) -> Result<Self, TrackerError> {
+    pub fn with_aligner(
+        opts: &TrackerOptions,
+        aligner: Box<A>,
+        link: Option<LinkWatch>,
+    ) -> Result<Self, TrackerError> {
         Ok(Parts::load(opts)?.assemble(opts, aligner, link))
     }
 
     /// The aligner (tools read a remote aligner's counters through it).
-    #[cfg(feature = "tools")]
     pub fn aligner(&self) -> &A {
         &self.aligner
     }
 
     /// The aligner back, for a tracker of another sequence (the tools keep a warmed-up remote link).
-    #[cfg(feature = "tools")]
     pub fn into_aligner(self) -> Box<A> {
         self.aligner
     }
@@ -332,7 +343,6 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
     }
 
     /// [`FaceTracker::process`] with every candidate and alignment of the frame (the tools report them).
-    #[cfg(feature = "tools")]
     pub fn process_step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
         self.step(frame)
     }
@@ -349,7 +359,11 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
             }
             self.last_timestamp = Some(frame.timestamp_us);
         }
-        Ok(crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)?)
+        Ok(crate::frame_step::step_faces(
+            &mut self.session,
+            &mut *self.aligner,
+            frame,
+        )?)
     }
 }
 
