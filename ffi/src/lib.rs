@@ -16,16 +16,18 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_headset_client::AnsweredBy;
 use holoface_headset_client::Frame;
 use holoface_headset_client::GrayView;
 use holoface_headset_client::Intrinsics;
 use holoface_headset_client::Pose;
-use holoface_headset_client::{
-    AlignerChoice, FaceTracker, RunningMode, SteadySettings, TrackerOptions, defaults,
-};
-use holoface_headset_client::{FaceResult, FaceUpdate, NoFaceReason};
-use holoface_headset_client::{FailureKind, LinkInfo, LinkState, RemoteOptions, RemoteOptionsError};
+use holoface_headset_client::RemoteOptions;
+use holoface_headset_client::errors::RemoteOptionsError;
+use holoface_headset_client::link::{FailureKind, LinkInfo, LinkState};
+use holoface_headset_client::options::SteadySettings;
+use holoface_headset_client::results::AnsweredBy;
+use holoface_headset_client::results::FaceUpdate;
+use holoface_headset_client::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions, defaults};
+use holoface_headset_client::{FaceResult, NoFaceReason};
 
 /// Result of every call.
 #[repr(C)]
@@ -269,7 +271,7 @@ pub const HF_BLENDSHAPES: usize = 39;
 pub extern "C" fn hf_blendshape_name(i: u32) -> *const c_char {
     static NAMES: std::sync::OnceLock<Vec<CString>> = std::sync::OnceLock::new();
     let names = NAMES.get_or_init(|| {
-        holoface_headset_client::Blendshape::ALL
+        holoface_headset_client::results::Blendshape::ALL
             .iter()
             .filter_map(|b| CString::new(b.arkit_name()).ok())
             .collect()
@@ -659,14 +661,23 @@ pub unsafe extern "C" fn hf_tracker_new_with(
 }
 
 /// This ABI's names for the files a tracker loads, in its messages.
-const C_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
-    (holoface_headset_client::home::ORT_LIBRARY, "HfOptions.ort_dylib"),
+const C_OPTIONS: &[(holoface_headset_client::assets::Asset, &str)] = &[
     (
-        holoface_headset_client::home::DETECTOR,
+        holoface_headset_client::assets::home::ORT_LIBRARY,
+        "HfOptions.ort_dylib",
+    ),
+    (
+        holoface_headset_client::assets::home::DETECTOR,
         "HfOptions.detector_model",
     ),
-    (holoface_headset_client::home::KRFWS, "HfOptions.krfws_model"),
-    (holoface_headset_client::home::CANDIDE, "HfOptions.candide"),
+    (
+        holoface_headset_client::assets::home::KRFWS,
+        "HfOptions.krfws_model",
+    ),
+    (
+        holoface_headset_client::assets::home::CANDIDE,
+        "HfOptions.candide",
+    ),
 ];
 
 /// How a tracker's settings come: `hf_tracker_new` and `hf_tracker_new_faces` give the face count only,
@@ -694,7 +705,7 @@ unsafe fn new_tracker(
             Settings::MaxFaces(_) => None,
         };
         if let Some(c) = crop.as_deref() {
-            c.parse::<holoface_headset_client::CropCodec>()
+            c.parse::<holoface_headset_client::options::CropCodec>()
                 .map_err(|e| fail(HfStatus::InvalidArgument, format!("crop_encoding: {e}")))?;
         }
         let mut opts = if options.is_null() {
@@ -728,7 +739,7 @@ unsafe fn new_tracker(
         Err(
             e @ (holoface_headset_client::TrackerError::Options(_)
             | holoface_headset_client::TrackerError::Link(
-                holoface_headset_client::RemoteStartError::Options(_),
+                holoface_headset_client::errors::RemoteStartError::Options(_),
             )),
         ) => fail(HfStatus::InvalidArgument, e.to_string()),
         Err(e) => fail(HfStatus::AssetError, e.given_by(C_OPTIONS).to_string()),
@@ -970,7 +981,7 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
 }
 
 fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
-    let q = |q: holoface_headset_client::Quat| [q.w, q.x, q.y, q.z];
+    let q = |q: holoface_headset_client::geometry::Quat| [q.w, q.x, q.y, q.z];
     let mut c = empty_result(answered_by, 0);
     c.has_face = 1;
     for (i, (p, r)) in u.landmarks.iter().zip(&u.raw_landmarks).enumerate() {
@@ -1327,7 +1338,7 @@ mod tests {
 
     #[test]
     fn link_status_says_state_kind_and_message() {
-        use holoface_headset_client::LinkFailure;
+        use holoface_headset_client::link::LinkFailure;
         let local = link_status(None);
         assert_eq!(
             (local.state, local.failure, local.message[0]),

@@ -6,17 +6,42 @@
 //! cargo run --release -p holoface-headset-client --example embed -- [photo.png]
 //! ```
 //! Assets are found through `ORT_DYLIB_PATH`, `HOLOFACE_DETECTOR_MODEL`, `HOLOFACE_KRFWS_MODEL` and
-//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_headset_client::home`); the photo defaults
+//! `HOLOFACE_CANDIDE`, else in the holoface data folder (`holoface_headset_client::assets::home`); the photo defaults
 //! to the data folder's demo sample.
 
-// Everything comes from the runtime's root: an app depends on this one crate.
+// Everything comes from the facade: an app depends on this one crate.
+use holoface_headset_client::errors::{AlignError, AssetError, DetectError};
+use holoface_headset_client::results::Unit;
 use holoface_headset_client::{
-    FaceTracker, Frame, GrayImage, Intrinsics, Pose, RunningMode, TrackerOptions, Unit,
+    FaceTracker, Frame, GrayImage, Intrinsics, Pose, RunningMode, TrackerError, TrackerOptions,
 };
 
+/// What an app might tell its user: every part of the error is a type the facade names.
+fn advice(e: &TrackerError) -> String {
+    match e {
+        TrackerError::Asset(AssetError::Missing(m)) => format!("install the assets (holoface setup): {m}"),
+        TrackerError::Asset(other) => format!("a model file is damaged: {other}"),
+        TrackerError::Options(o) => format!("fix the settings: {o}"),
+        TrackerError::Link(l) => format!("check the server settings: {l}"),
+        TrackerError::Detect(DetectError::Missing(m)) => format!("install the detector: {m}"),
+        TrackerError::Detect(d) => format!("the detector failed: {d}"),
+        TrackerError::Align(AlignError::Engine(engine)) => format!("the aligner's engine failed: {engine}"),
+        TrackerError::Align(a) => format!("alignment failed: {a}"),
+        TrackerError::Timestamp { previous, got } => format!("frame at {got} µs after one at {previous} µs"),
+        other => other.to_string(),
+    }
+}
+
 fn main() -> anyhow::Result<()> {
+    run().map_err(|e| match e.downcast_ref::<TrackerError>() {
+        Some(t) => anyhow::anyhow!("{}", advice(t)),
+        None => e,
+    })
+}
+
+fn run() -> anyhow::Result<()> {
     let path = std::env::args_os().nth(1).map_or_else(
-        || holoface_headset_client::home::SAMPLE.default_path(),
+        || holoface_headset_client::assets::home::SAMPLE.default_path(),
         std::path::PathBuf::from,
     );
     let photo = image::open(&path)?.into_luma8();

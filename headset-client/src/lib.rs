@@ -4,8 +4,9 @@
 //! folders, videos and recordings in `holoface-sources`; neither the alignment server nor a video decoder is
 //! ever compiled into a headset app.
 //!
-//! **The app-facing API is this page**: everything an app needs is re-exported here, so an app depends on
-//! this one crate. Start with [`FaceTracker`] (or [`LiveTracker`] for a live camera) and [`TrackerOptions`];
+//! **The app-facing API is this crate**: what most apps name is at this root, every other type of the API in
+//! a module named for what it holds ([`options`], [`results`], [`errors`], ...), so an app depends on this one
+//! crate. Start with [`FaceTracker`] (or [`LiveTracker`] for a live camera) and [`TrackerOptions`];
 //! each [`Frame`] gets a [`FrameResult`] with one [`FaceResult`] per tracked face, or the reason there is
 //! none.
 //!
@@ -42,22 +43,72 @@
 #[doc(inline)]
 pub use holoface_runtime::defaults;
 
-// The app-facing API.
+// The tracker, its options, a frame and what it gives back: what most apps name.
 #[doc(inline)]
 pub use holoface_runtime::{
-    AlignerChoice, AnsweredBy, Asset, AssetError, AssetPaths, Blendshape, BlendshapeParams, Blendshapes,
-    CANDIDE_ENV, Confidence, CropCodec, DETECTOR_ENV, DetectorOptions, FaceResult, FaceTracker, FaceUpdate,
-    FailureKind, FilterParams, Frame, FrameResult, FrameSource, HOME_ENV, InitSource, KRFWS_ENV, LandmarkSet,
-    LinkFailure, LinkInfo, LinkState, LiveTracker, MAX_DEADLINE, MAX_DETECT_TILES, MAX_LOOKAHEAD_S,
-    MAX_TRACKED_FACES, MissingAsset, NoFaceReason, ORT_DYLIB_ENV, OneEuroParams, OwnedFrame, RemoteOptions,
-    RemoteOptionsError, RemoteStartError, RunningMode, SessionOptions, SessionOptionsError, SourceError,
-    SteadyParams, SteadySettings, Timings, TrackedFace, TrackerError, TrackerOptions, default_intrinsics,
-    home, parse_face_model,
+    AlignerChoice, DetectorOptions, FaceResult, FaceTracker, Frame, FrameResult, GrayImage, GrayView,
+    Intrinsics, LiveTracker, NoFaceReason, OwnedFrame, Pose, RemoteOptions, RunningMode, SessionOptions,
+    TrackerError, TrackerOptions,
 };
 
-// The types the API takes and returns, from the algorithms crate (through the runtime).
-#[doc(inline)]
-pub use holoface_runtime::{
-    Attributes, ExpressionWeights, Fingerprint, FitResult, GrayImage, GrayView, Intrinsics, Point2, Pose,
-    Quat, Unit, Vec3, WorldPose,
-};
+/// Every setting of [`SessionOptions`] and [`DetectorOptions`] and their limits.
+pub mod options {
+    #[doc(inline)]
+    pub use holoface_runtime::{AttributeThresholds, FitOptions, KalmanParams};
+    #[doc(inline)]
+    pub use holoface_runtime::{
+        BlendshapeParams, CropCodec, FilterParams, MAX_DEADLINE, MAX_DETECT_TILES, MAX_LOOKAHEAD_S,
+        MAX_TRACKED_FACES, OneEuroParams, SteadyParams, SteadySettings,
+    };
+}
+
+/// The parts of a [`FrameResult`] and a [`FaceResult`].
+pub mod results {
+    #[doc(inline)]
+    pub use holoface_runtime::{
+        AnsweredBy, Attributes, Blendshape, Blendshapes, Confidence, ExpressionWeights, FaceModel,
+        FaceUpdate, FitResult, InitSource, LandmarkSet, Timings, TrackedFace, Unit, WorldPose,
+    };
+}
+
+/// The parts of a [`TrackerError`] and the other errors of the API, each one an app can match.
+pub mod errors {
+    #[doc(inline)]
+    pub use holoface_runtime::{
+        AlignError, AssetError, CropError, DetectError, EngineError, MissingAsset, RemoteOptionsError,
+        RemoteStartError, SessionOptionsError, SourceError,
+    };
+}
+
+/// The remote aligner's link, as each [`FrameResult`] reports it.
+pub mod link {
+    #[doc(inline)]
+    pub use holoface_runtime::{FailureKind, Fingerprint, LinkFailure, LinkInfo, LinkState};
+}
+
+/// The models and libraries the tracker loads, and where it looks for them.
+pub mod assets {
+    #[doc(inline)]
+    pub use holoface_runtime::{
+        Asset, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home,
+        parse_face_model,
+    };
+}
+
+/// Points, rotations and the camera, as the API takes and returns them.
+pub mod geometry {
+    #[doc(inline)]
+    pub use holoface_runtime::{Point2, Quat, Vec3, default_intrinsics};
+}
+
+/// The trait a reader of frames implements (the tools' readers of image folders, videos and recordings do).
+pub mod source {
+    #[doc(inline)]
+    pub use holoface_runtime::FrameSource;
+}
+
+/// The aligner a [`FaceTracker`] is generic over (`FaceTracker<dyn Aligner + Send>` by default).
+pub mod aligner {
+    #[doc(inline)]
+    pub use holoface_runtime::align::Aligner;
+}

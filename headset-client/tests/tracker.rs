@@ -3,9 +3,10 @@
 //! runtime assets of `make setup` (the data folder or the environment variables).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use holoface_headset_client::assets::{AssetPaths, home};
+use holoface_headset_client::errors::SessionOptionsError;
 use holoface_headset_client::{
-    AssetPaths, DetectorOptions, FaceTracker, Frame, GrayImage, Intrinsics, Pose, SessionOptionsError,
-    TrackerError, TrackerOptions, home,
+    DetectorOptions, FaceTracker, Frame, GrayImage, Intrinsics, Pose, TrackerError, TrackerOptions,
 };
 
 fn sample() -> GrayImage {

@@ -13,7 +13,9 @@
 
 use std::path::{Path, PathBuf};
 
-use holoface_headset_client::{AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home};
+use holoface_headset_client::assets::{
+    AssetPaths, CANDIDE_ENV, DETECTOR_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home,
+};
 use pyo3::prelude::*;
 
 use crate::{AssetError, PyTrackerOptions};
@@ -60,7 +62,7 @@ pub(crate) fn install_candide(py: Python<'_>, path: PathBuf) -> PyResult<PathBuf
     let dest = data_dir()?.join(CANDIDE_FILE);
     py.detach(|| -> Result<(), String> {
         let bytes = std::fs::read(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
-        holoface_headset_client::parse_face_model(&bytes, &path).map_err(|e| e.to_string())?;
+        holoface_headset_client::assets::parse_face_model(&bytes, &path).map_err(|e| e.to_string())?;
         holoface_sources::output::write_atomic(&dest, bytes).map_err(|e| format!("{e:#}"))
     })
     .map_err(AssetError::new_err)?;

@@ -13,11 +13,15 @@ mod installed;
 use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
-use holoface_headset_client::AnsweredBy;
-use holoface_headset_client::FaceUpdate;
+use holoface_headset_client::geometry::default_intrinsics;
+use holoface_headset_client::link::LinkState;
+use holoface_headset_client::options::SteadySettings;
+use holoface_headset_client::results::AnsweredBy;
+use holoface_headset_client::results::FaceUpdate;
+use holoface_headset_client::source::FrameSource;
 use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
-use holoface_headset_client::{Frame, FrameSource, OwnedFrame, default_intrinsics};
-use holoface_headset_client::{LinkState, RemoteOptions, SteadySettings, defaults};
+use holoface_headset_client::{Frame, OwnedFrame};
+use holoface_headset_client::{RemoteOptions, defaults};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayView;
 use holoface_models::math3::{Pose, Quat, Vec3};
@@ -455,16 +459,16 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         weights.set_item(unit.name(), w)?;
     }
     let (face_probability, predicted_error) = match u.confidence {
-        holoface_headset_client::Confidence::FaceProbability(p) => (Some(p), None),
-        holoface_headset_client::Confidence::PredictedError(e) => (None, Some(e)),
+        holoface_headset_client::results::Confidence::FaceProbability(p) => (Some(p), None),
+        holoface_headset_client::results::Confidence::PredictedError(e) => (None, Some(e)),
     };
     Ok(PyFace {
         id,
         landmarks: lm.into_pyarray(py).unbind(),
         raw_landmarks: raw.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
-            holoface_headset_client::LandmarkSet::Ibug68 => "ibug68",
-            holoface_headset_client::LandmarkSet::Inner51 => "inner51",
+            holoface_headset_client::results::LandmarkSet::Ibug68 => "ibug68",
+            holoface_headset_client::results::LandmarkSet::Inner51 => "inner51",
         }
         .to_owned(),
         answered_by: variant_name(&u.answered_by),
@@ -586,17 +590,23 @@ fn gray_array<'a, 'py>(image: &'a Bound<'py, PyAny>) -> PyResult<&'a Bound<'py, 
 }
 
 /// This module's names for the files a tracker loads, in its messages.
-const PY_OPTIONS: &[(holoface_headset_client::Asset, &str)] = &[
+const PY_OPTIONS: &[(holoface_headset_client::assets::Asset, &str)] = &[
     (
-        holoface_headset_client::home::ORT_LIBRARY,
+        holoface_headset_client::assets::home::ORT_LIBRARY,
         "TrackerOptions.ort_dylib",
     ),
     (
-        holoface_headset_client::home::DETECTOR,
+        holoface_headset_client::assets::home::DETECTOR,
         "TrackerOptions.detector_model",
     ),
-    (holoface_headset_client::home::KRFWS, "TrackerOptions.krfws_model"),
-    (holoface_headset_client::home::CANDIDE, "TrackerOptions.candide"),
+    (
+        holoface_headset_client::assets::home::KRFWS,
+        "TrackerOptions.krfws_model",
+    ),
+    (
+        holoface_headset_client::assets::home::CANDIDE,
+        "TrackerOptions.candide",
+    ),
 ];
 
 fn tracker_error(e: TrackerError) -> PyErr {
@@ -807,7 +817,7 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(installed::data_dir, m)?)?;
     m.add(
         "BLENDSHAPE_NAMES",
-        holoface_headset_client::Blendshape::ALL
+        holoface_headset_client::results::Blendshape::ALL
             .iter()
             .map(|b| b.arkit_name())
             .collect::<Vec<_>>(),

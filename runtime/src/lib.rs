@@ -57,14 +57,18 @@ pub mod defaults {
 }
 
 // The app-facing API.
+pub use align::AlignError;
 pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
 pub use assets::{
     Asset, AssetError, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, MissingAsset,
     ORT_DYLIB_ENV, home, parse_face_model,
 };
 pub use crop_codec::CropCodec;
+pub use detect::DetectError;
 pub use frame::{Frame, FrameSource, OwnedFrame, SourceError, default_intrinsics};
 pub use frame_step::Timings;
+pub use holoface_inference::EngineError;
+pub use holoface_models::crop::CropError;
 pub use link::{
     FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,
     RemoteStartError,
@@ -81,10 +85,12 @@ pub use tracker::{
 
 // The types the API takes and returns, from the algorithms crate.
 pub use holoface_models::camera::Intrinsics;
-pub use holoface_models::candide::FitResult;
+pub use holoface_models::candide::{FaceModel, FitOptions, FitResult};
 pub use holoface_models::expression::{ExpressionWeights, Unit};
 pub use holoface_models::geometry::Point2;
 pub use holoface_models::image::{GrayImage, GrayView};
+pub use holoface_models::kalman::KalmanParams;
 pub use holoface_models::math3::{Pose, Quat, Vec3};
+pub use holoface_models::pose::AttributeThresholds;
 pub use holoface_models::pose::{Attributes, WorldPose};
 pub use holoface_quic::Fingerprint;
