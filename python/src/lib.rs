@@ -822,6 +822,17 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
             .map(|b| b.arkit_name())
             .collect::<Vec<_>>(),
     )?;
+    // The runtime's defaults, defined once (`holoface_headset_client::defaults`): the tests compare
+    // `TrackerOptions()` and the type stub with them.
+    let d = PyDict::new(py);
+    d.set_item("deadline_ms", defaults::DEADLINE_MS)?;
+    d.set_item("crop_encoding", defaults::CROP_ENCODING)?;
+    d.set_item("lookahead_ms", defaults::LOOKAHEAD_MS)?;
+    d.set_item("motion_compensation", defaults::MOTION_COMPENSATION)?;
+    d.set_item("max_faces", defaults::MAX_FACES)?;
+    d.set_item("detect_every", defaults::DETECT_EVERY)?;
+    d.set_item("steady", defaults::STEADY)?;
+    m.add("DEFAULTS", d)?;
     m.add("HoloFaceError", py.get_type::<HoloFaceError>())?;
     m.add("AssetError", py.get_type::<AssetError>())?;
     m.add("ProcessingError", py.get_type::<ProcessingError>())?;

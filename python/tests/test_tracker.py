@@ -212,10 +212,25 @@ def test_max_faces_gives_ids_and_is_checked(clip):
     assert ids == [[0]] * len(frames), "one person in the clip: one face, one id throughout"
 
 
+def stub_defaults():
+    """The keyword defaults of `TrackerOptions.__init__` in the type stub (python/holoface/_holoface.pyi)."""
+    import ast
+    import pathlib
+
+    tree = ast.parse((pathlib.Path(__file__).parent.parent / "holoface" / "_holoface.pyi").read_text())
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "TrackerOptions")
+    init = next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == "__init__")
+    return {a.arg: ast.literal_eval(d) for a, d in zip(init.args.kwonlyargs, init.args.kw_defaults) if d is not None}
+
+
 def test_the_detector_and_steadying_options_match_the_cli(clip):
     defaults = holoface.TrackerOptions()
-    assert (defaults.deadline_ms, defaults.crop_encoding, defaults.lookahead_ms) == (33, "jpeg:75", 120.0)
-    assert (defaults.detect_every, defaults.detect_tiles, defaults.steady) == (10, None, True)
+    # The runtime's defaults, defined once in Rust: TrackerOptions() and the type stub both show them.
+    runtime = holoface._holoface.DEFAULTS
+    assert {k: getattr(defaults, k) for k in runtime} == runtime
+    assert defaults.detect_tiles is None
+    stub = stub_defaults()
+    assert {k: stub[k] for k in runtime} == runtime, "python/holoface/_holoface.pyi shows other defaults"
     # The stub shows the runtime's defaults (SteadySettings::default()).
     steady = {k: getattr(defaults, k) for k in dir(defaults) if k.startswith("steady_")}
     assert steady == dict(steady_shape_cutoff_hz=1.0, steady_shape_beta=10.0, steady_rigid_cutoff_hz=3.0,
