@@ -37,7 +37,7 @@
 //! This crate is the facade over `holoface-runtime`, whose modules (the aligners, the detector, the session,
 //! the link's connection) the workspace's tools, load tester and tests use; an app needs only the names here.
 #![deny(missing_docs)]
-#![deny(unreachable_pub)]
+#![deny(unreachable_pub, unnameable_types)]
 
 /// The defaults of every binding, defined once ([`TrackerOptions::default`], the C ABI, Python, the CLI).
 #[doc(inline)]
