@@ -76,7 +76,7 @@ pub mod errors {
     #[doc(inline)]
     pub use holoface_runtime::{
         AlignError, AssetError, CropError, DetectError, EngineError, MissingAsset, RemoteOptionsError,
-        RemoteStartError, SessionOptionsError, SourceError,
+        RemoteStartError, SessionOptionsError,
     };
 }
 
@@ -99,12 +99,6 @@ pub mod assets {
 pub mod geometry {
     #[doc(inline)]
     pub use holoface_runtime::{Point2, Quat, Vec3, default_intrinsics};
-}
-
-/// The trait a reader of frames implements (the tools' readers of image folders, videos and recordings do).
-pub mod source {
-    #[doc(inline)]
-    pub use holoface_runtime::FrameSource;
 }
 
 /// The aligner a [`FaceTracker`] is generic over (`FaceTracker<dyn Aligner + Send>` by default).

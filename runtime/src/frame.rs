@@ -1,8 +1,8 @@
 //! The one frame type: [`Frame`] is a cheap view (borrowed pixels) that the tracker processes, and
 //! [`OwnedFrame`] owns its pixels, as frame sources and [`crate::tracker::LiveTracker`] hand them over;
-//! [`OwnedFrame::view`] turns one into the other without copying. [`FrameSource`] is what every source
+//! [`OwnedFrame::view`] turns one into the other without copying. `holoface_sources::FrameSource` is what every source
 //! implements (an app's camera, or the readers of `holoface-sources`: image folders, recordings, MP4 files,
-//! pose sidecars), and [`SourceError`] is how it fails.
+//! pose sidecars), and `holoface_sources::SourceError` is how it fails.
 
 use holoface_models::camera::Intrinsics;
 use holoface_models::geometry::Point2;
@@ -61,48 +61,6 @@ impl OwnedFrame {
             world_from_camera: self.world_from_camera,
         }
     }
-}
-
-/// A sequence of frames. The readers of files, videos and streams live in `holoface-sources` (the tools'
-/// and the Python package's crate); an app implements this for its own camera.
-pub trait FrameSource {
-    /// The next frame, `Ok(None)` at the end.
-    fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError>;
-}
-
-impl FrameSource for Box<dyn FrameSource> {
-    fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        (**self).next_frame()
-    }
-}
-
-/// Why a [`FrameSource`] could not hand over its next frame.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SourceError {
-    /// Reading the source failed (a file, a pipe, a camera device).
-    #[error("reading {what}: {source}")]
-    Io {
-        /// What was being read (a path, `stdin`, a device name).
-        what: String,
-        /// The cause.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The source's data is not a valid frame.
-    #[error("{what}, frame {frame}: {reason}")]
-    Invalid {
-        /// The source (a path, `stdin`, a device name).
-        what: String,
-        /// The frame's index in the source.
-        frame: usize,
-        /// What is wrong with it.
-        reason: String,
-    },
-    /// A source's own error (the readers of `holoface-sources` report through this, with the file and the
-    /// frame in the message).
-    #[error(transparent)]
-    Other(Box<dyn std::error::Error + Send + Sync>),
 }
 
 /// Intrinsics for a camera with a 60° horizontal field of view and the principal point at the centre, used

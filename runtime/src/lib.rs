@@ -65,7 +65,7 @@ pub use assets::{
 };
 pub use crop_codec::CropCodec;
 pub use detect::DetectError;
-pub use frame::{Frame, FrameSource, OwnedFrame, SourceError, default_intrinsics};
+pub use frame::{Frame, OwnedFrame, default_intrinsics};
 pub use frame_step::Timings;
 pub use holoface_inference::EngineError;
 pub use holoface_models::crop::CropError;

@@ -19,12 +19,13 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+use crate::{FrameSource, SourceError};
 use anyhow::{Context, anyhow, bail};
 use ff::format::Pixel;
 use ffmpeg_next as ff;
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
+use holoface_runtime::OwnedFrame;
 
 /// Largest frame side accepted (the same bound as the y4m reader's).
 pub const MAX_SIDE: usize = 16_384;

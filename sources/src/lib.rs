@@ -5,7 +5,7 @@
 //! [`open_source`] picks the reader from the path. [`output`] makes every file the tools write appear whole
 //! or not at all.
 //!
-//! Every source implements the runtime's [`FrameSource`] trait and hands over
+//! Every source implements this crate's [`FrameSource`] trait and hands over
 //! [`OwnedFrame`]s; the headset runtime (`holoface-runtime`) knows only that trait, so a headset app never
 //! compiles a video decoder. Constructors report errors with `anyhow` (this is a tools crate: messages name
 //! the file and the frame); [`FrameSource::next_frame`] wraps them in [`SourceError::Other`], whole chain in its
@@ -26,7 +26,9 @@ pub mod video;
 pub mod video;
 pub mod y4m;
 
-pub use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
+pub mod frame_source;
+pub use frame_source::{FrameSource, SourceError};
+pub use holoface_runtime::OwnedFrame;
 
 /// A decoded video frame as the runtime takes it: no pose (the identity until a sidecar gives one), the given
 /// intrinsics or a 60° horizontal field of view.

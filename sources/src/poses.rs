@@ -25,7 +25,8 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::math3::Pose;
 use serde::Deserialize;
 
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
+use crate::{FrameSource, SourceError};
+use holoface_runtime::OwnedFrame;
 
 /// The farthest a camera may be from its world's origin, metres: a headset's world is a room, a building or
 /// a site, never beyond 10 km (a sidecar with 3e38 m is corrupt, not a pose).

@@ -16,7 +16,8 @@ use holoface_protocol::CropEncoding;
 use holoface_protocol::recording::{FramePayload, RecordingReader};
 
 use crate::images::{list_images, read_gray};
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
+use crate::{FrameSource, SourceError};
+use holoface_runtime::{OwnedFrame, default_intrinsics};
 
 /// A folder of PNG/JPEG images in name order, at a fixed frame rate, identity pose.
 #[derive(Debug)]

@@ -27,7 +27,8 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 
 use crate::output::Output;
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
+use crate::{FrameSource, SourceError};
+use holoface_runtime::OwnedFrame;
 
 /// Largest sample (one encoded frame) the source accepts; a larger claim is a corrupt file.
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;

@@ -5,10 +5,11 @@
 use std::convert::Infallible;
 use std::path::Path;
 
+use crate::{FrameSource, SourceError};
 use anyhow::bail;
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError};
+use holoface_runtime::OwnedFrame;
 
 fn absent<T>(path: &Path) -> anyhow::Result<T> {
     bail!(

@@ -14,7 +14,8 @@ use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
 
-use holoface_runtime::{FrameSource, OwnedFrame, SourceError, default_intrinsics};
+use crate::{FrameSource, SourceError};
+use holoface_runtime::{OwnedFrame, default_intrinsics};
 
 /// The stream's first bytes.
 pub const MAGIC: &[u8] = b"YUV4MPEG2";

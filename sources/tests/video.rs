@@ -6,7 +6,7 @@ use std::path::Path;
 
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
-use holoface_runtime::FrameSource;
+use holoface_sources::FrameSource;
 use holoface_sources::poses::write_line;
 use holoface_sources::source::open_source;
 use holoface_sources::video::Mp4Writer;

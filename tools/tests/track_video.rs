@@ -253,7 +253,7 @@ fn a_y4m_stream_on_stdin_is_tracked_and_annotated_as_mp4() {
     // The annotated video decodes to 8 frames of the clip's size rounded down to even.
     let mut src = holoface_sources::video::Mp4Source::open(&video, None).unwrap();
     assert_eq!(src.frame_count(), 8);
-    use holoface_runtime::frame::FrameSource;
+    use holoface_sources::FrameSource;
     let first = src.next_frame().unwrap().unwrap();
     assert_eq!(
         (first.image.width(), first.image.height()),

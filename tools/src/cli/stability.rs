@@ -155,7 +155,7 @@ fn pct(s: Option<Summary>, f: impl Fn(&Summary) -> f64) -> String {
 /// the frame count.
 fn track_clip(
     runs: &mut [Run],
-    source: &mut dyn holoface_runtime::FrameSource,
+    source: &mut dyn holoface_sources::FrameSource,
     max_frames: usize,
     paced: bool,
 ) -> anyhow::Result<usize> {
