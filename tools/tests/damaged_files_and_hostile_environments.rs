@@ -1,6 +1,7 @@
-//! The defects an outside probe found (issue 40), each as the user or operator met it: a damaged model, a
+//! Damaged files and hostile surroundings, each as the user or operator meets them: a damaged model, a
 //! truncated ONNX Runtime library, files that are devices, pipes or link loops, a closed standard output,
-//! interrupted commands and a stalled download. Each of these failed before the fix.
+//! interrupted commands and a stalled download (found by an outside probe, issue 40; each failed before its
+//! fix).
 #![allow(clippy::unwrap_used)]
 
 mod common;
