@@ -47,16 +47,28 @@ pub enum Split {
     Train,
 }
 
-/// The data folder: `$HOLOFACE_DATA`, else `../shared/data` beside the current directory or the workspace.
+/// The data folder: `$HOLOFACE_DATA`, else the first `shared/data` beside the current directory or one of its
+/// parents (a checkout's `../shared/data`, from any folder inside it), else `../shared/data` (named in the
+/// error of whatever reads it). Found at run time: no path of the machine that built the binary is in it.
 pub fn default_data_root() -> PathBuf {
-    if let Some(p) = std::env::var_os("HOLOFACE_DATA") {
+    if let Some(p) = std::env::var_os("HOLOFACE_DATA").filter(|p| !p.is_empty()) {
         return PathBuf::from(p);
     }
-    let here = PathBuf::from("../shared/data");
-    if here.is_dir() {
-        return here;
-    }
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
+    let beside = Path::new("..").join("shared").join("data");
+    std::env::current_dir()
+        .ok()
+        .and_then(|cwd| {
+            cwd.ancestors()
+                .map(|dir| dir.join(&beside))
+                .find(|candidate| candidate.is_dir())
+        })
+        .unwrap_or(beside)
+}
+
+/// The annotated faces (`faces68/train` of the data folder) unless `given` names another folder: the default
+/// of every command's `--data`.
+pub fn faces68_or(given: Option<&Path>) -> PathBuf {
+    given.map_or_else(|| default_data_root().join("faces68/train"), Path::to_path_buf)
 }
 
 /// Reads a 68-point `.pts` file.

@@ -14,7 +14,7 @@ use holoface_models::shape::{dan_mean_shape, fit_to_box};
 use serde::Serialize;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, default_data_root, list_folder};
+use crate::data::{Split, faces68_or, list_folder};
 use crate::expressions::{CoefficientAgreement, agreement, overall_abs_diff};
 use crate::plot::{Curve, ced_plot_png};
 use holoface_runtime::align::{Aligner, Confidence};
@@ -351,10 +351,7 @@ fn say_report(r: &AlignerReport) {
 
 /// Runs `holoface eval`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let data = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let data = faces68_or(args.data.as_deref());
     let split = match args.split {
         SplitArg::All => Split::All,
         SplitArg::Validation => Split::Validation,

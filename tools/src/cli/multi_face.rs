@@ -31,7 +31,7 @@ use serde_json::json;
 use super::tracking_losses::{FRAME_H, FRAME_W};
 use super::tracking_losses::{SequenceExport, cut_face_with_margin};
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, default_data_root, load_folder};
+use crate::data::{Split, faces68_or, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
 use holoface_runtime::align::Aligner;
 use holoface_runtime::frame::Frame;
@@ -409,10 +409,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.spacing_cm.is_finite() && (0.0..=100.0).contains(&args.spacing_cm)) {
         bail!("--spacing-cm must be within 0..=100");
     }
-    let root = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let root = faces68_or(args.data.as_deref());
     let samples = load_folder(&root, Split::Validation, true)?;
     let mut server = None;
     let mut aligner: Box<dyn Aligner + Send> = match args.aligner {

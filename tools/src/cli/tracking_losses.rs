@@ -30,7 +30,7 @@ use holoface_models::metrics::nme49;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, default_data_root, load_folder};
+use crate::data::{Split, faces68_or, load_folder};
 use crate::render::PlanarScene;
 use holoface_runtime::frame::Frame;
 use holoface_runtime::{FaceResult, FaceTracker, InitSource, SessionOptions};
@@ -372,10 +372,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.faces == 0 || !positive(args.seconds) || !positive(args.fps) || !positive(args.headset_period_s) {
         bail!("--faces, --seconds, --fps and --headset-period-s must be positive");
     }
-    let root = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let root = faces68_or(args.data.as_deref());
     let samples = load_folder(&root, Split::Validation, true)?;
     if args.aligner == AlignerKind::Remote {
         bail!("tracking-losses measures an aligner in-process: --aligner krfws or dan")

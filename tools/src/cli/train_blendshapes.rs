@@ -11,7 +11,7 @@ use holoface_models::candide::{FitOptions, fit};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::shape::mirror68;
 
-use crate::data::{Split, default_data_root, list_folder};
+use crate::data::{Split, faces68_or, list_folder};
 
 /// Arguments of `holoface train-blendshapes`.
 #[derive(Debug, clap::Args)]
@@ -39,10 +39,7 @@ fn still_camera(lm: &[Point2; 68]) -> Option<Intrinsics> {
 
 /// Runs `holoface train-blendshapes`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let data = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let data = faces68_or(args.data.as_deref());
     let model = args.candide.load()?;
     let entries = list_folder(&data, Split::Train, true)?;
     let faces: Vec<[Point2; 68]> = entries.iter().filter_map(|e| e.landmarks).collect();

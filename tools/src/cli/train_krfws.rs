@@ -17,7 +17,7 @@ use holoface_models::metrics::{FAILURE_THRESHOLD, summarise, yaw_proxy};
 use holoface_models::rng::Rng;
 use serde::Serialize;
 
-use crate::data::{Split, default_data_root, load_folder};
+use crate::data::{Split, faces68_or, load_folder};
 
 /// Arguments of `holoface train-krfws`.
 #[derive(Debug, clap::Args)]
@@ -327,10 +327,7 @@ fn box_fits(model: &Krfws, faces: &[TrainFace], jitter: usize, seed: u64) -> (Ve
 
 /// Runs `holoface train-krfws`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let root = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let root = faces68_or(args.data.as_deref());
     eprintln!("loading faces from {}", root.display());
     let mut train_faces = to_train_faces(&root, Split::Train)?;
     if let Some(n) = args.limit {

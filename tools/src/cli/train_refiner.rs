@@ -34,7 +34,7 @@ use serde::Serialize;
 
 use crate::args::RuntimeArgs;
 use crate::cli::eval::initial_shape;
-use crate::data::{Sample, Split, default_data_root, load_folder};
+use crate::data::{Sample, Split, faces68_or, load_folder};
 
 /// Arguments of `holoface train-refiner`.
 #[derive(Debug, clap::Args)]
@@ -661,10 +661,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(1..=2).contains(&args.crop_scale) {
         bail!("--crop-scale must be 1 or 2");
     }
-    let data = args
-        .data
-        .clone()
-        .unwrap_or_else(|| default_data_root().join("faces68/train"));
+    let data = faces68_or(args.data.as_deref());
     let mut train_faces = load_folder(&data, Split::Train, true)?;
     if let Some(n) = args.limit {
         train_faces.truncate(n);
