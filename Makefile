@@ -293,8 +293,9 @@ LIBCLANG_VERSION := 1:14.0-55.7~deb12u1
 PKG_CONFIG_VERSION := 1.8.1-1
 VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) libavutil-dev=$(FFMPEG_VERSION) \
   libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
-# Every package the set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare again).
-APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime podman runc debootstrap
+# Every package make test's set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare
+# again). The container tools (CONTAINER_TOOLS) are not among them: only `make image` installs them.
+APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime
 .PHONY: video-deps
 video-deps:
 	@if pkg-config --exists libavcodec libavformat libavutil 2>/dev/null && \
