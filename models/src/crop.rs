@@ -10,6 +10,8 @@ use crate::image::GrayView;
 
 /// Side of the DAN crop in pixels.
 pub const CROP_SIZE: usize = 112;
+/// [`CROP_SIZE`] as the wire's crop encoders and the protocol's `u16` fields take it.
+pub const CROP_SIDE: u16 = CROP_SIZE as u16;
 /// Pixels in one DAN crop.
 pub const CROP_PIXELS: usize = CROP_SIZE * CROP_SIZE;
 

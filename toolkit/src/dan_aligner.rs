@@ -6,7 +6,7 @@ use holoface_inference::{
     BatchTensor, CascadeEngine, EngineError, InferenceEngine, LandmarkOut, LoadedCascade, OnnxEngine,
     OnnxOptions,
 };
-use holoface_models::crop::{Crop112, crop_bilinear};
+use holoface_models::crop::{CROP_SIDE, CROP_SIZE, Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayView;
 use holoface_runtime::align::{
@@ -50,7 +50,7 @@ impl<E: InferenceEngine> DanAligner<E> {
     /// Wraps an engine; the canonical shape and threshold come from the model's metadata.
     pub fn new(engine: E) -> Result<Self, AlignError> {
         let info = engine.info();
-        if info.landmark_count != 68 || info.crop_size != 112 || info.mean_shape.len() != 68 {
+        if info.landmark_count != 68 || info.crop_size != CROP_SIZE || info.mean_shape.len() != 68 {
             return Err(AlignError::BadOutput(format!(
                 "model has {} landmarks on a {} px crop; the client needs 68 on 112",
                 info.landmark_count, info.crop_size
@@ -63,7 +63,7 @@ impl<E: InferenceEngine> DanAligner<E> {
             canonical,
             threshold,
             crop: Crop112::default(),
-            batch: BatchTensor::new(1, 112 * 112),
+            batch: BatchTensor::new(1, CROP_SIZE * CROP_SIZE),
             out: vec![LandmarkOut::default()],
             wire: None,
             wire_bytes: (0, 0),
@@ -140,7 +140,9 @@ impl<E: InferenceEngine> DanAligner<E> {
             None => self.batch.push(self.crop.as_slice())?,
             Some(codec) => {
                 let bad = |e: image::ImageError| AlignError::BadOutput(format!("crop codec {codec}: {e}"));
-                let crop = codec.encode(self.crop.as_slice(), 112, 112).map_err(bad)?;
+                let crop = codec
+                    .encode(self.crop.as_slice(), CROP_SIDE, CROP_SIDE)
+                    .map_err(bad)?;
                 let req = holoface_protocol::FrameRequest {
                     track_id: 0,
                     frame_id: 0,

@@ -4,7 +4,7 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use holoface_models::crop::{Crop112, crop_bilinear};
+use holoface_models::crop::{CROP_SIDE, CROP_SIZE, Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayView;
 use holoface_protocol::{FrameRequest, ReplyOutcome, ServerWelcome};
@@ -127,7 +127,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         {
             return Some(*c);
         }
-        if welcome.mean_shape.len() != 68 || welcome.crop_size != 112 {
+        if welcome.mean_shape.len() != 68 || usize::from(welcome.crop_size) != CROP_SIZE {
             return None;
         }
         let c = std::array::from_fn(|i| Point2::new(welcome.mean_shape[i][0], welcome.mean_shape[i][1]));
@@ -156,7 +156,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
             .opts
             .codec
             .for_encoding(welcome.encoding)
-            .encode(self.crop.as_slice(), 112, 112)
+            .encode(self.crop.as_slice(), CROP_SIDE, CROP_SIDE)
             .ok()?;
         let req = FrameRequest {
             track_id,
