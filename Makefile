@@ -230,12 +230,16 @@ deploy-check: $(VENV)/.deploy-installed
 PODMAN_VERSION := 4.3.1+ds1-8+deb12u1+b3
 RUNC_VERSION := 1.1.5+ds1-1+deb12u1
 DEBOOTSTRAP_VERSION := 1.0.128+nmu2+deb12u2
-CONTAINER_TOOLS := podman=$(PODMAN_VERSION) runc=$(RUNC_VERSION) debootstrap=$(DEBOOTSTRAP_VERSION)
+NETAVARK_VERSION := 1.4.0-3
+# netavark: podman's network backend (a Recommends, which --no-install-recommends would leave out).
+CONTAINER_TOOLS := podman=$(PODMAN_VERSION) runc=$(RUNC_VERSION) netavark=$(NETAVARK_VERSION) debootstrap=$(DEBOOTSTRAP_VERSION)
 .PHONY: container-tools image image-test
 container-tools:
-	@if command -v podman >/dev/null || docker info >/dev/null 2>&1; then \
+	@if docker info >/dev/null 2>&1 || ( command -v podman >/dev/null && \
+	    for p in $(foreach p,$(CONTAINER_TOOLS),$(firstword $(subst =, ,$(p)))); do \
+	      dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || exit 1; done ); then \
 	  echo "container-tools: $$(command -v podman >/dev/null && podman --version || docker --version)"; else \
-	  echo "no podman or docker: installing Debian's podman, runc and debootstrap (pinned)"; \
+	  echo "no running docker, or not all of podman, runc, netavark, debootstrap: installing Debian's (pinned)"; \
 	  export DEBIAN_FRONTEND=noninteractive; \
 	  $(SUDO) apt-get install -y -qq --no-install-recommends $(CONTAINER_TOOLS) >/dev/null || \
 	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $(CONTAINER_TOOLS) >/dev/null; }; fi

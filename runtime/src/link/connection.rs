@@ -250,6 +250,10 @@ impl LinkError {
 }
 
 fn close_hint(e: &ConnectionError) -> String {
+    if connection_kind(e) == FailureKind::CertificateMismatch {
+        return " (the server's certificate is not the pinned one: its SHA-256 differs from the fingerprint given)"
+            .to_owned();
+    }
     match app_close_code(e) {
         Some(CloseCode::Unauthorized) => " (the server rejected our token)".to_owned(),
         Some(CloseCode::BadVersion) => " (protocol version mismatch)".to_owned(),
@@ -531,5 +535,15 @@ mod tests {
         );
         let f = LinkFailure::from(closed_with(CloseCode::Unauthorized));
         assert!(f.to_string().starts_with("unauthorized: "), "{f}");
+    }
+
+    /// A certificate that is not the pinned one says so in words, not only as a TLS alert number.
+    #[test]
+    fn a_certificate_mismatch_says_which_pin_failed() {
+        let e = LinkError::Connection(ConnectionError::TransportError(
+            quinn::TransportErrorCode::crypto(49).into(),
+        ));
+        assert_eq!(e.kind(), FailureKind::CertificateMismatch);
+        assert!(e.to_string().contains("not the pinned one"), "{e}");
     }
 }
