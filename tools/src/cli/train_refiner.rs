@@ -749,7 +749,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         })?);
     }
     let dan_seconds = t0.elapsed().as_secs_f64();
-    let samples: Vec<RefineSample<'_>> = answered
+    let mut samples: Vec<RefineSample<'_>> = answered
         .iter()
         .map(|a| RefineSample {
             crop: &a.crop,
@@ -761,7 +761,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let m = dan_mean_shape();
         std::array::from_fn(|i| Point2::new(m[i].x * size as f32 / 112.0, m[i].y * size as f32 / 112.0))
     };
-    let samples = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
+    let borrowed = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
+    samples.extend(borrowed);
     let cfg = RefineConfig {
         stages: args.stages,
         trees: args.trees,
