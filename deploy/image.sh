@@ -51,7 +51,7 @@ ce() { "$ENGINE" "$@"; }
 
 # The base image's name: the registry's when it can be pulled, else one made from Debian's package archive.
 base() {
-    if ce image exists "$BASE_REGISTRY_IMAGE" 2>/dev/null || ce image inspect "$BASE_REGISTRY_IMAGE" >/dev/null 2>&1; then
+    if ce image inspect "$BASE_REGISTRY_IMAGE" >/dev/null 2>&1; then
         echo "$BASE_REGISTRY_IMAGE"
         return
     fi
