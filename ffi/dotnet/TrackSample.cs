@@ -153,7 +153,13 @@ static class TrackSample
                 bounded = last.blendshapes[k] >= 0f && last.blendshapes[k] <= 1f && Native.BlendshapeName(k) != null;
             Check(bounded && Native.BlendshapeName(Native.Blendshapes) == null && Native.BlendshapeName(15) == "jawOpen",
                 "blendshapes: " + Native.Blendshapes + " named coefficients in [0, 1]");
+            // The struct's tail: without a server nothing is adapted.
+            Check(last.adaptPairs == 0 && last.adaptCorrected == 0 && last.adaptCorrection == 0f,
+                "no server: no adaptation (" + last.adaptPairs + " pairs)");
         }
+        byte adaptDefault = 0;
+        using (new FaceTracker(configure: st => { adaptDefault = st.adapt; return st; })) { }
+        Check(adaptDefault == 1, "HfSettings.adapt defaults to 1 (the adaptation on)");
 
         // A path the app passes wins over the environment; a missing one names the asset, the path and why.
         Expect<InvalidOperationException>("missing model file (passed by the app)", () =>

@@ -278,6 +278,12 @@ typedef struct HfSettings {
    * The server's answers: placement speed coefficient (default 5).
    */
   double steady_precise_rigid_beta;
+  /**
+   * With a server: 1 = while the link is up, learn each tracked person's correction of the local aligner
+   * towards the server's answers and apply it when the link is down (default), 0 = the local aligner as
+   * it is.
+   */
+  uint8_t adapt;
 } HfSettings;
 
 /**
@@ -379,6 +385,19 @@ typedef struct HfResult {
    * slot `i` (against this person's neutral, calibrated on the first second of tracking).
    */
   float blendshapes[HF_BLENDSHAPES];
+  /**
+   * With a server and the adaptation on (`HfSettings.adapt`): pairs of local and server answers learnt for
+   * this face so far; 0 otherwise.
+   */
+  uint32_t adapt_pairs;
+  /**
+   * 1 when these landmarks are the local aligner's answer corrected by what it learnt.
+   */
+  uint8_t adapt_corrected;
+  /**
+   * The size of this face's correction: its mean length over the 51 inner points, in eye distances.
+   */
+  float adapt_correction;
 } HfResult;
 
 /**

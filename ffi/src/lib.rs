@@ -23,7 +23,7 @@ use holoface_headset_client::Pose;
 use holoface_headset_client::RemoteOptions;
 use holoface_headset_client::errors::RemoteOptionsError;
 use holoface_headset_client::link::{FailureKind, LinkInfo, LinkState};
-use holoface_headset_client::options::SteadySettings;
+use holoface_headset_client::options::{AdaptOptions, SteadySettings};
 use holoface_headset_client::results::AnsweredBy;
 use holoface_headset_client::results::FaceUpdate;
 use holoface_headset_client::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions, defaults};
@@ -131,6 +131,10 @@ pub struct HfSettings {
     pub steady_precise_rigid_cutoff_hz: f64,
     /// The server's answers: placement speed coefficient (default 5).
     pub steady_precise_rigid_beta: f64,
+    /// With a server: 1 = while the link is up, learn each tracked person's correction of the local aligner
+    /// towards the server's answers and apply it when the link is down (default), 0 = the local aligner as
+    /// it is.
+    pub adapt: u8,
 }
 
 impl HfSettings {
@@ -151,6 +155,7 @@ impl HfSettings {
             steady_precise_shape_beta: st.precise_shape_beta,
             steady_precise_rigid_cutoff_hz: st.precise_rigid_cutoff_hz,
             steady_precise_rigid_beta: st.precise_rigid_beta,
+            adapt: u8::from(defaults::ADAPT),
         }
     }
 
@@ -164,6 +169,9 @@ impl HfSettings {
         }
         t.session.max_faces = self.max_faces as usize;
         t.session.detect_every = self.detect_every;
+        if let AlignerChoice::Remote(r) = &mut t.aligner {
+            r.adapt = (self.adapt != 0).then(AdaptOptions::default);
+        }
         t.detector.tiles = (self.detect_tiles != 0).then_some(self.detect_tiles as usize);
         t.session.steady = SteadySettings {
             enabled: self.steady != 0,
@@ -260,6 +268,13 @@ pub struct HfResult {
     /// ARKit-named blendshape coefficients in [0, 1], `HF_BLENDSHAPES` of them; `hf_blendshape_name(i)` names
     /// slot `i` (against this person's neutral, calibrated on the first second of tracking).
     pub blendshapes: [f32; HF_BLENDSHAPES],
+    /// With a server and the adaptation on (`HfSettings.adapt`): pairs of local and server answers learnt for
+    /// this face so far; 0 otherwise.
+    pub adapt_pairs: u32,
+    /// 1 when these landmarks are the local aligner's answer corrected by what it learnt.
+    pub adapt_corrected: u8,
+    /// The size of this face's correction: its mean length over the 51 inner points, in eye distances.
+    pub adapt_correction: f32,
 }
 
 /// How many blendshape coefficients an `HfResult` carries.
@@ -977,6 +992,9 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
         mouth_open: 0,
         raw_landmarks_px: [0.0; 136],
         blendshapes: [0.0; HF_BLENDSHAPES],
+        adapt_pairs: 0,
+        adapt_corrected: 0,
+        adapt_correction: 0.0,
     }
 }
 
@@ -1002,6 +1020,11 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
     c.smile = u8::from(u.attributes.smile);
     c.brows_raised = u8::from(u.attributes.brows_raised);
     c.mouth_open = u8::from(u.attributes.mouth_open);
+    if let Some(a) = u.adaptation {
+        c.adapt_pairs = a.pairs;
+        c.adapt_corrected = u8::from(a.corrected);
+        c.adapt_correction = a.correction;
+    }
     c
 }
 
@@ -1201,6 +1224,28 @@ mod tests {
         assert_eq!(c.session, facade.session);
         assert_eq!(c.aligner, facade.aligner);
         assert_eq!(u64::from(o.deadline_ms), defaults::DEADLINE_MS);
+    }
+
+    /// `HfSettings.adapt` is the facade's default and switches the remote aligner's adaptation.
+    #[test]
+    fn the_adaptation_switch_reaches_the_remote_aligner() {
+        let fp = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
+        let remote = RemoteOptions::parse("127.0.0.1:4433", Some(fp), "", 33, None).unwrap();
+        assert_eq!(remote.adapt.is_some(), defaults::ADAPT);
+        let mut t = TrackerOptions {
+            aligner: AlignerChoice::Remote(remote),
+            ..TrackerOptions::default()
+        };
+        let on = HfSettings::defaults();
+        assert_eq!(on.adapt, u8::from(defaults::ADAPT));
+        let adapt = |t: &TrackerOptions| match &t.aligner {
+            AlignerChoice::Remote(r) => r.adapt.is_some(),
+            AlignerChoice::Local => unreachable!("remote above"),
+        };
+        HfSettings { adapt: 0, ..on }.apply(&mut t).unwrap();
+        assert!(!adapt(&t));
+        HfSettings { adapt: 1, ..on }.apply(&mut t).unwrap();
+        assert!(adapt(&t));
     }
 
     #[test]

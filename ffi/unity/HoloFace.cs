@@ -31,6 +31,7 @@ namespace HoloFace
         public byte steady;            // 1 = steadied landmarks (default), 0 = raw
         public double steadyShapeCutoffHz, steadyShapeBeta, steadyRigidCutoffHz, steadyRigidBeta;
         public double steadyPreciseShapeCutoffHz, steadyPreciseShapeBeta, steadyPreciseRigidCutoffHz, steadyPreciseRigidBeta;
+        public byte adapt;             // with a server: 1 = the local aligner learns each person from the server's answers (default)
     }
 
     [StructLayout(LayoutKind.Sequential)]
@@ -56,6 +57,11 @@ namespace HoloFace
         [MarshalAs(UnmanagedType.ByValArray, SizeConst = 136)] public float[] rawLandmarksPx;
         /// <summary>ARKit-named blendshape coefficients in [0, 1]; Native.BlendshapeName(i) names slot i.</summary>
         [MarshalAs(UnmanagedType.ByValArray, SizeConst = Native.Blendshapes)] public float[] blendshapes;
+        /// <summary>With a server and HfSettings.adapt: pairs learnt for this face; adaptCorrected = 1 when these
+        /// landmarks are the local aligner's answer corrected; adaptCorrection: the correction's size (eye distances).</summary>
+        public uint adaptPairs;
+        public byte adaptCorrected;
+        public float adaptCorrection;
     }
 
     /// <summary>One face of a several-face tracker: its stable id and its answer.</summary>

@@ -54,20 +54,20 @@ pub use holoface_runtime::{
 /// Every setting of [`SessionOptions`] and [`DetectorOptions`] and their limits.
 pub mod options {
     #[doc(inline)]
-    pub use holoface_runtime::{AttributeThresholds, FitOptions, KalmanParams};
-    #[doc(inline)]
     pub use holoface_runtime::{
-        BlendshapeParams, CropCodec, FilterParams, MAX_DEADLINE, MAX_DETECT_TILES, MAX_LOOKAHEAD_S,
-        MAX_TRACKED_FACES, OneEuroParams, SteadyParams, SteadySettings,
+        AdaptOptions, AdaptParams, BlendshapeParams, CropCodec, FilterParams, MAX_DEADLINE, MAX_DETECT_TILES,
+        MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, OneEuroParams, SteadyParams, SteadySettings,
     };
+    #[doc(inline)]
+    pub use holoface_runtime::{AttributeThresholds, FitOptions, KalmanParams};
 }
 
 /// The parts of a [`FrameResult`] and a [`FaceResult`].
 pub mod results {
     #[doc(inline)]
     pub use holoface_runtime::{
-        AnsweredBy, Attributes, Blendshape, Blendshapes, Confidence, ExpressionWeights, FaceModel,
-        FaceUpdate, FitResult, InitSource, LandmarkSet, Timings, TrackedFace, Unit, WorldPose,
+        AdaptState, AnsweredBy, Attributes, Blendshape, Blendshapes, Confidence, ExpressionWeights,
+        FaceModel, FaceUpdate, FitResult, InitSource, LandmarkSet, Timings, TrackedFace, Unit, WorldPose,
     };
 }
 

@@ -7,6 +7,7 @@
 //! caller-provided buffers.
 #![deny(missing_docs)]
 
+pub mod adapt;
 pub mod blendshapes;
 pub mod camera;
 pub mod candide;

@@ -40,6 +40,9 @@ class TrackerOptions:
     """Per-frame deadline for the server's answer; KRFWS answers the frame when it is missed."""
     crop_encoding: str
     """"raw", "png", "jpeg" or "jpeg:Q"."""
+    adapt: bool
+    """With a server: the local aligner learns each person from the server's answers while the link is up and
+    corrects its own when the link is down."""
     lookahead_ms: float
     motion_compensation: bool
     max_faces: int
@@ -73,6 +76,7 @@ class TrackerOptions:
         token: str = "",
         deadline_ms: int = 33,
         crop_encoding: str = "jpeg:75",
+        adapt: bool = True,
         lookahead_ms: float = 120.0,
         motion_compensation: bool = True,
         max_faces: int = 1,
@@ -126,6 +130,12 @@ class Face:
     smile: bool
     brows_raised: bool
     mouth_open: bool
+    adapt_pairs: int
+    """With a server and `adapt`: pairs of local and server answers learnt for this face (0 otherwise)."""
+    adapt_corrected: bool
+    """These landmarks are the local aligner's answer corrected by what it learnt from the server."""
+    adapt_correction: float
+    """The size of this face's correction: mean length over the 51 inner points, in eye distances."""
 
 class FaceResult:
     """One frame's answer: the faces, or why there is none."""

@@ -15,7 +15,7 @@ use std::sync::{Mutex, PoisonError};
 
 use holoface_headset_client::geometry::default_intrinsics;
 use holoface_headset_client::link::LinkState;
-use holoface_headset_client::options::SteadySettings;
+use holoface_headset_client::options::{AdaptOptions, SteadySettings};
 use holoface_headset_client::results::AnsweredBy;
 use holoface_headset_client::results::FaceUpdate;
 use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
@@ -82,6 +82,9 @@ struct PyTrackerOptions {
     deadline_ms: u64,
     /// Crop encoding on the wire: "raw", "png", "jpeg" or "jpeg:Q".
     crop_encoding: String,
+    /// With a server: while the link is up, the local aligner learns each tracked person's correction towards
+    /// the server's answers and applies it when the link is down.
+    adapt: bool,
     /// Prediction horizon, milliseconds.
     lookahead_ms: f64,
     /// Compensate headset motion when initialising from the previous frame.
@@ -127,7 +130,7 @@ impl PyTrackerOptions {
     #[new]
     #[pyo3(signature = (*, mode = "video".to_owned(), server = None, fingerprint = None, token = String::new(),
         deadline_ms = defaults::DEADLINE_MS, crop_encoding = defaults::CROP_ENCODING.to_owned(),
-        lookahead_ms = defaults::LOOKAHEAD_MS, motion_compensation = defaults::MOTION_COMPENSATION,
+        adapt = defaults::ADAPT, lookahead_ms = defaults::LOOKAHEAD_MS, motion_compensation = defaults::MOTION_COMPENSATION,
         max_faces = defaults::MAX_FACES, detect_every = defaults::DETECT_EVERY, detect_tiles = None,
         steady = defaults::STEADY, steady_shape_cutoff_hz = SteadySettings::default().shape_cutoff_hz,
         steady_shape_beta = SteadySettings::default().shape_beta,
@@ -146,6 +149,7 @@ impl PyTrackerOptions {
         token: String,
         deadline_ms: u64,
         crop_encoding: String,
+        adapt: bool,
         lookahead_ms: f64,
         motion_compensation: bool,
         max_faces: usize,
@@ -172,6 +176,7 @@ impl PyTrackerOptions {
             token,
             deadline_ms,
             crop_encoding,
+            adapt,
             lookahead_ms,
             motion_compensation,
             max_faces,
@@ -220,6 +225,7 @@ impl Default for PyTrackerOptions {
             String::new(),
             defaults::DEADLINE_MS,
             defaults::CROP_ENCODING.to_owned(),
+            defaults::ADAPT,
             defaults::LOOKAHEAD_MS,
             defaults::MOTION_COMPENSATION,
             defaults::MAX_FACES,
@@ -301,7 +307,10 @@ impl PyTrackerOptions {
                 Some(&self.crop_encoding),
             )
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
-            o.aligner = AlignerChoice::Remote(remote);
+            o.aligner = AlignerChoice::Remote(RemoteOptions {
+                adapt: self.adapt.then(AdaptOptions::default),
+                ..remote
+            });
         }
         Ok(o)
     }
@@ -350,6 +359,12 @@ struct PyFace {
     /// float32 [39]: ARKit-named blendshape coefficients in [0, 1], in `holoface.BLENDSHAPE_NAMES` order
     /// (against this person's neutral, calibrated on the first second of tracking).
     blendshapes: Py<PyArray1<f32>>,
+    /// With a server and `adapt`: pairs of local and server answers learnt for this face (0 otherwise).
+    adapt_pairs: u32,
+    /// These landmarks are the local aligner's answer corrected by what it learnt from the server.
+    adapt_corrected: bool,
+    /// The size of this face's correction: its mean length over the 51 inner points, in eye distances.
+    adapt_correction: f32,
 }
 
 #[pymethods]
@@ -485,6 +500,9 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         smile: u.attributes.smile,
         brows_raised: u.attributes.brows_raised,
         mouth_open: u.attributes.mouth_open,
+        adapt_pairs: u.adaptation.map_or(0, |a| a.pairs),
+        adapt_corrected: u.adaptation.is_some_and(|a| a.corrected),
+        adapt_correction: u.adaptation.map_or(0.0, |a| a.correction),
     })
 }
 
@@ -827,6 +845,7 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let d = PyDict::new(py);
     d.set_item("deadline_ms", defaults::DEADLINE_MS)?;
     d.set_item("crop_encoding", defaults::CROP_ENCODING)?;
+    d.set_item("adapt", defaults::ADAPT)?;
     d.set_item("lookahead_ms", defaults::LOOKAHEAD_MS)?;
     d.set_item("motion_compensation", defaults::MOTION_COMPENSATION)?;
     d.set_item("max_faces", defaults::MAX_FACES)?;

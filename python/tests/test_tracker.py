@@ -246,6 +246,8 @@ def test_the_detector_and_steadying_options_match_the_cli(clip):
             r = tracker.process(frame.image, frame.timestamp_us, frame.camera_to_world, frame.intrinsics)
             for face in r.faces:
                 assert np.array_equal(face.landmarks, face.raw_landmarks), "steady=False: landmarks are the raw ones"
+                assert (face.adapt_pairs, face.adapt_corrected, face.adapt_correction) == (0, False, 0.0), \
+                    "without a server nothing is adapted"
 
 
 def test_faces_carry_named_blendshapes_in_zero_one(clip):

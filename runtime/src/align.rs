@@ -56,6 +56,9 @@ pub struct Alignment {
     pub accepted: bool,
     /// Which aligner answered.
     pub answered_by: AnsweredBy,
+    /// The per-person adaptation's state for this face ([`crate::adapt`]); `None` when it is off or the
+    /// face has no id yet.
+    pub adaptation: Option<crate::adapt::AdaptState>,
 }
 
 /// Errors of an aligner.
@@ -209,6 +212,7 @@ pub fn landmarks_from_crop(
         confidence: Confidence::FaceProbability(face_prob),
         accepted: face_prob >= threshold,
         answered_by: AnsweredBy::LocalDan,
+        adaptation: None,
     })
 }
 
@@ -260,6 +264,7 @@ impl KrfwsAligner {
             confidence: Confidence::PredictedError(score),
             accepted: score < self.model.threshold(),
             answered_by: AnsweredBy::Krfws,
+            adaptation: None,
         })
     }
 }

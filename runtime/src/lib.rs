@@ -25,6 +25,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod adapt;
 pub mod align;
 pub mod assets;
 pub mod crop_codec;
@@ -54,9 +55,15 @@ pub mod defaults {
     pub const MOTION_COMPENSATION: bool = true;
     /// The landmark filter is on.
     pub const STEADY: bool = true;
+    /// With the remote aligner, the local aligner adapts to each tracked person while the link is up
+    /// ([`crate::adapt`]).
+    pub const ADAPT: bool = true;
+    /// The local aligner learns beside every this many remote answers of a face.
+    pub const ADAPT_LEARN_EVERY: u32 = 20;
 }
 
 // The app-facing API.
+pub use adapt::{AdaptOptions, AdaptState};
 pub use align::AlignError;
 pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
 pub use assets::{
@@ -68,6 +75,7 @@ pub use detect::DetectError;
 pub use frame::{Frame, OwnedFrame, default_intrinsics};
 pub use frame_step::Timings;
 pub use holoface_inference::EngineError;
+pub use holoface_models::adapt::AdaptParams;
 pub use holoface_models::crop::CropError;
 pub use link::{
     FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,

@@ -288,6 +288,9 @@ pub struct FaceUpdate {
     pub init: InitSource,
     /// Which aligner answered this frame.
     pub answered_by: crate::align::AnsweredBy,
+    /// With the remote aligner and its adaptation on: pairs learnt for this face, whether these landmarks
+    /// are a corrected local answer, and the correction's size ([`crate::adapt`]). `None` otherwise.
+    pub adaptation: Option<crate::adapt::AdaptState>,
 }
 
 /// The answer for one frame: a face, or an explicit absence with the reason.
@@ -618,6 +621,7 @@ impl TrackerSession {
                 blendshapes,
                 init: c.source,
                 answered_by: a.answered_by,
+                adaptation: a.adaptation,
             }),
         }
     }
@@ -737,6 +741,7 @@ mod tests {
             confidence: Confidence::FaceProbability(if accepted { 0.9 } else { 0.01 }),
             accepted,
             answered_by: crate::align::AnsweredBy::RemoteDan,
+            adaptation: None,
         };
         // One face per frame: the first candidate, completed with `alignment`.
         let one = |s: &mut TrackerSession, f: &Frame<'_>, alignment: Option<Alignment>| {
@@ -851,6 +856,7 @@ mod tests {
                     confidence: Confidence::PredictedError(0.02),
                     accepted: true,
                     answered_by: crate::align::AnsweredBy::Krfws,
+                    adaptation: None,
                 };
                 let FaceResult::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
                     panic!("frame {k}: no face")
@@ -941,6 +947,7 @@ mod tests {
             confidence: Confidence::FaceProbability(0.9),
             accepted,
             answered_by: crate::align::AnsweredBy::Krfws,
+            adaptation: None,
         }
     }
 

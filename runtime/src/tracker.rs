@@ -56,7 +56,7 @@ pub enum RunningMode {
 }
 
 /// Which aligner answers.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub enum AlignerChoice {
     /// KRFWS on this device only.
     #[default]

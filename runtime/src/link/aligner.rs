@@ -11,13 +11,14 @@ use holoface_protocol::{FrameRequest, ReplyOutcome, ServerWelcome};
 
 use super::policy::{FallbackPolicy, Mode, PolicyConfig, Route};
 use super::{Clock, CropCodec, Link, LinkEvent, RemoteLink, SystemClock};
+use crate::adapt::{AdaptOptions, LocalAdaptation};
 use crate::align::{
     AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource, Neighbours, align_from,
     crop_from_image, landmarks_from_crop,
 };
 
 /// Settings of the linked aligner.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LinkOptions {
     /// How long a frame waits for the server before the local aligner answers it.
     pub deadline: Duration,
@@ -25,6 +26,8 @@ pub struct LinkOptions {
     pub codec: CropCodec,
     /// When to fall back and when to return.
     pub policy: PolicyConfig,
+    /// The local aligner's per-person adaptation to the remote answers ([`crate::adapt`]); `None`: off.
+    pub adapt: Option<AdaptOptions>,
 }
 
 impl Default for LinkOptions {
@@ -33,6 +36,7 @@ impl Default for LinkOptions {
             deadline: Duration::from_millis(crate::defaults::DEADLINE_MS),
             codec: CropCodec::default(),
             policy: PolicyConfig::default(),
+            adapt: crate::defaults::ADAPT.then(AdaptOptions::default),
         }
     }
 }
@@ -69,6 +73,7 @@ pub struct LinkedAligner<A, K = RemoteLink, C = SystemClock> {
     canonical: Option<(Arc<ServerWelcome>, [Point2; 68])>,
     probes: VecDeque<Probe>,
     report: FrameReport,
+    adapt: Option<LocalAdaptation>,
 }
 
 impl<A, K: std::fmt::Debug, C> std::fmt::Debug for LinkedAligner<A, K, C> {
@@ -103,6 +108,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
             canonical: None,
             probes: VecDeque::new(),
             report: FrameReport::default(),
+            adapt: opts.adapt.map(LocalAdaptation::new),
         }
     }
 
@@ -312,6 +318,9 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
                 }
             }
         }
+        if let Some(adapt) = &mut self.adapt {
+            adapt.update(&mut self.local, image, faces, &mut out)?;
+        }
         self.report.answered_by = out.first().map(|a| a.answered_by);
         self.report.mode = Some(self.policy.mode());
         Ok(out)
@@ -451,6 +460,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::super::WaitError;
     use super::*;
+    use crate::adapt::{AdaptOptions, AdaptState};
     use crate::align::{Confidence, LandmarkSet};
 
     /// A local aligner that records which path it was asked for.
@@ -468,6 +478,7 @@ mod tests {
                 confidence: Confidence::PredictedError(0.01),
                 accepted: true,
                 answered_by: AnsweredBy::Krfws,
+                adaptation: None,
             }
         }
     }
@@ -627,7 +638,25 @@ mod tests {
 
     type Linked = LinkedAligner<Recorder, FakeLink, std::rc::Rc<FakeClock>>;
 
+    /// These tests count the local aligner's calls: the adaptation, which calls it too, is off (its own
+    /// tests are below).
     fn linked(up: bool, script: &[Answer]) -> (Linked, std::rc::Rc<FakeClock>) {
+        let opts = LinkOptions {
+            adapt: None,
+            ..LinkOptions::default()
+        };
+        linked_with(Recorder::default(), up, script, opts)
+    }
+
+    fn linked_with<A: Aligner>(
+        local: A,
+        up: bool,
+        script: &[Answer],
+        opts: LinkOptions,
+    ) -> (
+        LinkedAligner<A, FakeLink, std::rc::Rc<FakeClock>>,
+        std::rc::Rc<FakeClock>,
+    ) {
         let clock = std::rc::Rc::new(FakeClock(std::cell::Cell::new(Instant::now())));
         let link = FakeLink {
             clock: std::rc::Rc::clone(&clock),
@@ -638,11 +667,160 @@ mod tests {
             last_crop: std::cell::RefCell::new(Vec::new()),
             sent: std::cell::Cell::new(0),
         };
-        let opts = LinkOptions::default();
         (
-            LinkedAligner::with_clock(link, Recorder::default(), opts, std::rc::Rc::clone(&clock)),
+            LinkedAligner::with_clock(link, local, opts, std::rc::Rc::clone(&clock)),
             clock,
         )
+    }
+
+    /// A local aligner with a person-specific error: its answer is the start with the brows 2 px too high
+    /// (the fake server answers the start itself; 2 px is within the correction's bound on this face).
+    struct HighBrows;
+
+    impl Aligner for HighBrows {
+        fn name(&self) -> &'static str {
+            "high-brows"
+        }
+        fn align(&mut self, _: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+            let mut a = Recorder::answer(init);
+            for p in &mut a.landmarks[17..27] {
+                p.y -= 2.0;
+            }
+            Ok(a)
+        }
+    }
+
+    /// The brows' mean height error of an answer against the start, pixels.
+    fn brows_off(a: &Alignment, init: &[Point2; 68]) -> f32 {
+        (17..27).map(|i| init[i].y - a.landmarks[i].y).sum::<f32>() / 10.0
+    }
+
+    /// A tracked face for 110 frames: the server answers the first 80 crops in 5 ms, then nothing. Per
+    /// frame: who answered, the brows' error and the adaptation's state.
+    fn link_then_outage(opts: LinkOptions, track: u32) -> Vec<(AnsweredBy, f32, Option<AdaptState>)> {
+        let (mut a, clock) = linked_with(
+            HighBrows,
+            true,
+            &[Answer::After(Duration::from_millis(5)); 80],
+            opts,
+        );
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let face = Candidate {
+            track: Some(track),
+            init,
+            source: InitSource::Tracking,
+        };
+        (0..110)
+            .map(|_| {
+                let r = a
+                    .align_faces(&image, std::slice::from_ref(&face))
+                    .unwrap()
+                    .remove(0);
+                clock.0.set(clock.now() + FRAME);
+                (r.answered_by, brows_off(&r, &init), r.adaptation)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_local_aligner_learns_the_person_while_the_link_is_up_and_is_corrected_when_it_drops() {
+        let frames = link_then_outage(LinkOptions::default(), 7);
+        let first_remote = frames.iter().position(|f| f.0 == AnsweredBy::RemoteDan).unwrap();
+        let last_remote = frames.iter().rposition(|f| f.0 == AnsweredBy::RemoteDan).unwrap();
+        // Before the link is trusted: the local aligner's own answers, nothing learnt yet.
+        assert!(
+            frames[..first_remote]
+                .iter()
+                .all(|f| (f.1 - 2.0).abs() < 1e-3 && !f.2.unwrap().corrected)
+        );
+        // While the server answers: a pair beside every answer until `warm_pairs`, then every
+        // `learn_every`-th.
+        let learnt = frames[last_remote].2.unwrap().pairs;
+        let remote_frames = last_remote + 1 - first_remote;
+        let opts = AdaptOptions::default();
+        let expected = (0..remote_frames as u32)
+            .filter(|k| *k < opts.warm_pairs || k.is_multiple_of(opts.learn_every))
+            .count() as u32;
+        assert!(
+            remote_frames > 40 && learnt == expected,
+            "{learnt} pairs from {remote_frames}"
+        );
+        // The outage: every local answer corrected, the brows back where the server put them.
+        let outage = &frames[last_remote + 1..];
+        assert!(outage.len() > 20);
+        for (by, off, state) in outage {
+            assert_eq!(*by, AnsweredBy::Krfws);
+            let s = state.unwrap();
+            assert!(s.corrected && s.pairs == learnt && s.correction > 0.0, "{s:?}");
+            assert!(off.abs() < 0.05, "brows {off} px off after the correction");
+        }
+    }
+
+    #[test]
+    fn without_the_adaptation_the_local_answers_are_the_local_aligners_own() {
+        let opts = LinkOptions {
+            adapt: None,
+            ..LinkOptions::default()
+        };
+        let frames = link_then_outage(opts, 7);
+        assert!(frames.iter().any(|f| f.0 == AnsweredBy::RemoteDan));
+        for (by, off, state) in frames {
+            assert_eq!(state, None);
+            if by == AnsweredBy::Krfws {
+                assert!((off - 2.0).abs() < 1e-3);
+            }
+        }
+    }
+
+    #[test]
+    fn with_no_link_ever_up_nothing_is_learnt_or_corrected() {
+        let (mut a, clock) = linked_with(HighBrows, false, &[], LinkOptions::default());
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let face = Candidate {
+            track: Some(3),
+            init,
+            source: InitSource::Tracking,
+        };
+        for _ in 0..50 {
+            let r = a.align_faces(&image, &[face]).unwrap().remove(0);
+            clock.0.set(clock.now() + FRAME);
+            assert_eq!(r.answered_by, AnsweredBy::Krfws);
+            assert_eq!(r.adaptation, Some(AdaptState::default()));
+            assert!((brows_off(&r, &init) - 2.0).abs() < 1e-3);
+        }
+    }
+
+    #[test]
+    fn a_new_face_starts_from_nothing() {
+        let (mut a, clock) = linked_with(
+            HighBrows,
+            true,
+            &[Answer::After(Duration::from_millis(5)); 80],
+            LinkOptions::default(),
+        );
+        let (pixels, init) = frame();
+        let image = GrayView::new(&pixels, 200, 200, 200).unwrap();
+        let face = |track| Candidate {
+            track: Some(track),
+            init,
+            source: InitSource::Tracking,
+        };
+        for _ in 0..100 {
+            a.align_faces(&image, &[face(1)]).unwrap();
+            clock.0.set(clock.now() + FRAME);
+        }
+        let before = a.align_faces(&image, &[face(1)]).unwrap().remove(0);
+        assert!(before.adaptation.unwrap().corrected);
+        // Face 1 lost, face 2 found: its answers are the local aligner's own until it learns.
+        let after = a.align_faces(&image, &[face(2)]).unwrap().remove(0);
+        assert_eq!(after.answered_by, AnsweredBy::Krfws);
+        assert_eq!(after.adaptation.unwrap().pairs, 0);
+        assert!((brows_off(&after, &init) - 2.0).abs() < 1e-3);
+        // And face 1, should it come back under its old id, has been forgotten too.
+        let back = a.align_faces(&image, &[face(1)]).unwrap().remove(0);
+        assert_eq!(back.adaptation.unwrap().pairs, 0);
     }
 
     /// A face-sized initial shape in a 200x200 image.

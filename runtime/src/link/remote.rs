@@ -14,7 +14,7 @@ use super::{Backoff, ConnectConfig, CropCodec, LinkOptions, LinkedAligner, Remot
 pub const MAX_DEADLINE: Duration = Duration::from_secs(10);
 
 /// Where the alignment server is and how frames go to it.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct RemoteOptions {
     /// Server UDP address.
     pub server: SocketAddr,
@@ -28,6 +28,9 @@ pub struct RemoteOptions {
     pub codec: CropCodec,
     /// The name this client gives in its hello (the server's logs and metrics show it).
     pub client_name: String,
+    /// While the link is up, the local aligner learns each tracked person's correction towards the server's
+    /// answers and applies it when the link is down ([`crate::adapt`]); `None`: off.
+    pub adapt: Option<crate::adapt::AdaptOptions>,
 }
 
 /// Why remote options were refused; the message names the option.
@@ -79,6 +82,7 @@ impl RemoteOptions {
             deadline: link.deadline,
             codec: link.codec,
             client_name: ConnectConfig::new(server, fingerprint, "").client_name,
+            adapt: crate::defaults::ADAPT.then(crate::adapt::AdaptOptions::default),
         }
     }
 
@@ -140,6 +144,7 @@ impl RemoteOptions {
         let opts = LinkOptions {
             deadline: self.deadline,
             codec: self.codec,
+            adapt: self.adapt,
             ..LinkOptions::default()
         };
         Ok(LinkedAligner::new(link, local, opts))

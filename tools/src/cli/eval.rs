@@ -477,6 +477,7 @@ mod tests {
                 confidence: Confidence::FaceProbability(1.0),
                 accepted: true,
                 answered_by: AnsweredBy::LocalDan,
+                adaptation: None,
             })
         }
     }

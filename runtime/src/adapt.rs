@@ -1,0 +1,139 @@
+//! A fallback that learned from the server (issue 55): while remote answers arrive, the local aligner also
+//! runs on some of those frames and each tracked face learns a correction of the local answer towards the
+//! remote one ([`holoface_models::adapt::PersonCorrection`]); when the link drops, the local answers of that
+//! face are corrected. A face that is lost takes its correction with it: a new face (a new id) starts
+//! from nothing. Nothing runs on the server.
+//!
+//! [`LocalAdaptation::update`] is called by the remote aligner ([`crate::link::LinkedAligner`]) after every
+//! frame; with the local aligner alone nothing is ever learnt, so nothing changes.
+
+use std::collections::HashMap;
+
+use holoface_models::adapt::{AdaptParams, Learnt, PersonCorrection};
+use holoface_models::image::GrayView;
+
+use crate::align::{AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource};
+
+/// Settings of the adaptation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdaptOptions {
+    /// The local aligner runs beside every this many remote answers of a face (1: every one) to learn a
+    /// pair; each run costs one tracked local alignment (KRFWS: about 0.3 ms).
+    pub learn_every: u32,
+    /// A face's first this many remote answers each get a local run beside them (a link that drops early
+    /// still leaves a correction), then every `learn_every`-th.
+    pub warm_pairs: u32,
+    /// The correction's settings.
+    pub params: AdaptParams,
+}
+
+impl Default for AdaptOptions {
+    /// Measured on the development clips (BENCHMARKS.md, "A fallback that learned from the server").
+    fn default() -> Self {
+        Self {
+            learn_every: crate::defaults::ADAPT_LEARN_EVERY,
+            warm_pairs: 30,
+            params: AdaptParams::default(),
+        }
+    }
+}
+
+/// The adaptation's state for one face in one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct AdaptState {
+    /// Pairs (local and remote answer of one frame) learnt for this face so far.
+    pub pairs: u32,
+    /// Whether this frame's landmarks are a corrected local answer.
+    pub corrected: bool,
+    /// The size of the face's correction: its mean length over the 51 inner points, in eye distances, the
+    /// last time it was computed (0 before enough pairs).
+    pub correction: f32,
+}
+
+struct Face {
+    correction: PersonCorrection,
+    remote_answers: u32,
+    last_size: f32,
+}
+
+/// Every tracked face's correction (see the module docs).
+pub struct LocalAdaptation {
+    opts: AdaptOptions,
+    faces: HashMap<u32, Face>,
+}
+
+impl std::fmt::Debug for LocalAdaptation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LocalAdaptation")
+            .field("faces", &self.faces.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl LocalAdaptation {
+    /// Nothing learnt yet.
+    pub fn new(opts: AdaptOptions) -> Self {
+        Self {
+            opts,
+            faces: HashMap::new(),
+        }
+    }
+
+    /// After `answers` (one per face of `faces`, in order) were produced for a frame: each tracked face the
+    /// server answered learns a pair when due (`local` runs from the same start), each one the local
+    /// aligner answered is corrected once the face has learnt enough, and every answer of a tracked face
+    /// carries the face's [`AdaptState`]. Faces no longer tracked are forgotten.
+    pub fn update<A: Aligner + ?Sized>(
+        &mut self,
+        local: &mut A,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+        answers: &mut [Alignment],
+    ) -> Result<(), AlignError> {
+        self.faces
+            .retain(|id, _| faces.iter().any(|c| c.track == Some(*id)));
+        for (face, answer) in faces.iter().zip(answers.iter_mut()) {
+            // A new detection has no id yet: its first pair comes on its next frame.
+            let (Some(id), InitSource::Tracking) = (face.track, face.source) else {
+                continue;
+            };
+            let params = self.opts.params;
+            let state = self.faces.entry(id).or_insert_with(|| Face {
+                correction: PersonCorrection::new(params),
+                remote_answers: 0,
+                last_size: 0.0,
+            });
+            let mut corrected = false;
+            match answer.answered_by {
+                AnsweredBy::RemoteDan if answer.accepted => {
+                    let due = state.remote_answers < self.opts.warm_pairs
+                        || state.remote_answers.is_multiple_of(self.opts.learn_every.max(1));
+                    state.remote_answers = state.remote_answers.wrapping_add(1);
+                    if due {
+                        let mine = local.align(image, &face.init)?;
+                        if mine.accepted
+                            && state.correction.learn(&mine.landmarks, &answer.landmarks) == Learnt::Yes
+                            && let Some((_, size)) = state.correction.correct(&mine.landmarks)
+                        {
+                            state.last_size = size;
+                        }
+                    }
+                }
+                AnsweredBy::Krfws => {
+                    if let Some((fixed, size)) = state.correction.correct(&answer.landmarks) {
+                        answer.landmarks = fixed;
+                        state.last_size = size;
+                        corrected = true;
+                    }
+                }
+                _ => {}
+            }
+            answer.adaptation = Some(AdaptState {
+                pairs: state.correction.pairs(),
+                corrected,
+                correction: state.last_size,
+            });
+        }
+        Ok(())
+    }
+}
