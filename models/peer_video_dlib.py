@@ -20,6 +20,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -44,31 +45,48 @@ def probe_size(video: str) -> tuple[int, int]:
     return w, h
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--video", required=True)
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--max-frames", type=int, default=100_000)
-    args = ap.parse_args()
-    import dlib
-
-    w, h = probe_size(args.video)
-    detector = dlib.get_frontal_face_detector()
-    predictor = dlib.shape_predictor(model_path())
+def gray_frames(video: str, max_frames: int) -> Iterator[np.ndarray]:
+    """The first `max_frames` frames of `video` as (h, w) uint8 luma, decoded by ffmpeg in presentation order."""
+    w, h = probe_size(video)
     proc = subprocess.Popen(
-        ["ffmpeg", "-v", "error", "-i", args.video, "-f", "rawvideo", "-pix_fmt", "gray", "-"],
+        ["ffmpeg", "-v", "error", "-i", video, "-f", "rawvideo", "-pix_fmt", "gray", "-"],
         stdout=subprocess.PIPE,
     )
     assert proc.stdout is not None
+    n = 0
+    try:
+        while n < max_frames:
+            buf = proc.stdout.read(w * h)
+            if len(buf) < w * h:
+                break
+            yield np.frombuffer(buf, np.uint8).reshape(h, w)
+            n += 1
+    finally:
+        proc.stdout.close()
+        if proc.wait() != 0 and n == 0:
+            raise SystemExit(f"ffmpeg could not decode {video}")
+
+
+def peer_args(doc: str) -> argparse.Namespace:
+    """The command line of every per-frame video peer: `--video CLIP --out FILE [--max-frames N]`."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--video", required=True)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--max-frames", type=int, default=100_000)
+    return ap.parse_args()
+
+
+def main() -> None:
+    args = peer_args(__doc__)
+    import dlib
+
+    detector = dlib.get_frontal_face_detector()
+    predictor = dlib.shape_predictor(model_path())
     tmp = args.out + ".tmp"
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     t0, n, found = time.time(), 0, 0
     with open(tmp, "w") as f:
-        while n < args.max_frames:
-            buf = proc.stdout.read(w * h)
-            if len(buf) < w * h:
-                break
-            img = np.frombuffer(buf, np.uint8).reshape(h, w)
+        for img in gray_frames(args.video, args.max_frames):
             dets = detector(img, 0)
             if len(dets) == 0:
                 dets = detector(img, 1)
@@ -81,9 +99,6 @@ def main() -> None:
                 f.write(f"{n} {pts}\n")
                 found += 1
             n += 1
-    proc.stdout.close()
-    if proc.wait() != 0 and n == 0:
-        raise SystemExit(f"ffmpeg could not decode {args.video}")
     os.replace(tmp, args.out)
     print(f"{args.video}: {n} frames, dlib found a face in {found}, {time.time() - t0:.0f} s -> {args.out}",
           file=sys.stderr)

@@ -3,7 +3,9 @@
 //! DAN crop the remote path sends, verification, CANDIDE-3 fit warm-started, world pose, Kalman prediction,
 //! two-frame denoising, attributes. The aligner ([`TruthAligner`]) cuts the crop, then answers with the true
 //! landmarks of the rendered frame (a perfect aligner), so the numbers contain none of its cost. Also
-//! reported: the JPEG q75 encoding of the crop (the remote path's wire format).
+//! reported: the same frame with the per-person adaptation the remote aligner adds (KRFWS beside every
+//! `learn_every`-th server answer, the pair learnt: `+adapt`), and the JPEG q75 encoding of the crop (the
+//! remote path's wire format).
 //!
 //! Frames: the first validation face rendered as a life-size picture seen by a moving headset
 //! (`render.rs`), 60 frames. The detector (BlazeFace through ONNX Runtime) runs once in the set-up to
@@ -24,7 +26,10 @@ use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
 use holoface_models::shape::dan_mean_shape;
-use holoface_runtime::align::{AlignError, Aligner, Alignment, crop_from_image};
+use holoface_runtime::adapt::{AdaptOptions, LocalAdaptation};
+use holoface_runtime::align::{
+    AlignError, Aligner, Alignment, Candidate, KrfwsAligner, align_from, crop_from_image,
+};
 use holoface_runtime::detect::BlazeFace;
 use holoface_runtime::{
     AnsweredBy, AssetPaths, Confidence, CropCodec, FaceResult, FaceTracker, Frame, GrayView, LandmarkSet,
@@ -39,17 +44,20 @@ use holoface_tools::render::SCENE_CAMERA;
 type Truths = Arc<Mutex<Vec<[Point2; 68]>>>;
 
 struct Setup {
-    tracker: FaceTracker<TruthAligner>,
-    truths: Truths,
+    /// Without and with the per-person adaptation.
+    trackers: [(FaceTracker<TruthAligner>, Truths); 2],
     frames: Vec<(GrayImage, Pose, [Point2; 68])>,
 }
 
 /// A perfect aligner: cuts the crop the remote aligner would send, then answers each face with the true
-/// landmarks (of the frame being processed) nearest its initial shape.
+/// landmarks (of the frame being processed) nearest its initial shape, as the server would. With `adapt`,
+/// also what the remote aligner adds for the per-person adaptation: KRFWS beside every
+/// `learn_every`-th answer, the pair learnt ([`LocalAdaptation`]).
 struct TruthAligner {
     truths: Truths,
     canonical: [Point2; 68],
     crop: Crop112,
+    adapt: Option<(KrfwsAligner, LocalAdaptation)>,
 }
 
 impl TruthAligner {
@@ -60,6 +68,7 @@ impl TruthAligner {
             truths: Arc::clone(&truths),
             canonical: std::array::from_fn(|i| mean[i]),
             crop: Crop112::default(),
+            adapt: None,
         };
         (aligner, truths)
     }
@@ -84,6 +93,21 @@ impl Aligner for TruthAligner {
             .ok_or_else(|| AlignError::BadOutput("no truth".into()))?;
         Ok(truth_alignment(nearest))
     }
+
+    fn align_faces(
+        &mut self,
+        image: &GrayView<'_>,
+        faces: &[Candidate],
+    ) -> Result<Vec<Alignment>, AlignError> {
+        let mut out = faces
+            .iter()
+            .map(|c| align_from(self, image, &c.init, c.source))
+            .collect::<Result<Vec<_>, _>>()?;
+        if let Some((krfws, adapt)) = &mut self.adapt {
+            adapt.update(krfws, image, faces, &mut out)?;
+        }
+        Ok(out)
+    }
 }
 
 /// The tracker of a video with these assets and the perfect aligner.
@@ -92,6 +116,7 @@ fn tracker(
     det: PathBuf,
     wfm: PathBuf,
     max_faces: usize,
+    adapt: bool,
 ) -> (FaceTracker<TruthAligner>, Truths) {
     let opts = TrackerOptions {
         assets: AssetPaths {
@@ -106,7 +131,14 @@ fn tracker(
         },
         ..TrackerOptions::default()
     };
-    let (aligner, truths) = TruthAligner::new();
+    let (mut aligner, truths) = TruthAligner::new();
+    if adapt {
+        let krfws = holoface_runtime::assets::load_krfws(&opts.assets.krfws).unwrap();
+        aligner.adapt = Some((
+            KrfwsAligner::new(krfws),
+            LocalAdaptation::new(AdaptOptions::default()),
+        ));
+    }
     (
         FaceTracker::with_aligner(&opts, Box::new(aligner), None).unwrap(),
         truths,
@@ -148,10 +180,10 @@ fn setup() -> Option<Setup> {
             (img, cam, scene.landmarks_in(&h))
         })
         .collect();
-    let (tracker, truths) = tracker(ort, det, wfm, 1);
+    let plain = tracker(ort.clone(), det.clone(), wfm.clone(), 1, false);
+    let adapting = tracker(ort, det, wfm, 1, true);
     Some(Setup {
-        tracker,
-        truths,
+        trackers: [plain, adapting],
         frames,
     })
 }
@@ -163,47 +195,50 @@ fn truth_alignment(lm: &[Point2; 68]) -> Alignment {
         confidence: Confidence::FaceProbability(1.0),
         accepted: true,
         answered_by: AnsweredBy::RemoteDan,
+        adaptation: None,
     }
 }
 
 fn bench_frame(c: &mut Criterion) {
-    let Some(Setup {
-        mut tracker,
-        truths,
-        frames,
-    }) = setup()
-    else {
+    let Some(Setup { trackers, frames }) = setup() else {
         eprintln!("runtime assets or ../shared/data missing (run `make setup`); skipping");
         return;
     };
-    let mut step = |n: usize| -> FaceResult {
-        let (img, cam, truth) = &frames[n % frames.len()];
-        *truths.lock().unwrap() = vec![*truth];
-        let frame = Frame {
-            timestamp_us: n as u64 * 33_333,
-            image: img.view(),
-            intrinsics: SCENE_CAMERA,
-            world_from_camera: *cam,
-        };
-        tracker.process(&frame).unwrap().first()
-    };
-    // Start tracking (the detector runs here, outside the measurement).
-    let mut n = 0usize;
-    assert!(
-        matches!(step(n), FaceResult::Face(_)),
-        "no face in the first frame"
-    );
     let mut g = c.benchmark_group("client_frame");
     g.throughput(Throughput::Elements(1));
-    g.bench_function("prepare+crop+fit+pose+filter", |b| {
-        b.iter(|| {
-            n += 1;
-            let r = step(n);
-            assert!(matches!(r, FaceResult::Face(_)), "tracking lost at frame {n}");
-            black_box(r)
-        })
-    });
-    let crop = &tracker.aligner().crop;
+    let mut crop = Crop112::default();
+    let names = [
+        "prepare+crop+fit+pose+filter",
+        "prepare+crop+fit+pose+filter+adapt",
+    ];
+    for ((mut tracker, truths), name) in trackers.into_iter().zip(names) {
+        let mut step = |n: usize| -> FaceResult {
+            let (img, cam, truth) = &frames[n % frames.len()];
+            *truths.lock().unwrap() = vec![*truth];
+            let frame = Frame {
+                timestamp_us: n as u64 * 33_333,
+                image: img.view(),
+                intrinsics: SCENE_CAMERA,
+                world_from_camera: *cam,
+            };
+            tracker.process(&frame).unwrap().first()
+        };
+        // Start tracking (the detector runs here, outside the measurement).
+        let mut n = 0usize;
+        assert!(
+            matches!(step(n), FaceResult::Face(_)),
+            "no face in the first frame"
+        );
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                n += 1;
+                let r = step(n);
+                assert!(matches!(r, FaceResult::Face(_)), "tracking lost at frame {n}");
+                black_box(r)
+            })
+        });
+        crop.clone_from(&tracker.aligner().crop);
+    }
     g.bench_function("crop_jpeg_q75", |b| {
         let codec: CropCodec = "jpeg:75".parse().unwrap();
         b.iter(|| black_box(codec.encode(black_box(crop.as_slice()), 112, 112).unwrap()))
@@ -287,7 +322,7 @@ fn bench_faces(c: &mut Criterion) {
                 b.iter(|| black_box(tiled.detect(&img.view()).unwrap()))
             });
         }
-        let (mut tracker, current) = tracker(ort.clone(), det.clone(), wfm.clone(), n);
+        let (mut tracker, current) = tracker(ort.clone(), det.clone(), wfm.clone(), n, false);
         let mut step = |i: usize| -> usize {
             let (img, cam, truths) = &frames[i % frames.len()];
             current.lock().unwrap().clone_from(truths);

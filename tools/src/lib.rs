@@ -15,6 +15,7 @@ pub mod cli;
 pub mod expressions;
 #[cfg(feature = "train")]
 pub mod labels;
+pub mod link_cuts;
 pub mod loopback;
 pub mod render;
 pub mod stability;

@@ -363,3 +363,60 @@ fn remote_tracking_without_a_server_says_so() {
         assert!(["connecting", "retrying"].contains(&state), "{l}");
     }
 }
+
+#[test]
+fn link_cuts_follow_media_time_and_need_the_remote_aligner() {
+    let (d, frames) = faceless_frames("link-cuts", 4);
+    let out = d.join("track.jsonl");
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let server = format!("127.0.0.1:{port}");
+    let fingerprint = "ab".repeat(32);
+    let track = |extra: &[&str]| {
+        let mut args = vec![
+            "track",
+            "--source",
+            frames.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        holoface(&args)
+    };
+    let (ok, text) = track(&["--link-cuts", "0:1"]);
+    assert!(
+        !ok && text.contains("--link-cuts cuts the remote aligner's link"),
+        "{text}"
+    );
+    let (ok, text) = track(&["--link-cuts", "0:1,0.5:1", "--aligner", "remote"]);
+    assert!(
+        !ok && text.contains("starts before the previous cut ends"),
+        "{text}"
+    );
+    // 30 fps: frames at 0, 33, 67 and 100 ms; a cut from 40 ms for 50 ms holds the third frame only.
+    let (ok, text) = track(&[
+        "--aligner",
+        "remote",
+        "--server",
+        &server,
+        "--fingerprint",
+        &fingerprint,
+        "--link-cuts",
+        "0.04:0.05",
+        "--no-adapt",
+    ]);
+    assert!(ok, "{text}");
+    let cut: Vec<bool> = std::fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["link_cut"]
+                .as_bool()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(cut, [false, false, true, false]);
+}

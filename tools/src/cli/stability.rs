@@ -7,6 +7,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
+use holoface_runtime::AdaptParams;
+use holoface_runtime::adapt::{AdaptOptions, AdaptState};
 use holoface_runtime::{
     AlignerChoice, AnsweredBy, BlendshapeParams, Blendshapes, FaceTracker, InitSource, RemoteOptions,
     SessionOptions, TrackerOptions,
@@ -17,7 +19,53 @@ use serde_json::json;
 
 use crate::args::RuntimeArgs;
 use crate::expressions::{RestRule, VideoReport, video_report};
+use crate::link_cuts::CutRelay;
 use crate::stability::{Landmarks, Summary, agreement, jitter49, jump, parse_peer, summarise};
+
+/// `NAME=FILE` of `--also-peer`.
+fn parse_named_peer(s: &str) -> Result<(String, PathBuf), String> {
+    let (name, file) = s
+        .split_once('=')
+        .filter(|(n, f)| !n.is_empty() && !f.is_empty())
+        .ok_or_else(|| format!("{s:?}: expected NAME=FILE"))?;
+    Ok((name.to_owned(), PathBuf::from(file)))
+}
+
+/// Reads a per-frame landmark file in the peer's format.
+fn read_peer(p: &std::path::Path) -> anyhow::Result<Vec<Landmarks>> {
+    let bytes = holoface_inference::files::read_bounded(p, 256 << 20, "peer landmarks")?;
+    parse_peer(&String::from_utf8_lossy(&bytes)).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
+}
+
+/// Another per-frame tracker beside the peer: its jitter, its agreement with the peer and its time per frame
+/// (as its own measurement recorded it).
+#[derive(Debug, serde::Serialize)]
+struct OtherPeer {
+    name: String,
+    file: String,
+    faces_found: usize,
+    jitter49: Option<Summary>,
+    vs_peer_nme49: Option<Summary>,
+    ms_per_frame: Option<serde_json::Value>,
+}
+
+fn other_peer(name: &str, file: &std::path::Path, peer: Option<&[Landmarks]>) -> anyhow::Result<OtherPeer> {
+    let lm = read_peer(file)?;
+    let mut side = file.as_os_str().to_owned();
+    side.push(".json");
+    let ms_per_frame = std::fs::read(&side)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .and_then(|v| v.get("ms_per_frame").cloned());
+    Ok(OtherPeer {
+        name: name.to_owned(),
+        file: file.display().to_string(),
+        faces_found: lm.iter().filter(|l| l.is_some()).count(),
+        jitter49: summarise(&jitter49(&lm)),
+        vs_peer_nme49: peer.and_then(|p| summarise(&agreement(&lm, p))),
+        ms_per_frame,
+    })
+}
 
 /// The aligners `stability` can run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -25,8 +73,20 @@ pub enum StabilityAligner {
     /// KRFWS on this device (what a headset shows without the link).
     Krfws,
     /// DAN and the refiner on an alignment server started in this process on loopback, KRFWS when it misses
-    /// the deadline.
+    /// the deadline, adapted to the person while the link is up.
     Remote,
+    /// `remote` with the local aligner's adaptation off: KRFWS's own answers when the server misses.
+    RemoteNoAdapt,
+}
+
+impl StabilityAligner {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Krfws => "krfws",
+            Self::Remote => "remote",
+            Self::RemoteNoAdapt => "remote-no-adapt",
+        }
+    }
 }
 
 /// Arguments of `holoface stability`.
@@ -42,6 +102,11 @@ pub struct Args {
     /// The per-frame peer's landmarks (`models/peer_video_dlib.py --video CLIP --out FILE`).
     #[arg(long)]
     pub peer: Option<PathBuf>,
+    /// Another per-frame tracker to compare with the peer, `NAME=FILE` in the peer's format (MediaPipe Face
+    /// Mesh mapped to 68 points: `models/peer_video_mediapipe.py`); its time per frame is read from
+    /// `FILE.json` when there is one. Repeatable.
+    #[arg(long, value_parser = parse_named_peer)]
+    pub also_peer: Vec<(String, PathBuf)>,
     /// Aligners to measure, each in its own tracker over the same frames.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "krfws,remote")]
     pub aligners: Vec<StabilityAligner>,
@@ -51,6 +116,13 @@ pub struct Args {
     /// Per-frame deadline for the server's answer, milliseconds (`remote`).
     #[arg(long, default_value_t = holoface_runtime::defaults::DEADLINE_MS)]
     pub deadline_ms: u64,
+    /// Cut the link on a schedule in media time, `START:LENGTH[,...]` in seconds (`20:10,60:10`: at 20 s for
+    /// 10 s and at 60 s for 10 s): the remote aligners' local answers during the cuts are reported apart.
+    #[arg(long)]
+    pub link_cuts: Option<crate::link_cuts::LinkCuts>,
+    /// The adaptation's settings (`remote`).
+    #[command(flatten)]
+    pub adapt: AdaptArgs,
     /// Intra-op threads of the in-process server (`remote`).
     #[arg(long, default_value_t = 1)]
     pub server_threads: usize,
@@ -75,6 +147,38 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
+/// The settings of the local aligner's adaptation (`remote`), defaults as an app gets them.
+#[derive(Debug, ClapArgs)]
+pub struct AdaptArgs {
+    /// The local aligner learns beside every this many remote answers of a face.
+    #[arg(long, default_value_t = AdaptOptions::default().learn_every, value_parser = clap::value_parser!(u32).range(1..))]
+    pub adapt_every: u32,
+    /// The correction's memory in learnt pairs.
+    #[arg(long, default_value_t = AdaptParams::default().memory_pairs)]
+    pub adapt_memory: f64,
+    /// Ridge on the correction's slopes (features' variance units); `inf`: the mean offset only.
+    #[arg(long, default_value_t = AdaptParams::default().ridge)]
+    pub adapt_ridge: f64,
+    /// The longest shift of one point, eye distances.
+    #[arg(long, default_value_t = AdaptParams::default().max_shift)]
+    pub adapt_max_shift: f64,
+}
+
+impl AdaptArgs {
+    fn options(&self) -> AdaptOptions {
+        AdaptOptions {
+            learn_every: self.adapt_every,
+            warm_pairs: AdaptOptions::default().warm_pairs,
+            params: AdaptParams {
+                memory_pairs: self.adapt_memory,
+                ridge: self.adapt_ridge,
+                max_shift: self.adapt_max_shift,
+                ..AdaptParams::default()
+            },
+        }
+    }
+}
+
 /// One aligner's tracker and what it answered per frame.
 struct Run {
     name: &'static str,
@@ -85,6 +189,16 @@ struct Run {
     detections: usize,
     /// The blendshape coefficients per frame.
     shapes: Vec<Option<Blendshapes>>,
+    /// The local aligner's adaptation per frame.
+    adapt: Vec<Option<AdaptState>>,
+    /// The remote aligner's link after each frame.
+    link: Vec<Option<holoface_runtime::LinkState>>,
+    /// The tracker's time per frame (detection or motion-compensated start, the aligner, fit, expressions,
+    /// filters), ms.
+    ms: Vec<Option<f64>>,
+    /// A remote run's own server (each headset has its server to itself: two remote runs on one would
+    /// delay each other's frames) and the relay that cuts its link.
+    server: Option<(crate::loopback::LoopbackServer, Option<CutRelay>)>,
 }
 
 /// One aligner's report.
@@ -101,21 +215,103 @@ struct Report {
     raw_vs_peer_nme49: Option<Summary>,
     steadied_vs_peer_nme49: Option<Summary>,
     switches: usize,
+    /// Switches on a frame where the clip itself jumps (the peer's own jump there is over
+    /// [`CLIP_EDIT_JUMP`]: an edit or a whip of the head): left out of the largest jumps below.
+    switches_at_clip_jumps: usize,
     /// The largest jump at a remote/local switch (eye distances), raw and steadied.
     largest_switch_jump_raw: Option<f64>,
     largest_switch_jump_steadied: Option<f64>,
     /// The blendshapes against the lips' gap and the eyes' opening measured on the peer's landmarks (ours,
     /// raw, without a peer), after calibration.
     expressions: VideoReport,
+    /// With `--link-cuts`: the frames inside the cuts that the local aligner answered, and the frames the
+    /// server answered.
+    cuts: Option<CutReport>,
+    /// The tracker's time per frame on this thread, ms (for the local aligner: the whole local frame).
+    ms_per_frame: Option<Summary>,
 }
 
-fn report(r: &Run, peer: Option<&[Landmarks]>) -> Report {
+/// One aligner's answers split by who gave them while the link was cut on a schedule.
+#[derive(Debug, serde::Serialize)]
+struct CutReport {
+    frames_in_cuts: usize,
+    /// Frames inside the cuts answered by the local aligner (KRFWS, corrected when adapted).
+    local_in_cuts: usize,
+    /// Of those, the ones whose landmarks were corrected by the adaptation.
+    corrected_in_cuts: usize,
+    /// Pairs learnt when the first cut began.
+    pairs_at_first_cut: Option<u32>,
+    local_in_cuts_vs_peer_raw: Option<Summary>,
+    local_in_cuts_vs_peer_steadied: Option<Summary>,
+    local_in_cuts_jitter_raw: Option<Summary>,
+    local_in_cuts_jitter_steadied: Option<Summary>,
+    remote_vs_peer_raw: Option<Summary>,
+    remote_vs_peer_steadied: Option<Summary>,
+    /// The mean correction's size over the corrected frames (eye distances).
+    mean_correction: Option<f64>,
+}
+
+/// The summary of `values` over the frames where `keep` holds.
+fn over(values: &[Option<f64>], keep: impl Fn(usize) -> bool) -> Option<Summary> {
+    let kept: Vec<Option<f64>> = values
+        .iter()
+        .enumerate()
+        .map(|(t, v)| v.filter(|_| keep(t)))
+        .collect();
+    summarise(&kept)
+}
+
+fn cut_report(r: &Run, peer: Option<&[Landmarks]>, in_cut: &[bool]) -> CutReport {
+    let cut = |t: usize| in_cut.get(t).copied().unwrap_or(false);
+    let local = |t: usize| cut(t) && r.by[t] == Some(AnsweredBy::Krfws);
+    let remote = |t: usize| r.by[t] == Some(AnsweredBy::RemoteDan);
+    let vs_peer =
+        |lm: &[Landmarks], keep: &dyn Fn(usize) -> bool| peer.and_then(|p| over(&agreement(lm, p), keep));
+    let corrected: Vec<f64> = (0..r.adapt.len())
+        .filter(|&t| local(t))
+        .filter_map(|t| {
+            r.adapt[t]
+                .filter(|a| a.corrected)
+                .map(|a| f64::from(a.correction))
+        })
+        .collect();
+    CutReport {
+        frames_in_cuts: (0..r.by.len()).filter(|&t| cut(t)).count(),
+        local_in_cuts: (0..r.by.len()).filter(|&t| local(t)).count(),
+        corrected_in_cuts: corrected.len(),
+        pairs_at_first_cut: in_cut
+            .iter()
+            .position(|&c| c)
+            .and_then(|t| r.adapt[..t].iter().rev().find_map(|a| a.map(|a| a.pairs))),
+        local_in_cuts_vs_peer_raw: vs_peer(&r.raw, &local),
+        local_in_cuts_vs_peer_steadied: vs_peer(&r.steady, &local),
+        local_in_cuts_jitter_raw: over(&jitter49(&r.raw), local),
+        local_in_cuts_jitter_steadied: over(&jitter49(&r.steady), local),
+        remote_vs_peer_raw: vs_peer(&r.raw, &remote),
+        remote_vs_peer_steadied: vs_peer(&r.steady, &remote),
+        mean_correction: (!corrected.is_empty())
+            .then(|| corrected.iter().sum::<f64>() / corrected.len() as f64),
+    }
+}
+
+/// The peer's own jump (eye distances) above which a frame is a jump of the clip itself (an edit, a whip of the
+/// head): on the development clips dlib's jumps pass it on a few per cent of the frames, at the clips' edits and
+/// fast turns (up to 24 %), where every tracker jumps whoever answers.
+const CLIP_EDIT_JUMP: f64 = 0.05;
+
+fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>) -> Report {
     let frames = r.raw.len();
     // Calibration takes the first frames of the first track.
     let calibrated_from =
         r.raw.iter().position(Option::is_some).unwrap_or(0) + BlendshapeParams::default().calibration_frames;
+    let all_switches = (1..frames)
+        .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
+        .count();
+    // A switch is judged by the jump it adds: where the clip itself jumps (the peer's landmarks too), the
+    // jump says nothing about the switch.
     let switch_frames: Vec<usize> = (1..frames)
         .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
+        .filter(|&t| peer.and_then(|p| jump(p, t)).is_none_or(|j| j <= CLIP_EDIT_JUMP))
         .collect();
     let largest = |lm: &[Landmarks]| {
         switch_frames
@@ -134,7 +330,8 @@ fn report(r: &Run, peer: Option<&[Landmarks]>) -> Report {
         steadied_jitter49: summarise(&jitter49(&r.steady)),
         raw_vs_peer_nme49: vs_peer(&r.raw),
         steadied_vs_peer_nme49: vs_peer(&r.steady),
-        switches: switch_frames.len(),
+        switches: all_switches,
+        switches_at_clip_jumps: all_switches - switch_frames.len(),
         largest_switch_jump_raw: largest(&r.raw),
         largest_switch_jump_steadied: largest(&r.steady),
         expressions: video_report(
@@ -143,6 +340,8 @@ fn report(r: &Run, peer: Option<&[Landmarks]>) -> Report {
             calibrated_from,
             RestRule::default(),
         ),
+        cuts: in_cut.map(|c| cut_report(r, peer, c)),
+        ms_per_frame: summarise(&r.ms),
     }
 }
 
@@ -151,16 +350,19 @@ fn pct(s: Option<Summary>, f: impl Fn(&Summary) -> f64) -> String {
 }
 
 /// Tracks the clip's frames (at most `max_frames`) with every run's tracker, recording each run's raw and
-/// steadied landmarks, who answered and the re-detections; `paced` replays at the clip's own rate. Returns
-/// the frame count.
+/// steadied landmarks, who answered and the re-detections; `paced` replays at the clip's own rate; each
+/// run's relay cuts its link on the schedule of `cuts`. Returns whether the link was cut, per frame.
 fn track_clip(
     runs: &mut [Run],
     source: &mut dyn holoface_sources::FrameSource,
     max_frames: usize,
     paced: bool,
-) -> anyhow::Result<usize> {
+    cuts: Option<&crate::link_cuts::LinkCuts>,
+) -> anyhow::Result<Vec<bool>> {
+    let mut in_cut = Vec::new();
     let mut frames = 0usize;
     let mut clock: Option<(std::time::Instant, u64)> = None;
+    let mut first_us = None;
     while frames < max_frames {
         let Some(sf) = source.next_frame()? else {
             break;
@@ -170,8 +372,13 @@ fn track_clip(
             let due = t0 + Duration::from_micros(sf.timestamp_us.saturating_sub(ts0));
             std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
         }
+        let origin = *first_us.get_or_insert(sf.timestamp_us);
+        in_cut.push(cuts.is_some_and(|c| c.contains(sf.timestamp_us.saturating_sub(origin) as f64 * 1e-6)));
         let frame = sf.view();
         for r in runs.iter_mut() {
+            if let Some((_, Some(relay))) = &mut r.server {
+                relay.at(sf.timestamp_us);
+            }
             let step = r
                 .tracker
                 .process_step(&frame)
@@ -181,11 +388,15 @@ fn track_clip(
             r.steady.push(face.map(|u| u.landmarks));
             r.by.push(face.map(|u| u.answered_by));
             r.shapes.push(face.map(|u| u.blendshapes));
+            r.adapt.push(face.and_then(|u| u.adaptation));
+            r.link.push(r.tracker.link_status().map(|s| s.state()));
+            let t = step.timings;
+            r.ms.push(Some((t.prepare + t.align + t.complete).as_secs_f64() * 1e3));
             r.detections += usize::from(face.is_some_and(|u| u.init == InitSource::Detection));
         }
         frames += 1;
     }
-    Ok(frames)
+    Ok(in_cut)
 }
 
 /// One JSON line per frame: per aligner, who answered, the blendshape coefficients (by ARKit name) and the
@@ -202,6 +413,8 @@ fn frame_lines(runs: &[Run], frames: usize) -> String {
                         .collect::<serde_json::Map<_, _>>()
                 });
                 let by = r.by.get(t).copied().flatten().map(|b| format!("{b:?}"));
+                let link = r.link.get(t).copied().flatten();
+                let adaptation = r.adapt.get(t).copied().flatten();
                 let points = |lm: Option<&Landmarks>| {
                     lm.copied()
                         .flatten()
@@ -211,6 +424,8 @@ fn frame_lines(runs: &[Run], frames: usize) -> String {
                     r.name.to_owned(),
                     json!({
                         "answered_by": by,
+                        "link": link,
+                        "adaptation": adaptation,
                         "blendshapes": shapes,
                         "landmarks": points(r.steady.get(t)),
                         "raw_landmarks": points(r.raw.get(t)),
@@ -222,6 +437,17 @@ fn frame_lines(runs: &[Run], frames: usize) -> String {
         out.push('\n');
     }
     out
+}
+
+/// The share of the gap between KRFWS's own answers during the cuts (`remote-no-adapt`) and the remote answers
+/// (`remote`) that the adapted local answers (`remote`, during the cuts) close, raw landmarks against the peer.
+fn gap_closed(reports: &[Report]) -> Option<f64> {
+    let cuts = |name: &str| reports.iter().find(|r| r.aligner == name)?.cuts.as_ref();
+    let (adapted, plain) = (cuts("remote")?, cuts("remote-no-adapt")?);
+    let krfws = plain.local_in_cuts_vs_peer_raw?.mean;
+    let remote = adapted.remote_vs_peer_raw?.mean;
+    let ours = adapted.local_in_cuts_vs_peer_raw?.mean;
+    (krfws - remote > 1e-9).then(|| (krfws - ours) / (krfws - remote))
 }
 
 /// Prints the table: one line per aligner (and its switch jumps), then the peer's.
@@ -253,14 +479,38 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
         );
         if r.switches > 0 {
             crate::say!(
-                "         {} remote/local switches; largest jump raw {}, steadied {}",
+                "         {} remote/local switches ({} where the clip itself jumps, left out); largest jump raw {}, steadied {}",
                 r.switches,
+                r.switches_at_clip_jumps,
                 r.largest_switch_jump_raw
                     .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
                 r.largest_switch_jump_steadied
                     .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
             );
         }
+    }
+    for r in reports {
+        if let Some(c) = &r.cuts {
+            crate::say!(
+                "{:<8} link cut for {} frames: {} answered locally ({} corrected, {} pairs learnt before); vs peer raw {}, steadied {}; steadied jitter49 {}; remote answers vs peer raw {}, steadied {}",
+                r.aligner,
+                c.frames_in_cuts,
+                c.local_in_cuts,
+                c.corrected_in_cuts,
+                c.pairs_at_first_cut.map_or("-".into(), |p| p.to_string()),
+                pct(c.local_in_cuts_vs_peer_raw, |s| s.mean),
+                pct(c.local_in_cuts_vs_peer_steadied, |s| s.mean),
+                pct(c.local_in_cuts_jitter_steadied, |s| s.mean),
+                pct(c.remote_vs_peer_raw, |s| s.mean),
+                pct(c.remote_vs_peer_steadied, |s| s.mean),
+            );
+        }
+    }
+    if let Some(g) = gap_closed(reports) {
+        crate::say!(
+            "adaptation: during the cuts it closes {:.0} % of the gap between KRFWS alone and the remote answers (raw)",
+            100.0 * g
+        );
     }
     for r in reports {
         let e = &r.expressions;
@@ -336,43 +586,37 @@ fn write_plot(
 /// Runs `holoface stability`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     anyhow::ensure!(!args.aligners.is_empty(), "--aligners names none");
-    let peer = args
-        .peer
-        .as_deref()
-        .map(|p| -> anyhow::Result<Vec<Landmarks>> {
-            let bytes = holoface_inference::files::read_bounded(p, 256 << 20, "peer landmarks")?;
-            parse_peer(&String::from_utf8_lossy(&bytes)).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
-        })
-        .transpose()?;
+    let peer = args.peer.as_deref().map(read_peer).transpose()?;
     let session_opts = SessionOptions {
         steady: args.steady.params(),
         ..SessionOptions::default()
     };
     let opts = args.runtime.tracker_options(&args.candide, session_opts);
-    let mut server = None;
+    let remote_runs = args.aligners.iter().any(|a| *a != StabilityAligner::Krfws);
     let mut runs = Vec::new();
     for &a in &args.aligners {
+        let mut server = None;
         let aligner = match a {
-            StabilityAligner::Krfws => AlignerChoice::Local,
-            StabilityAligner::Remote => {
-                let s = match server.take() {
-                    Some(s) => s,
-                    None => {
-                        crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?
-                    }
-                };
-                let mut remote = RemoteOptions::new(s.addr, s.fingerprint, s.token.clone());
+            StabilityAligner::Remote | StabilityAligner::RemoteNoAdapt => {
+                // Its own in-process server, behind the relay that cuts the link when cuts are asked for.
+                let s = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
+                let relay = args
+                    .link_cuts
+                    .as_ref()
+                    .map(|c| CutRelay::start(s.addr, c.clone()))
+                    .transpose()?;
+                let addr = relay.as_ref().map_or(s.addr, CutRelay::addr);
+                let mut remote = RemoteOptions::new(addr, s.fingerprint, s.token.clone());
                 remote.client_name = "holoface-stability".into();
                 remote.deadline = Duration::from_millis(args.deadline_ms);
-                server = Some(s);
+                remote.adapt = (a == StabilityAligner::Remote).then(|| args.adapt.options());
+                server = Some((s, relay));
                 AlignerChoice::Remote(remote)
             }
+            StabilityAligner::Krfws => AlignerChoice::Local,
         };
         runs.push(Run {
-            name: match a {
-                StabilityAligner::Krfws => "krfws",
-                StabilityAligner::Remote => "remote",
-            },
+            name: a.name(),
             tracker: crate::args::tracker(TrackerOptions {
                 aligner,
                 ..opts.clone()
@@ -382,14 +626,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             by: Vec::new(),
             detections: 0,
             shapes: Vec::new(),
+            adapt: Vec::new(),
+            link: Vec::new(),
+            ms: Vec::new(),
+            server,
         });
     }
     let mut source = open_source(&args.source, args.fps, None)?;
     // With a server in the loop the frames come at the video's own rate, as from a camera: its deadline and
     // the link's health are measured against the wall clock.
-    let paced = args.aligners.contains(&StabilityAligner::Remote);
-    let frames = track_clip(&mut runs, &mut *source, args.max_frames, paced)
-        .with_context(|| args.source.display().to_string())?;
+    let in_cut = track_clip(
+        &mut runs,
+        &mut *source,
+        args.max_frames,
+        remote_runs,
+        args.link_cuts.as_ref(),
+    )
+    .with_context(|| args.source.display().to_string())?;
+    let frames = in_cut.len();
     anyhow::ensure!(frames > 0, "{} has no frames", args.source.display());
     if let Some(p) = &peer
         && p.len() != frames
@@ -399,15 +653,52 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             p.len()
         );
     }
-    let reports: Vec<Report> = runs.iter().map(|r| report(r, peer.as_deref())).collect();
+    let cut_mask = args.link_cuts.is_some().then_some(&in_cut[..]);
+    let reports: Vec<Report> = runs
+        .iter()
+        .map(|r| report(r, peer.as_deref(), cut_mask))
+        .collect();
     let peer_jitter = peer.as_deref().and_then(|p| summarise(&jitter49(p)));
+    let others = args
+        .also_peer
+        .iter()
+        .map(|(n, f)| other_peer(n, f, peer.as_deref()))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     crate::say!("{}: {frames} frames", args.source.display());
     say_table(&reports, peer.as_deref(), peer_jitter);
+    for o in &others {
+        crate::say!(
+            "{:<8} {:>7} {:>6} {:>9} {:>14} (per frame; vs peer {}; {} ms per frame, its own measurement)",
+            o.name,
+            o.faces_found,
+            "-",
+            "-",
+            pct(o.jitter49, |s| s.mean),
+            pct(o.vs_peer_nme49, |s| s.mean),
+            o.ms_per_frame
+                .as_ref()
+                .and_then(|v| v.get("mean"))
+                .and_then(serde_json::Value::as_f64)
+                .map_or("-".into(), |v| format!("{v:.2}")),
+        );
+    }
+    for r in &reports {
+        if let Some(ms) = r.ms_per_frame {
+            crate::say!(
+                "{:<8} time per frame on this thread: mean {:.2} ms, p95 {:.2} ms",
+                r.aligner,
+                ms.mean,
+                ms.p95
+            );
+        }
+    }
     let doc = json!({
         "source": args.source.display().to_string(),
         "frames": frames,
         "steady": !args.steady.no_steady,
+        "link_cuts": args.link_cuts.as_ref().map(|c| c.windows().to_vec()),
         "aligners": reports,
+        "other_peers": others,
         "peer": peer.as_ref().map(|p| json!({
             "file": args.peer.as_ref().map(|f| f.display().to_string()),
             "faces_found": p.iter().filter(|l| l.is_some()).count(),
@@ -424,8 +715,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         write_plot(plot, &runs, peer.as_deref(), !args.steady.no_steady)?;
         crate::say!("wrote {}", plot.display());
     }
-    if let Some(s) = server {
-        s.stop();
+    for r in runs {
+        if let Some((s, relay)) = r.server {
+            drop(relay);
+            s.stop();
+        }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn other_peers_are_named() {
+        assert_eq!(
+            parse_named_peer("mediapipe=runs/a.tsv").unwrap(),
+            ("mediapipe".to_owned(), PathBuf::from("runs/a.tsv"))
+        );
+        for bad in ["mediapipe", "=a.tsv", "mediapipe="] {
+            assert!(parse_named_peer(bad).unwrap_err().contains("NAME=FILE"), "{bad}");
+        }
+    }
 }

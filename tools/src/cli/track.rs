@@ -80,6 +80,14 @@ pub struct Args {
     /// Crop encoding on the wire (`raw`, `png`, `jpeg`, `jpeg:Q`).
     #[arg(long, default_value = holoface_runtime::defaults::CROP_ENCODING)]
     pub crop_encoding: holoface_runtime::link::CropCodec,
+    /// `--aligner remote`: do not adapt the local aligner to the person while the link is up (by default
+    /// its answers when the link drops are corrected towards what the server answered for this face).
+    #[arg(long)]
+    pub no_adapt: bool,
+    /// `--aligner remote`: cut the link on a schedule in media time, `START:LENGTH[,...]` in seconds
+    /// (`20:10,60:10`: at 20 s for 10 s and at 60 s for 10 s), through a relay in front of `--server`.
+    #[arg(long)]
+    pub link_cuts: Option<crate::link_cuts::LinkCuts>,
     /// The landmark filter.
     #[command(flatten)]
     pub steady: crate::args::SteadyArgs,
@@ -100,6 +108,9 @@ fn remote_options(args: &Args) -> anyhow::Result<RemoteOptions> {
     let mut remote = RemoteOptions::new(server, fingerprint, args.token.clone());
     remote.deadline = std::time::Duration::from_millis(args.deadline_ms);
     remote.codec = args.crop_encoding;
+    if args.no_adapt {
+        remote.adapt = None;
+    }
     Ok(remote)
 }
 
@@ -111,6 +122,7 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
         "aligner": u.answered_by,
         "init": u.init,
         "confidence": u.confidence,
+        "adaptation": u.adaptation,
         "landmarks_px": u.landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
         "raw_landmarks_px": u.raw_landmarks.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
         "camera": {
@@ -149,13 +161,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut opts = args.runtime.tracker_options(&args.candide, session);
     opts.detector.tiles = args.detect_tiles.map(usize::from);
+    anyhow::ensure!(
+        args.link_cuts.is_none() || args.aligner == AlignerKind::Remote,
+        "--link-cuts cuts the remote aligner's link: it needs --aligner remote"
+    );
+    let mut relay = None;
     // KRFWS and the remote aligner as an app runs them; DAN in-process is the tools' own aligner.
     let mut tracker = match args.aligner {
         AlignerKind::Krfws => crate::args::tracker(opts)?,
-        AlignerKind::Remote => crate::args::tracker(TrackerOptions {
-            aligner: AlignerChoice::Remote(remote_options(&args)?),
-            ..opts
-        })?,
+        AlignerKind::Remote => {
+            let mut remote = remote_options(&args)?;
+            if let Some(cuts) = &args.link_cuts {
+                let r = crate::link_cuts::CutRelay::start(remote.server, cuts.clone())?;
+                remote.server = r.addr();
+                relay = Some(r);
+            }
+            crate::args::tracker(TrackerOptions {
+                aligner: AlignerChoice::Remote(remote),
+                ..opts
+            })?
+        }
         AlignerKind::Dan => crate::args::tracker_with(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
     };
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
@@ -186,6 +211,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             Err(_) if stop::requested().is_some() => break,
             Err(e) => return Err(e.into()),
         };
+        let link_cut = relay.as_mut().map(|r| r.at(sf.timestamp_us));
         let frame = sf.view();
         let step = tracker
             .process_step(&frame)
@@ -222,6 +248,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             },
             "link": link_state,
         });
+        if let Some(cut) = link_cut {
+            line["link_cut"] = json!(cut);
+        }
         if let Some(reason) = no_face {
             line["reason"] = json!(reason);
         }
