@@ -12,7 +12,7 @@ use std::collections::HashMap;
 use holoface_models::adapt::{AdaptParams, Learnt, PersonCorrection};
 use holoface_models::image::GrayView;
 
-use crate::align::{AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource};
+use crate::align::{AdaptState, AlignError, Aligner, Alignment, AnsweredBy, Candidate, InitSource};
 
 /// Settings of the adaptation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -36,18 +36,6 @@ impl Default for AdaptOptions {
             params: AdaptParams::default(),
         }
     }
-}
-
-/// The adaptation's state for one face in one frame.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
-pub struct AdaptState {
-    /// Pairs (local and remote answer of one frame) learnt for this face so far.
-    pub pairs: u32,
-    /// Whether this frame's landmarks are a corrected local answer.
-    pub corrected: bool,
-    /// The size of the face's correction: its mean length over the 51 inner points, in eye distances, the
-    /// last time it was computed (0 before enough pairs).
-    pub correction: f32,
 }
 
 struct Face {

@@ -43,6 +43,19 @@ pub enum AnsweredBy {
     Krfws,
 }
 
+/// The per-person adaptation's state for one face in one frame ([`crate::adapt`]; here, with the alignment
+/// that carries it).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct AdaptState {
+    /// Pairs (local and remote answer of one frame) learnt for this face so far.
+    pub pairs: u32,
+    /// Whether this frame's landmarks are a corrected local answer.
+    pub corrected: bool,
+    /// The size of the face's correction: its mean length over the 51 inner points, in eye distances, the
+    /// last time it was computed (0 before enough pairs).
+    pub correction: f32,
+}
+
 /// Result of one alignment, in image pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Alignment {
@@ -58,7 +71,7 @@ pub struct Alignment {
     pub answered_by: AnsweredBy,
     /// The per-person adaptation's state for this face ([`crate::adapt`]); `None` when it is off or the
     /// face has no id yet.
-    pub adaptation: Option<crate::adapt::AdaptState>,
+    pub adaptation: Option<AdaptState>,
 }
 
 /// Errors of an aligner.

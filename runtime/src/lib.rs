@@ -63,7 +63,8 @@ pub mod defaults {
 }
 
 // The app-facing API.
-pub use adapt::{AdaptOptions, AdaptState};
+pub use adapt::AdaptOptions;
+pub use align::AdaptState;
 pub use align::AlignError;
 pub use align::{AnsweredBy, Confidence, InitSource, LandmarkSet};
 pub use assets::{

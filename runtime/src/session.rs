@@ -290,7 +290,7 @@ pub struct FaceUpdate {
     pub answered_by: crate::align::AnsweredBy,
     /// With the remote aligner and its adaptation on: pairs learnt for this face, whether these landmarks
     /// are a corrected local answer, and the correction's size ([`crate::adapt`]). `None` otherwise.
-    pub adaptation: Option<crate::adapt::AdaptState>,
+    pub adaptation: Option<crate::align::AdaptState>,
 }
 
 /// The answer for one frame: a face, or an explicit absence with the reason.

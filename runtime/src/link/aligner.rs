@@ -460,7 +460,8 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::super::WaitError;
     use super::*;
-    use crate::adapt::{AdaptOptions, AdaptState};
+    use crate::adapt::AdaptOptions;
+    use crate::align::AdaptState;
     use crate::align::{Confidence, LandmarkSet};
 
     /// A local aligner that records which path it was asked for.

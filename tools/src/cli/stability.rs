@@ -8,7 +8,8 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
 use holoface_runtime::AdaptParams;
-use holoface_runtime::adapt::{AdaptOptions, AdaptState};
+use holoface_runtime::adapt::AdaptOptions;
+use holoface_runtime::align::AdaptState;
 use holoface_runtime::{
     AlignerChoice, AnsweredBy, BlendshapeParams, Blendshapes, FaceTracker, InitSource, RemoteOptions,
     SessionOptions, TrackerOptions,
@@ -583,6 +584,76 @@ fn write_plot(
     )
 }
 
+/// One aligner's tracker (a remote one with its own in-process server, behind the relay that cuts the link
+/// when cuts are asked for), nothing recorded yet.
+fn start_run(a: StabilityAligner, args: &Args, opts: &TrackerOptions) -> anyhow::Result<Run> {
+    let mut server = None;
+    let aligner = match a {
+        StabilityAligner::Remote | StabilityAligner::RemoteNoAdapt => {
+            let s = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
+            let relay = args
+                .link_cuts
+                .as_ref()
+                .map(|c| CutRelay::start(s.addr, c.clone()))
+                .transpose()?;
+            let addr = relay.as_ref().map_or(s.addr, CutRelay::addr);
+            let mut remote = RemoteOptions::new(addr, s.fingerprint, s.token.clone());
+            remote.client_name = "holoface-stability".into();
+            remote.deadline = Duration::from_millis(args.deadline_ms);
+            remote.adapt = (a == StabilityAligner::Remote).then(|| args.adapt.options());
+            server = Some((s, relay));
+            AlignerChoice::Remote(remote)
+        }
+        StabilityAligner::Krfws => AlignerChoice::Local,
+    };
+    Ok(Run {
+        name: a.name(),
+        tracker: crate::args::tracker(TrackerOptions {
+            aligner,
+            ..opts.clone()
+        })?,
+        raw: Vec::new(),
+        steady: Vec::new(),
+        by: Vec::new(),
+        detections: 0,
+        shapes: Vec::new(),
+        adapt: Vec::new(),
+        link: Vec::new(),
+        ms: Vec::new(),
+        server,
+    })
+}
+
+/// Prints the other per-frame peers' lines and each tracker's time per frame.
+fn say_others(reports: &[Report], others: &[OtherPeer]) {
+    for o in others {
+        crate::say!(
+            "{:<8} {:>7} {:>6} {:>9} {:>14} (per frame; vs peer {}; {} ms per frame, its own measurement)",
+            o.name,
+            o.faces_found,
+            "-",
+            "-",
+            pct(o.jitter49, |s| s.mean),
+            pct(o.vs_peer_nme49, |s| s.mean),
+            o.ms_per_frame
+                .as_ref()
+                .and_then(|v| v.get("mean"))
+                .and_then(serde_json::Value::as_f64)
+                .map_or("-".into(), |v| format!("{v:.2}")),
+        );
+    }
+    for r in reports {
+        if let Some(ms) = r.ms_per_frame {
+            crate::say!(
+                "{:<8} time per frame on this thread: mean {:.2} ms, p95 {:.2} ms",
+                r.aligner,
+                ms.mean,
+                ms.p95
+            );
+        }
+    }
+}
+
 /// Runs `holoface stability`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     anyhow::ensure!(!args.aligners.is_empty(), "--aligners names none");
@@ -593,45 +664,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let opts = args.runtime.tracker_options(&args.candide, session_opts);
     let remote_runs = args.aligners.iter().any(|a| *a != StabilityAligner::Krfws);
-    let mut runs = Vec::new();
-    for &a in &args.aligners {
-        let mut server = None;
-        let aligner = match a {
-            StabilityAligner::Remote | StabilityAligner::RemoteNoAdapt => {
-                // Its own in-process server, behind the relay that cuts the link when cuts are asked for.
-                let s = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
-                let relay = args
-                    .link_cuts
-                    .as_ref()
-                    .map(|c| CutRelay::start(s.addr, c.clone()))
-                    .transpose()?;
-                let addr = relay.as_ref().map_or(s.addr, CutRelay::addr);
-                let mut remote = RemoteOptions::new(addr, s.fingerprint, s.token.clone());
-                remote.client_name = "holoface-stability".into();
-                remote.deadline = Duration::from_millis(args.deadline_ms);
-                remote.adapt = (a == StabilityAligner::Remote).then(|| args.adapt.options());
-                server = Some((s, relay));
-                AlignerChoice::Remote(remote)
-            }
-            StabilityAligner::Krfws => AlignerChoice::Local,
-        };
-        runs.push(Run {
-            name: a.name(),
-            tracker: crate::args::tracker(TrackerOptions {
-                aligner,
-                ..opts.clone()
-            })?,
-            raw: Vec::new(),
-            steady: Vec::new(),
-            by: Vec::new(),
-            detections: 0,
-            shapes: Vec::new(),
-            adapt: Vec::new(),
-            link: Vec::new(),
-            ms: Vec::new(),
-            server,
-        });
-    }
+    let runs: anyhow::Result<Vec<Run>> = args
+        .aligners
+        .iter()
+        .map(|&a| start_run(a, &args, &opts))
+        .collect();
+    let mut runs = runs?;
     let mut source = open_source(&args.source, args.fps, None)?;
     // With a server in the loop the frames come at the video's own rate, as from a camera: its deadline and
     // the link's health are measured against the wall clock.
@@ -666,32 +704,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .collect::<anyhow::Result<Vec<_>>>()?;
     crate::say!("{}: {frames} frames", args.source.display());
     say_table(&reports, peer.as_deref(), peer_jitter);
-    for o in &others {
-        crate::say!(
-            "{:<8} {:>7} {:>6} {:>9} {:>14} (per frame; vs peer {}; {} ms per frame, its own measurement)",
-            o.name,
-            o.faces_found,
-            "-",
-            "-",
-            pct(o.jitter49, |s| s.mean),
-            pct(o.vs_peer_nme49, |s| s.mean),
-            o.ms_per_frame
-                .as_ref()
-                .and_then(|v| v.get("mean"))
-                .and_then(serde_json::Value::as_f64)
-                .map_or("-".into(), |v| format!("{v:.2}")),
-        );
-    }
-    for r in &reports {
-        if let Some(ms) = r.ms_per_frame {
-            crate::say!(
-                "{:<8} time per frame on this thread: mean {:.2} ms, p95 {:.2} ms",
-                r.aligner,
-                ms.mean,
-                ms.p95
-            );
-        }
-    }
+    say_others(&reports, &others);
     let doc = json!({
         "source": args.source.display().to_string(),
         "frames": frames,
