@@ -433,28 +433,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "reacquired"
     );
     for &n in &args.counts {
-        let mut people = Vec::with_capacity(n);
-        let usable = samples
-            .iter()
-            .filter(|s| s.landmarks.as_ref().is_some_and(near_frontal));
-        for (k, sample) in usable.take(n).enumerate() {
-            let Some(lm) = sample.landmarks else { continue };
-            let (photo, lm) = cut_face_with_margin(&sample.image, &lm, PICTURE_MARGIN)
-                .with_context(|| sample.name.clone())?;
-            let x = (k as f64 - (n as f64 - 1.0) / 2.0) * args.spacing_cm / 100.0;
-            people.push(Person {
-                name: sample.name.clone(),
-                scene: PlanarScene::life_size(photo, lm).with_context(|| sample.name.clone())?,
-                rest: Vec3::new(x, 0.0, NEAR_M + DEPTH_STEP_M * k as f64),
-                phase: 1.3 * k as f64,
-            });
-        }
-        if people.len() < n {
-            bail!(
-                "{} near-frontal validation faces, the scene needs {n}",
-                people.len()
-            );
-        }
+        let people = scene_people(&samples, n, args.spacing_cm)?;
         let all: Vec<usize> = (0..n).collect();
         let mut export = match args.write_sequence.as_deref() {
             Some(dir) if scenes.is_empty() => Some(SequenceExport::create(dir, args.fps)?),
@@ -469,44 +448,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 dir.display()
             );
         }
-        let mut per_face = Vec::new();
-        let mut line = String::new();
-        let mut covered_line = String::new();
-        for (k, tally) in together.tallies.iter().enumerate() {
-            let (alone, back) = track(&args, aligner, &people, &[k], None)?;
-            aligner = back;
-            let solo = &alone.tallies[0];
-            let rel = together_vs_alone(tally.nme_pct(), solo.nme_pct());
-            let (clear, clear_alone, clear_frames) = tally.uncovered_vs(solo);
-            line.push_str(&format!(
-                "  {:.2}/{:.2} ({:+.1} %)",
-                tally.nme_pct(),
-                solo.nme_pct(),
-                rel
-            ));
-            covered_line.push_str(&format!(
-                "  {:.0} % covered, uncovered {clear_frames} frames {clear:.2}/{clear_alone:.2} ({:+.1} %)",
-                tally.covered_pct(),
-                together_vs_alone(clear, clear_alone)
-            ));
-            per_face.push(json!({
-                "face": people[k].name,
-                "nme49_pct": tally.nme_pct(),
-                "nme49_alone_pct": solo.nme_pct(),
-                "nme49_relative_change_pct": rel,
-                "tracked_frames_pct": 100.0 * tally.matched as f64 / tally.frames.max(1) as f64,
-                "covered_landmarks_pct": tally.covered_pct(),
-                "uncovered_frames_matched_both": clear_frames,
-                "nme49_uncovered_pct": clear,
-                "nme49_uncovered_alone_pct": clear_alone,
-                "nme49_uncovered_relative_change_pct": together_vs_alone(clear, clear_alone),
-                "tracked_frames_alone_pct": 100.0 * solo.matched as f64 / solo.frames.max(1) as f64,
-                "id_switches": tally.id_switches,
-                "losses": tally.losses,
-                "losses_alone": solo.losses,
-                "reacquisitions": tally.reacquisitions,
-            }));
-        }
+        let (back, per_face, line, covered_line) = each_face_alone(&args, aligner, &people, &together)?;
+        aligner = back;
         let sum = |f: fn(&FaceTally) -> usize| together.tallies.iter().map(f).sum::<usize>();
         let (switches, losses, reacquired) = (
             sum(|t| t.id_switches),
@@ -562,6 +505,83 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
     crate::say!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// The first `n` near-frontal validation faces as life-size pictures, `spacing_cm` apart side by side and
+/// staggered in depth.
+fn scene_people(samples: &[crate::data::Sample], n: usize, spacing_cm: f64) -> anyhow::Result<Vec<Person>> {
+    let mut people = Vec::with_capacity(n);
+    let usable = samples
+        .iter()
+        .filter(|s| s.landmarks.as_ref().is_some_and(near_frontal));
+    for (k, sample) in usable.take(n).enumerate() {
+        let Some(lm) = sample.landmarks else { continue };
+        let (photo, lm) =
+            cut_face_with_margin(&sample.image, &lm, PICTURE_MARGIN).with_context(|| sample.name.clone())?;
+        let x = (k as f64 - (n as f64 - 1.0) / 2.0) * spacing_cm / 100.0;
+        people.push(Person {
+            name: sample.name.clone(),
+            scene: PlanarScene::life_size(photo, lm).with_context(|| sample.name.clone())?,
+            rest: Vec3::new(x, 0.0, NEAR_M + DEPTH_STEP_M * k as f64),
+            phase: 1.3 * k as f64,
+        });
+    }
+    if people.len() < n {
+        bail!(
+            "{} near-frontal validation faces, the scene needs {n}",
+            people.len()
+        );
+    }
+    Ok(people)
+}
+
+/// Each face of the scene tracked alone, against how it fared `together`: per face, the JSON report, and the
+/// two printed lines (NME together / alone, landmarks covered); hands the aligner back.
+fn each_face_alone(
+    args: &Args,
+    mut aligner: Box<dyn Aligner + Send>,
+    people: &[Person],
+    together: &Run,
+) -> anyhow::Result<(Box<dyn Aligner + Send>, Vec<serde_json::Value>, String, String)> {
+    let mut per_face = Vec::new();
+    let mut line = String::new();
+    let mut covered_line = String::new();
+    for (k, tally) in together.tallies.iter().enumerate() {
+        let (alone, back) = track(args, aligner, people, &[k], None)?;
+        aligner = back;
+        let solo = &alone.tallies[0];
+        let rel = together_vs_alone(tally.nme_pct(), solo.nme_pct());
+        let (clear, clear_alone, clear_frames) = tally.uncovered_vs(solo);
+        line.push_str(&format!(
+            "  {:.2}/{:.2} ({:+.1} %)",
+            tally.nme_pct(),
+            solo.nme_pct(),
+            rel
+        ));
+        covered_line.push_str(&format!(
+            "  {:.0} % covered, uncovered {clear_frames} frames {clear:.2}/{clear_alone:.2} ({:+.1} %)",
+            tally.covered_pct(),
+            together_vs_alone(clear, clear_alone)
+        ));
+        per_face.push(json!({
+            "face": people[k].name,
+            "nme49_pct": tally.nme_pct(),
+            "nme49_alone_pct": solo.nme_pct(),
+            "nme49_relative_change_pct": rel,
+            "tracked_frames_pct": 100.0 * tally.matched as f64 / tally.frames.max(1) as f64,
+            "covered_landmarks_pct": tally.covered_pct(),
+            "uncovered_frames_matched_both": clear_frames,
+            "nme49_uncovered_pct": clear,
+            "nme49_uncovered_alone_pct": clear_alone,
+            "nme49_uncovered_relative_change_pct": together_vs_alone(clear, clear_alone),
+            "tracked_frames_alone_pct": 100.0 * solo.matched as f64 / solo.frames.max(1) as f64,
+            "id_switches": tally.id_switches,
+            "losses": tally.losses,
+            "losses_alone": solo.losses,
+            "reacquisitions": tally.reacquisitions,
+        }));
+    }
+    Ok((aligner, per_face, line, covered_line))
 }
 
 /// The in-process server and the headset's remote aligner (KRFWS for what the server misses), connected

@@ -93,14 +93,39 @@ impl CropCutter {
     }
 }
 
-/// Runs `holoface record`.
-pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
-    let Some(first) = source.next_frame()? else {
-        bail!("{} holds no frames", args.source.display())
+/// The whole frame as a record, its pixels raw or PNG.
+fn full_frame(f: &OwnedFrame, encoding: FrameEncoding) -> anyhow::Result<FrameRecord> {
+    let (w, h) = (f.image.width() as u32, f.image.height() as u32);
+    let (encoding, data) = match encoding {
+        FrameEncoding::Raw => (CropEncoding::Raw, f.image.as_bytes().to_vec()),
+        FrameEncoding::Png => {
+            let mut png = Vec::new();
+            let enc = image::codecs::png::PngEncoder::new(&mut png);
+            image::ImageEncoder::write_image(enc, f.image.as_bytes(), w, h, image::ExtendedColorType::L8)?;
+            (CropEncoding::Png, png)
+        }
     };
+    Ok(FrameRecord {
+        timestamp_us: f.timestamp_us,
+        camera_to_world: f.world_from_camera.to_row_major_4x4(),
+        payload: FramePayload::FullFrame {
+            width: w,
+            height: h,
+            encoding,
+            data: data.into(),
+        },
+        ground_truth: f
+            .ground_truth
+            .as_ref()
+            .map(|g| g.iter().map(|p| [p.x, p.y]).collect()),
+        face_present: None,
+    })
+}
+
+/// The recording's header: the first frame's camera and size, where it came from, when.
+fn header(args: &Args, first: &OwnedFrame) -> RecordingHeader {
     let k = first.intrinsics;
-    let header = RecordingHeader {
+    RecordingHeader {
         intrinsics: CameraIntrinsics {
             fx: k.fx as f32,
             fy: k.fy as f32,
@@ -116,7 +141,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         created_unix_ms: std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis() as u64),
+    }
+}
+
+/// Runs `holoface record`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
+    let Some(first) = source.next_frame()? else {
+        bail!("{} holds no frames", args.source.display())
     };
+    let header = header(&args, &first);
+    record(&args, source, first, &header)
+}
+
+/// Writes the recording, from its first frame on.
+fn record(
+    args: &Args,
+    mut source: Box<dyn FrameSource>,
+    first: OwnedFrame,
+    header: &RecordingHeader,
+) -> anyhow::Result<()> {
     // From a live source (`-`) the recording is a journal: written under its real name (or to standard output)
     // and flushed record by record, and a signal ends the run as the stream's end would. From a file it appears
     // at --out only when it is complete: a failed run leaves no file.
@@ -128,7 +172,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         Output::create(&args.out)?
     };
-    let mut writer = RecordingWriter::new(out, &header)?;
+    let mut writer = RecordingWriter::new(out, header)?;
     // The next frame, or none once a stop was asked for (a source cut by the same signal is its end).
     let next = |source: &mut Box<dyn FrameSource>| -> anyhow::Result<Option<OwnedFrame>> {
         if stop::requested().is_some() {
@@ -139,7 +183,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             r => Ok(r?),
         }
     };
-    let mut cutter = args.crops.map(|c| CropCutter::new(c, &args)).transpose()?;
+    let mut cutter = args.crops.map(|c| CropCutter::new(c, args)).transpose()?;
     let mut frame = Some(first);
     let mut count = 0usize;
     while let Some(f) = frame {
@@ -165,34 +209,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             frame = next(&mut source)?;
             continue;
         }
-        let (w, h) = (f.image.width() as u32, f.image.height() as u32);
-        let (encoding, data) = match args.encoding {
-            FrameEncoding::Raw => (CropEncoding::Raw, f.image.as_bytes().to_vec()),
-            FrameEncoding::Png => {
-                let mut png = Vec::new();
-                let enc = image::codecs::png::PngEncoder::new(&mut png);
-                image::ImageEncoder::write_image(
-                    enc,
-                    f.image.as_bytes(),
-                    w,
-                    h,
-                    image::ExtendedColorType::L8,
-                )?;
-                (CropEncoding::Png, png)
-            }
-        };
-        let record = FrameRecord {
-            timestamp_us: f.timestamp_us,
-            camera_to_world: f.world_from_camera.to_row_major_4x4(),
-            payload: FramePayload::FullFrame {
-                width: w,
-                height: h,
-                encoding,
-                data: data.into(),
-            },
-            ground_truth: f.ground_truth.map(|g| g.iter().map(|p| [p.x, p.y]).collect()),
-            face_present: None,
-        };
+        let record = full_frame(&f, args.encoding)?;
         writer
             .write_record(&record)
             .with_context(|| format!("writing frame {}", f.index))?;

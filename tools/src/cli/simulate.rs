@@ -143,70 +143,105 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut lines = Vec::new();
     // (c) fit recovery, noiseless and noisy, warm-started frame to frame as in tracking.
     for sigma in [0.0, args.noise_px] {
-        let (mut rot, mut trans, mut werr, mut rmse) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let mut prev: Option<FitResult> = None;
-        for tr in &truths {
-            let gt = head_in_camera(tr);
-            let Some(lm) = noisy_landmarks(&model, &gt, sigma, &mut noise) else {
-                continue;
-            };
-            let opts = if prev.is_some() {
-                FitOptions {
-                    max_iterations: 3,
-                    ..FitOptions::default()
-                }
-            } else {
-                FitOptions::default()
-            };
-            let f = fit(&model, &K, &lm, prev.as_ref(), &opts)?;
-            rot.push(f.rotation.angle_to(gt.rotation).to_degrees());
-            trans.push((f.translation - gt.translation).norm() * 1e3);
-            werr.push(
-                f.weights
-                    .0
-                    .iter()
-                    .zip(&gt.weights.0)
-                    .map(|(a, b)| (a - b).abs())
-                    .sum::<f64>()
-                    / 5.0,
-            );
-            rmse.push(f.rmse_px);
-            prev = Some(f);
-        }
-        let key = if sigma == 0.0 {
-            "fit_noiseless".to_owned()
-        } else {
-            format!("fit_noise_{sigma}px")
-        };
-        lines.push(format!(
-            "{key:<22} rotation err mean {:.3} deg (p99 {:.3}), translation err mean {:.2} mm (p99 {:.2}), weight err mean {:.3}",
-            mean(&rot),
-            percentile(&rot, 0.99),
-            mean(&trans),
-            percentile(&trans, 0.99),
-            mean(&werr)
-        ));
-        report.insert(
-            key,
-            json!({"frames": rot.len(), "rotation_deg_mean": mean(&rot), "rotation_deg_p99": percentile(&rot, 0.99),
-                   "translation_mm_mean": mean(&trans), "translation_mm_p99": percentile(&trans, 0.99),
-                   "weight_abs_err_mean": mean(&werr), "rmse_px_mean": mean(&rmse)}),
-        );
+        fit_recovery(&model, &truths, sigma, &mut noise, &mut lines, &mut report)?;
     }
+    render_error(&args, &model, &truths, &mut noise, &mut lines, &mut report)?;
+    tracking_init(&model, &truths, &mut lines, &mut report);
+    for l in &lines {
+        crate::say!("{l}");
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
+    Ok(())
+}
 
-    // (b) render-time position error: the content is drawn `delay` after capture, at the head's true position
-    // then; without prediction the last measurement is shown, with prediction the Kalman look-ahead.
+/// (c) How well the fit recovers the head from landmarks with noise `sigma` (pixels), warm-started frame to
+/// frame as in tracking: a line and a report entry.
+fn fit_recovery(
+    model: &FaceModel,
+    truths: &[Truth],
+    sigma: f64,
+    noise: &mut Noise,
+    lines: &mut Vec<String>,
+    report: &mut serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<()> {
+    let (mut rot, mut trans, mut werr, mut rmse) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut prev: Option<FitResult> = None;
+    for tr in truths {
+        let gt = head_in_camera(tr);
+        let Some(lm) = noisy_landmarks(model, &gt, sigma, noise) else {
+            continue;
+        };
+        let opts = if prev.is_some() {
+            FitOptions {
+                max_iterations: 3,
+                ..FitOptions::default()
+            }
+        } else {
+            FitOptions::default()
+        };
+        let f = fit(model, &K, &lm, prev.as_ref(), &opts)?;
+        rot.push(f.rotation.angle_to(gt.rotation).to_degrees());
+        trans.push((f.translation - gt.translation).norm() * 1e3);
+        werr.push(
+            f.weights
+                .0
+                .iter()
+                .zip(&gt.weights.0)
+                .map(|(a, b)| (a - b).abs())
+                .sum::<f64>()
+                / 5.0,
+        );
+        rmse.push(f.rmse_px);
+        prev = Some(f);
+    }
+    let key = if sigma == 0.0 {
+        "fit_noiseless".to_owned()
+    } else {
+        format!("fit_noise_{sigma}px")
+    };
+    lines.push(format!(
+        "{key:<22} rotation err mean {:.3} deg (p99 {:.3}), translation err mean {:.2} mm (p99 {:.2}), weight err mean {:.3}",
+        mean(&rot),
+        percentile(&rot, 0.99),
+        mean(&trans),
+        percentile(&trans, 0.99),
+        mean(&werr)
+    ));
+    report.insert(
+        key,
+        json!({"frames": rot.len(), "rotation_deg_mean": mean(&rot), "rotation_deg_p99": percentile(&rot, 0.99),
+               "translation_mm_mean": mean(&trans), "translation_mm_p99": percentile(&trans, 0.99),
+               "weight_abs_err_mean": mean(&werr), "rmse_px_mean": mean(&rmse)}),
+    );
+    Ok(())
+}
+
+/// (b) Render-time position error: the content is drawn `delay` after capture, at the head's true position
+/// then; without prediction the last measurement is shown, with prediction the Kalman look-ahead.
+fn render_error(
+    args: &Args,
+    model: &FaceModel,
+    truths: &[Truth],
+    noise: &mut Noise,
+    lines: &mut Vec<String>,
+    report: &mut serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<()> {
+    let dt = 1.0 / args.fps;
+    let yaw = args.headset_yaw_deg.to_radians();
     let delay = args.delay_ms / 1e3;
     let (mut err_none, mut err_kalman) = (Vec::new(), Vec::new());
     let mut predictor: Option<PositionPredictor> = None;
     let mut prev: Option<FitResult> = None;
-    for tr in &truths {
+    for tr in truths {
         let gt = head_in_camera(tr);
-        let Some(lm) = noisy_landmarks(&model, &gt, args.noise_px, &mut noise) else {
+        let Some(lm) = noisy_landmarks(model, &gt, args.noise_px, noise) else {
             continue;
         };
         let f = fit(
-            &model,
+            model,
             &K,
             &lm,
             prev.as_ref(),
@@ -239,13 +274,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                "kalman_mm_mean": mean(&err_kalman), "kalman_mm_p99": percentile(&err_kalman, 0.99)}),
     );
 
-    // (a) tracking initialisation: last frame's landmarks as they are, or moved with the headset.
+    Ok(())
+}
+
+/// (a) Tracking initialisation: last frame's landmarks as they are, or moved with the headset.
+fn tracking_init(
+    model: &FaceModel,
+    truths: &[Truth],
+    lines: &mut Vec<String>,
+    report: &mut serde_json::Map<String, serde_json::Value>,
+) {
     let (mut init_plain, mut init_comp) = (Vec::new(), Vec::new());
     for pair in truths.windows(2) {
         let (a, b) = (&pair[0], &pair[1]);
         let (ga, gb) = (head_in_camera(a), head_in_camera(b));
         let (mut la, mut lb) = ([Point2::default(); 68], [Point2::default(); 68]);
-        if !project_landmarks(&model, &K, &ga, &mut la) || !project_landmarks(&model, &K, &gb, &mut lb) {
+        if !project_landmarks(model, &K, &ga, &mut la) || !project_landmarks(model, &K, &gb, &mut lb) {
             continue;
         }
         let iod = f64::from(lb[36].dist(lb[45]));
@@ -286,12 +330,4 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                "compensated_mean": mean(&init_comp), "compensated_p99": percentile(&init_comp, 0.99),
                "compensated_over_0_25": over(&init_comp, 0.25)}),
     );
-    for l in &lines {
-        crate::say!("{l}");
-    }
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
-    }
-    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
-    Ok(())
 }

@@ -10,7 +10,7 @@ use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_runtime::{
-    AlignerChoice, AnsweredBy, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
+    AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
 };
 use holoface_sources::source::open_source;
 use holoface_sources::stop;
@@ -149,8 +149,8 @@ fn face_json(f: &TrackedFace) -> serde_json::Value {
     })
 }
 
-/// Runs `holoface track`.
-pub fn run(args: Args) -> anyhow::Result<()> {
+/// The tracker `args` ask for and, with `--link-cuts`, the relay that cuts its link.
+fn start_tracker(args: &Args) -> anyhow::Result<(FaceTracker, Option<crate::link_cuts::CutRelay>)> {
     let session = SessionOptions {
         motion_compensation: !args.no_motion_compensation,
         lookahead_s: args.lookahead_ms / 1e3,
@@ -167,10 +167,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let mut relay = None;
     // KRFWS and the remote aligner as an app runs them; DAN in-process is the tools' own aligner.
-    let mut tracker = match args.aligner {
+    let tracker = match args.aligner {
         AlignerKind::Krfws => crate::args::tracker(opts)?,
         AlignerKind::Remote => {
-            let mut remote = remote_options(&args)?;
+            let mut remote = remote_options(args)?;
             if let Some(cuts) = &args.link_cuts {
                 let r = crate::link_cuts::CutRelay::start(remote.server, cuts.clone())?;
                 remote.server = r.addr();
@@ -183,6 +183,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         AlignerKind::Dan => crate::args::tracker_with(&opts, args.runtime.dan_aligner()?.boxed(), None)?,
     };
+    Ok((tracker, relay))
+}
+
+/// Runs `holoface track`.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let (mut tracker, mut relay) = start_tracker(&args)?;
     let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
     // A live source has no end but the user's: its lines are a journal (written per frame under the real name, or
     // to standard output), and a signal ends the run as the source's end would. From a file, the lines appear at
@@ -235,25 +241,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
             out.push(sf.index, &canvas)?;
         }
-        let mut line = json!({
-            "frame": sf.index,
-            "timestamp_us": sf.timestamp_us,
-            "face": !step.faces.faces.is_empty(),
-            "faces": step.faces.faces.iter().map(face_json).collect::<Vec<_>>(),
-            "detected": step.detected,
-            "timings": {
-                "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
-                "align_ms": step.timings.align.as_secs_f64() * 1e3,
-                "fit_pose_filter_ms": step.timings.complete.as_secs_f64() * 1e3,
-            },
-            "link": link_state,
-        });
-        if let Some(cut) = link_cut {
-            line["link_cut"] = json!(cut);
-        }
-        if let Some(reason) = no_face {
-            line["reason"] = json!(reason);
-        }
+        let line = frame_line(&sf, &step, link_state, link_cut);
         line_bytes.clear();
         serde_json::to_writer(&mut line_bytes, &line)?;
         line_bytes.push(b'\n');
@@ -278,6 +266,58 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         out.commit()?;
     }
     let stopped = stop::requested();
+    say_summary(
+        &args,
+        &tracker,
+        stopped,
+        (frames, faces, remote_frames),
+        annotated,
+    );
+    if let Some(sig) = stopped {
+        // The shell's code for the signal, as for any command it ends; the outputs are complete.
+        std::process::exit(stop::exit_code(sig));
+    }
+    Ok(())
+}
+
+/// One frame's JSON line.
+fn frame_line(
+    sf: &holoface_runtime::OwnedFrame,
+    step: &holoface_runtime::frame_step::FacesStep,
+    link_state: Option<holoface_runtime::LinkState>,
+    link_cut: Option<bool>,
+) -> serde_json::Value {
+    let mut line = json!({
+        "frame": sf.index,
+        "timestamp_us": sf.timestamp_us,
+        "face": !step.faces.faces.is_empty(),
+        "faces": step.faces.faces.iter().map(face_json).collect::<Vec<_>>(),
+        "detected": step.detected,
+        "timings": {
+            "prepare_ms": step.timings.prepare.as_secs_f64() * 1e3,
+            "align_ms": step.timings.align.as_secs_f64() * 1e3,
+            "fit_pose_filter_ms": step.timings.complete.as_secs_f64() * 1e3,
+        },
+        "link": link_state,
+    });
+    if let Some(cut) = link_cut {
+        line["link_cut"] = json!(cut);
+    }
+    if let Some(reason) = step.faces.no_face_reason() {
+        line["reason"] = json!(reason);
+    }
+    line
+}
+
+/// What the run did, in words: frames and faces, where the lines went, the annotation, the link.
+fn say_summary(
+    args: &Args,
+    tracker: &FaceTracker,
+    stopped: Option<i32>,
+    (frames, faces, remote_frames): (usize, usize, usize),
+    annotated: Option<impl std::fmt::Display>,
+) {
+    let stdout = args.out == std::path::Path::new("-");
     match stopped {
         Some(sig) => crate::say!(
             "stopped by {} after {frames} frames, {faces} faces; kept every one in {}",
@@ -309,11 +349,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    if let Some(sig) = stopped {
-        // The shell's code for the signal, as for any command it ends; the outputs are complete.
-        std::process::exit(stop::exit_code(sig));
-    }
-    Ok(())
 }
 
 /// Where `--annotate` draws: a folder of PNGs, or an H.264 MP4 (created at the first frame's size).
