@@ -198,26 +198,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.sample.display()
     );
     let scene = load_scene(&args)?;
-
-    // The server, in-process on loopback, behind a relay that can cut the link.
-    let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
-    let (server_addr, fingerprint, token) = (server.addr, server.fingerprint, server.token.clone());
-    let relay = server.runtime().block_on(UdpRelay::start(server_addr))?;
-    crate::say!(
-        "server on {server_addr} (certificate {fingerprint}), client via relay {}",
-        relay.addr()
-    );
-
-    let mut remote = RemoteOptions::new(relay.addr(), fingerprint, token);
-    remote.client_name = "holoface-demo".into();
-    remote.deadline = Duration::from_millis(args.deadline_ms);
-    remote.codec = args.crop_encoding;
-    let linked = remote.start(args.runtime.krfws_aligner()?, 1)?;
-    let watch = linked.link().watch();
-    let opts = args
-        .runtime
-        .tracker_options(&args.candide, SessionOptions::default());
-    let mut tracker = crate::args::tracker_with(&opts, Box::new(linked), Some(watch))?;
+    let (server, relay, mut tracker) = start_link(&args)?;
 
     let log_path = args.out.join("frames.jsonl");
     let mut log = Output::create(&log_path)?;
@@ -238,13 +219,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let truth = scene.landmarks_in(&h);
         if i == args.cut_at {
             // Wire cost while the link is healthy (during the cut, lost packets inflate it).
-            let aligner = tracker.aligner();
-            let sent = aligner
-                .link()
-                .counters()
-                .frames_sent
-                .load(std::sync::atomic::Ordering::Relaxed);
-            healthy_wire = Some((aligner.link().udp_bytes().0, sent));
+            healthy_wire = Some(wire(tracker.aligner()));
             relay.faults().set_cut(true);
         } else if i == cut_end {
             relay.faults().set_cut(false);
@@ -298,29 +273,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "nme49_vs_reference": n49,
             "nme68_vs_reference": n68,
         });
-        match &result {
-            FaceResult::Face(u) => {
-                line["face"] = json!(true);
-                line["world_position_m"] = json!(u.world.position.to_array());
-                line["display_position_m"] = json!(u.display.0.to_array());
-                line["weights"] = json!(u.expression.0);
-                line["attributes"] = json!({
-                    "smile": u.attributes.smile,
-                    "brows_raised": u.attributes.brows_raised,
-                    "mouth_open": u.attributes.mouth_open,
-                });
-                line["blendshapes"] = u
-                    .blendshapes
-                    .iter()
-                    .map(|(b, v)| (b.arkit_name().to_owned(), json!(v)))
-                    .collect::<serde_json::Map<_, _>>()
-                    .into();
-                expressions.push(u.blendshapes);
-            }
-            FaceResult::NoFace(reason) => {
-                line["face"] = json!(false);
-                line["reason"] = json!(reason);
-            }
+        add_face(&mut line, &result);
+        if let FaceResult::Face(u) = &result {
+            expressions.push(u.blendshapes);
         }
         serde_json::to_writer(&mut log, &line)?;
         log.write_all(b"\n")?;
@@ -330,24 +285,43 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let wall = start.elapsed().as_secs_f64();
     log.commit()?;
-    let expression = mean_blendshapes(&expressions);
-    let aligner = tracker.aligner();
-    let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| {
-        let sent = aligner
-            .link()
-            .counters()
-            .frames_sent
-            .load(std::sync::atomic::Ordering::Relaxed);
-        (aligner.link().udp_bytes().0, sent)
-    });
-    let switches = aligner.policy().switches();
+    let (udp_tx, remote_sent) = healthy_wire.unwrap_or_else(|| wire(tracker.aligner()));
+    let switches = tracker.aligner().policy().switches();
     drop(tracker);
     drop(relay);
     server.stop();
+    let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    write_outputs(&args, &strip, summary, &expressions, &log_path)?;
+    let unanswered = records.iter().filter(|r| r.answered_by.is_none()).count();
+    if unanswered == records.len() {
+        bail!("no frame was aligned: the tracker never found the face");
+    }
+    Ok(())
+}
 
+/// The link's UDP bytes sent and the frames sent to the server so far.
+fn wire(
+    aligner: &holoface_runtime::link::LinkedAligner<holoface_runtime::align::KrfwsAligner>,
+) -> (u64, u64) {
+    let sent = aligner
+        .link()
+        .counters()
+        .frames_sent
+        .load(std::sync::atomic::Ordering::Relaxed);
+    (aligner.link().udp_bytes().0, sent)
+}
+
+/// The strip and the summary (with the mean blendshapes) beside the frame log.
+fn write_outputs(
+    args: &Args,
+    strip: &[StripFrame],
+    mut summary: serde_json::Value,
+    expressions: &[holoface_runtime::Blendshapes],
+    log_path: &std::path::Path,
+) -> anyhow::Result<()> {
+    let expression = mean_blendshapes(expressions);
     let strip_path = args.out.join("strip.png");
-    write_atomic(&strip_path, strip_png(&strip))?;
-    let mut summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    write_atomic(&strip_path, strip_png(strip))?;
     crate::say!("{}", expression.1);
     summary["blendshapes_mean"] = expression.0;
     let summary_path = args.out.join("summary.json");
@@ -358,11 +332,65 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         strip_path.display(),
         summary_path.display()
     );
-    let unanswered = records.iter().filter(|r| r.answered_by.is_none()).count();
-    if unanswered == records.len() {
-        bail!("no frame was aligned: the tracker never found the face");
-    }
     Ok(())
+}
+
+/// The demo's tracker as a headset runs it: the alignment server in-process on loopback, behind a relay that
+/// can cut the link, KRFWS behind the link.
+fn start_link(
+    args: &Args,
+) -> anyhow::Result<(
+    crate::loopback::LoopbackServer,
+    UdpRelay,
+    holoface_runtime::FaceTracker<
+        holoface_runtime::link::LinkedAligner<holoface_runtime::align::KrfwsAligner>,
+    >,
+)> {
+    let server = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
+    let (server_addr, fingerprint, token) = (server.addr, server.fingerprint, server.token.clone());
+    let relay = server.runtime().block_on(UdpRelay::start(server_addr))?;
+    crate::say!(
+        "server on {server_addr} (certificate {fingerprint}), client via relay {}",
+        relay.addr()
+    );
+    let mut remote = RemoteOptions::new(relay.addr(), fingerprint, token);
+    remote.client_name = "holoface-demo".into();
+    remote.deadline = Duration::from_millis(args.deadline_ms);
+    remote.codec = args.crop_encoding;
+    let linked = remote.start(args.runtime.krfws_aligner()?, 1)?;
+    let watch = linked.link().watch();
+    let opts = args
+        .runtime
+        .tracker_options(&args.candide, SessionOptions::default());
+    let tracker = crate::args::tracker_with(&opts, Box::new(linked), Some(watch))?;
+    Ok((server, relay, tracker))
+}
+
+/// A frame line's face: poses, weights, attributes and blendshapes, or why there is none.
+fn add_face(line: &mut serde_json::Value, result: &FaceResult) {
+    match result {
+        FaceResult::Face(u) => {
+            line["face"] = json!(true);
+            line["world_position_m"] = json!(u.world.position.to_array());
+            line["display_position_m"] = json!(u.display.0.to_array());
+            line["weights"] = json!(u.expression.0);
+            line["attributes"] = json!({
+                "smile": u.attributes.smile,
+                "brows_raised": u.attributes.brows_raised,
+                "mouth_open": u.attributes.mouth_open,
+            });
+            line["blendshapes"] = u
+                .blendshapes
+                .iter()
+                .map(|(b, v)| (b.arkit_name().to_owned(), json!(v)))
+                .collect::<serde_json::Map<_, _>>()
+                .into();
+        }
+        FaceResult::NoFace(reason) => {
+            line["face"] = json!(false);
+            line["reason"] = json!(reason);
+        }
+    }
 }
 
 /// Frames shown in the strip: before the cut, just after it, mid-cut, after the restore, late, last.

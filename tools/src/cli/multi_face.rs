@@ -448,8 +448,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 dir.display()
             );
         }
-        let (back, per_face, line, covered_line) = each_face_alone(&args, aligner, &people, &together)?;
+        let (back, alone) = each_face_alone(&args, aligner, &people, &together)?;
         aligner = back;
+        let AloneVsTogether {
+            per_face,
+            line,
+            covered_line,
+        } = alone;
         let sum = |f: fn(&FaceTally) -> usize| together.tallies.iter().map(f).sum::<usize>();
         let (switches, losses, reacquired) = (
             sum(|t| t.id_switches),
@@ -535,14 +540,21 @@ fn scene_people(samples: &[crate::data::Sample], n: usize, spacing_cm: f64) -> a
     Ok(people)
 }
 
-/// Each face of the scene tracked alone, against how it fared `together`: per face, the JSON report, and the
-/// two printed lines (NME together / alone, landmarks covered); hands the aligner back.
+/// Each face of a scene tracked alone, against how it fared together: per face, the JSON report, and the two
+/// printed lines (NME together / alone, landmarks covered).
+struct AloneVsTogether {
+    per_face: Vec<serde_json::Value>,
+    line: String,
+    covered_line: String,
+}
+
+/// Each face of the scene tracked alone, against how it fared `together`; hands the aligner back.
 fn each_face_alone(
     args: &Args,
     mut aligner: Box<dyn Aligner + Send>,
     people: &[Person],
     together: &Run,
-) -> anyhow::Result<(Box<dyn Aligner + Send>, Vec<serde_json::Value>, String, String)> {
+) -> anyhow::Result<(Box<dyn Aligner + Send>, AloneVsTogether)> {
     let mut per_face = Vec::new();
     let mut line = String::new();
     let mut covered_line = String::new();
@@ -581,7 +593,14 @@ fn each_face_alone(
             "reacquisitions": tally.reacquisitions,
         }));
     }
-    Ok((aligner, per_face, line, covered_line))
+    Ok((
+        aligner,
+        AloneVsTogether {
+            per_face,
+            line,
+            covered_line,
+        },
+    ))
 }
 
 /// The in-process server and the headset's remote aligner (KRFWS for what the server misses), connected

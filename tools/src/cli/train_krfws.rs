@@ -333,6 +333,84 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(n) = args.limit {
         train_faces.truncate(n);
     }
+    add_teacher_faces(&args, &mut train_faces)?;
+    let val_faces = to_train_faces(&root, Split::Validation)?;
+    if train_faces.is_empty() || val_faces.is_empty() {
+        bail!("need training and validation faces in {}", root.display());
+    }
+    eprintln!(
+        "{} training faces (x2 mirrored), {} validation faces",
+        train_faces.len(),
+        val_faces.len()
+    );
+    let cfg = train_config(&args);
+    let bar = Bar::new();
+    let t0 = Instant::now();
+    let (mut model, report) = if args.evaluate {
+        let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
+        let model = Krfws::from_bytes(&bytes).with_context(|| format!("loading {}", args.out.display()))?;
+        (model, train::TrainReport::default())
+    } else {
+        train::train(&train_faces, &cfg, &bar)?
+    };
+    let training_seconds = t0.elapsed().as_secs_f64();
+    model.round_to_storage();
+    let detector = failure_detector(&mut model, &val_faces, &args, cfg.threads, &bar);
+    let thr = detector.threshold;
+    let (box_errs, box_scores) = box_fits(&model, &val_faces, 0, args.seed);
+    let (jit_errs, jit_scores) = box_fits(&model, &val_faces, args.jitter_boxes.max(1), args.seed);
+    let val_box = summary(val_faces.len(), &box_errs, &box_scores, thr);
+    let val_jit = summary(val_faces.len(), &jit_errs, &jit_scores, thr);
+
+    let bytes = model.to_bytes();
+    let back = Krfws::from_bytes(&bytes).context("re-reading the model just written")?;
+    if back != model {
+        bail!("model changed through to_bytes/from_bytes");
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    if !args.evaluate {
+        holoface_sources::output::write_atomic(&args.out, &bytes)?;
+    }
+    let rep = Report {
+        model: args.out.display().to_string(),
+        model_bytes: bytes.len(),
+        data: root.display().to_string(),
+        train_faces: train_faces.len(),
+        val_faces: val_faces.len(),
+        config: config_json(&args, &cfg, &train_faces),
+        training_seconds,
+        train_samples: report.samples,
+        train_stage_nme49: report.stage_nme.clone(),
+        leaves_per_stage: report.leaves.clone(),
+        cg_iterations: report.cg_iterations.clone(),
+        ridge_chosen: report.ridge.clone(),
+        ridge_holdout_mse: report.ridge_holdout_mse.clone(),
+        failure_train_fits: report.failure_samples,
+        val_box_init: val_box,
+        val_jittered_box_init: val_jit,
+        detector_auc_nme_gt_0_08: detector.auc,
+        detector_threshold: thr,
+        detector_tpr: detector.tpr,
+        detector_fpr: detector.fpr,
+        detector_val_fits: detector.fits,
+        detector_val_failures: detector.failures,
+    };
+    let json_path = args
+        .out
+        .with_extension(if args.evaluate { "eval.json" } else { "json" });
+    holoface_sources::output::write_atomic(
+        &json_path,
+        (serde_json::to_string_pretty(&rep)? + "\n").as_bytes(),
+    )?;
+    say_report(&rep, &report, (&args.out, bytes.len(), &json_path));
+    Ok(())
+}
+
+/// The teacher-labelled faces of `--teacher-labels` (all) and `--teacher-turned` (only the turned ones), each
+/// with its starts and lid weight.
+fn add_teacher_faces(args: &Args, train_faces: &mut Vec<TrainFace>) -> anyhow::Result<()> {
     let turned = |l: &[Point2; 68]| yaw_proxy(l).is_some_and(|y| y >= args.turned_min_yaw);
     let teacher_files = args
         .teacher_labels
@@ -365,16 +443,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             })
         }));
     }
-    let val_faces = to_train_faces(&root, Split::Validation)?;
-    if train_faces.is_empty() || val_faces.is_empty() {
-        bail!("need training and validation faces in {}", root.display());
-    }
-    eprintln!(
-        "{} training faces (x2 mirrored), {} validation faces",
-        train_faces.len(),
-        val_faces.len()
-    );
-    let cfg = TrainConfig {
+    Ok(())
+}
+
+/// The trainer's settings from the command line.
+fn train_config(args: &Args) -> TrainConfig {
+    TrainConfig {
         seed: args.seed,
         trees: args.trees,
         depth: args.depth,
@@ -389,28 +463,35 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         failure_fits: args.failure_fits,
         failure_ridge: args.failure_ridge,
         ..TrainConfig::default()
-    };
-    let bar = Bar::new();
-    let t0 = Instant::now();
-    let (mut model, report) = if args.evaluate {
-        let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
-        let model = Krfws::from_bytes(&bytes).with_context(|| format!("loading {}", args.out.display()))?;
-        (model, train::TrainReport::default())
-    } else {
-        train::train(&train_faces, &cfg, &bar)?
-    };
-    let training_seconds = t0.elapsed().as_secs_f64();
-    model.round_to_storage();
+    }
+}
 
-    // Failure detector: AUC and threshold on perturbed validation fits.
+/// The failure detector, measured on perturbed validation fits.
+struct Detector {
+    auc: f64,
+    threshold: f32,
+    tpr: f64,
+    fpr: f64,
+    fits: usize,
+    failures: usize,
+}
+
+/// Failure detector: AUC and threshold on perturbed validation fits; sets the threshold on `model`.
+fn failure_detector(
+    model: &mut Krfws,
+    val_faces: &[TrainFace],
+    args: &Args,
+    threads: usize,
+    bar: &Bar,
+) -> Detector {
     let (fits, _) = train::perturbed_fits(
-        &model,
-        &val_faces,
+        model,
+        val_faces,
         args.val_fits.max(4),
         args.seed ^ 0x7A1,
-        cfg.threads,
+        threads,
         false,
-        &bar,
+        bar,
     );
     let scores: Vec<f32> = fits.iter().map(|f| f.score).collect();
     let labels: Vec<bool> = fits.iter().map(|f| f.nme > FAILURE_THRESHOLD).collect();
@@ -427,75 +508,52 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
 
-    let (box_errs, box_scores) = box_fits(&model, &val_faces, 0, args.seed);
-    let (jit_errs, jit_scores) = box_fits(&model, &val_faces, args.jitter_boxes.max(1), args.seed);
-    let val_box = summary(val_faces.len(), &box_errs, &box_scores, thr);
-    let val_jit = summary(val_faces.len(), &jit_errs, &jit_scores, thr);
+    Detector {
+        auc,
+        threshold: thr,
+        tpr,
+        fpr,
+        fits: fits.len(),
+        failures: labels.iter().filter(|l| **l).count(),
+    }
+}
 
-    let bytes = model.to_bytes();
-    let back = Krfws::from_bytes(&bytes).context("re-reading the model just written")?;
-    if back != model {
-        bail!("model changed through to_bytes/from_bytes");
+/// The report's copy of the settings.
+fn config_json(args: &Args, cfg: &TrainConfig, train_faces: &[TrainFace]) -> ConfigJson {
+    ConfigJson {
+        seed: cfg.seed,
+        trees: cfg.trees,
+        depth: cfg.depth,
+        perturbations: cfg.perturbations,
+        full_period: cfg.full_period,
+        min_leaf: cfg.min_leaf,
+        lda_samples: cfg.lda_samples,
+        shrinkage: cfg.shrinkage,
+        ridge: cfg.ridge.clone(),
+        weighted: cfg.weighted,
+        scales: cfg.scales.clone(),
+        failure_fits: cfg.failure_fits,
+        failure_ridge: cfg.failure_ridge,
+        teacher_labels: args.teacher_labels.clone(),
+        teacher_turned: args.teacher_turned.clone(),
+        turned_min_yaw: args.turned_min_yaw,
+        teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
+        teacher_starts: args.teacher_starts,
+        teacher_lid_weight: args.teacher_lid_weight,
+        turned_lid_weight: args.turned_lid_weight,
+        turned_starts: args.turned_starts,
     }
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    if !args.evaluate {
-        holoface_sources::output::write_atomic(&args.out, &bytes)?;
-    }
-    let rep = Report {
-        model: args.out.display().to_string(),
-        model_bytes: bytes.len(),
-        data: root.display().to_string(),
-        train_faces: train_faces.len(),
-        val_faces: val_faces.len(),
-        config: ConfigJson {
-            seed: cfg.seed,
-            trees: cfg.trees,
-            depth: cfg.depth,
-            perturbations: cfg.perturbations,
-            full_period: cfg.full_period,
-            min_leaf: cfg.min_leaf,
-            lda_samples: cfg.lda_samples,
-            shrinkage: cfg.shrinkage,
-            ridge: cfg.ridge.clone(),
-            weighted: cfg.weighted,
-            scales: cfg.scales.clone(),
-            failure_fits: cfg.failure_fits,
-            failure_ridge: cfg.failure_ridge,
-            teacher_labels: args.teacher_labels.clone(),
-            teacher_turned: args.teacher_turned.clone(),
-            turned_min_yaw: args.turned_min_yaw,
-            teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
-            teacher_starts: args.teacher_starts,
-            teacher_lid_weight: args.teacher_lid_weight,
-            turned_lid_weight: args.turned_lid_weight,
-            turned_starts: args.turned_starts,
-        },
-        training_seconds,
-        train_samples: report.samples,
-        train_stage_nme49: report.stage_nme.clone(),
-        leaves_per_stage: report.leaves.clone(),
-        cg_iterations: report.cg_iterations.clone(),
-        ridge_chosen: report.ridge.clone(),
-        ridge_holdout_mse: report.ridge_holdout_mse.clone(),
-        failure_train_fits: report.failure_samples,
-        val_box_init: val_box,
-        val_jittered_box_init: val_jit,
-        detector_auc_nme_gt_0_08: auc,
-        detector_threshold: thr,
-        detector_tpr: tpr,
-        detector_fpr: fpr,
-        detector_val_fits: fits.len(),
-        detector_val_failures: labels.iter().filter(|l| **l).count(),
-    };
-    let json_path = args
-        .out
-        .with_extension(if args.evaluate { "eval.json" } else { "json" });
-    holoface_sources::output::write_atomic(
-        &json_path,
-        (serde_json::to_string_pretty(&rep)? + "\n").as_bytes(),
-    )?;
+}
+
+/// The run in words.
+fn say_report(rep: &Report, report: &train::TrainReport, (out, bytes, json_path): (&Path, usize, &Path)) {
+    let (training_seconds, thr, auc, tpr, fpr) = (
+        rep.training_seconds,
+        rep.detector_threshold,
+        rep.detector_auc_nme_gt_0_08,
+        rep.detector_tpr,
+        rep.detector_fpr,
+    );
     crate::say!(
         "training time        {:.1} s ({} samples/stage)",
         training_seconds,
@@ -532,9 +590,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     crate::say!(
         "model                {} ({} bytes), report {}",
-        args.out.display(),
-        bytes.len(),
+        out.display(),
+        bytes,
         json_path.display()
     );
-    Ok(())
 }

@@ -652,15 +652,7 @@ fn validate(refiner: &RefineCascade, val: &ValAnswers) -> anyhow::Result<ValRepo
 
 /// Runs `holoface train-refiner`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if !(1..=holoface_models::refine::START_OFFSETS.len()).contains(&args.starts) {
-        bail!(
-            "--starts must be within 1..={}",
-            holoface_models::refine::START_OFFSETS.len()
-        );
-    }
-    if !(1..=2).contains(&args.crop_scale) {
-        bail!("--crop-scale must be 1 or 2");
-    }
+    check(&args)?;
     let data = faces68_or(args.data.as_deref());
     let mut train_faces = load_folder(&data, Split::Train, true)?;
     if let Some(n) = args.limit {
@@ -673,81 +665,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         tracing::info!(faces = faces.len(), labels = %path.display(), "teacher-labelled faces");
         teacher_faces.extend(faces);
     }
-    let engine = OnnxEngine::load(&OnnxOptions {
-        model: args.runtime.dan_model.clone(),
-        ort_dylib: args.runtime.ort_dylib(),
-        intra_threads: args.runtime.threads,
-        max_batch: BATCH,
-        provider: holoface_inference::Provider::Cpu,
-        spin: false,
-    })
-    .with_context(|| format!("loading DAN model {}", args.runtime.dan_model.display()))?;
-    let threshold = engine.info().face_threshold;
-    let dan_name = format!("{} {}", engine.info().name, engine.info().version);
-    let mut runner = DanRunner {
-        engine,
-        batch: BatchTensor::new(BATCH, 112 * 112),
-        outs: vec![LandmarkOut::default(); BATCH],
-        queued: Vec::new(),
-        scale: args.crop_scale as f32,
-        threshold,
-        answered: Vec::new(),
-        rejected: 0,
-    };
+    let (mut runner, dan_name) = dan_runner(&args)?;
     let mut detector = args.runtime.detector()?;
     if args.evaluate {
-        let val = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
-        let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
-        let mut refiner = RefineCascade::from_bytes(&bytes)?;
-        for (starts, mirror) in [(1, false), (args.starts, false), (1, true), (args.starts, true)] {
-            refiner.starts = starts;
-            refiner.mirror = mirror;
-            let v = validate(&refiner, &val)?;
-            crate::say!("{}", serde_json::to_string(&v)?);
-        }
-        return Ok(());
-    }
-    if args
-        .local_radius
-        .as_ref()
-        .is_some_and(|v| v.len() != 2 || v.iter().any(|r| !r.is_finite() || *r <= 0.0))
-    {
-        bail!("--local-radius takes two positive radii: FIRST,LAST");
+        return evaluate(&args, &val_faces, &mut runner, &mut detector);
     }
     let size = 112 * args.crop_scale;
     let t0 = Instant::now();
-    // The annotated faces' crops and the teacher-labelled ones are cached apart, so that the ablation (the
-    // same recipe without teacher labels) and retrains reuse both.
-    let key = cache_key(&args.runtime.dan_model, &args, train_faces.len())?;
-    let mut answered = cached_answers(&args.cache, &key, size, &mut runner, |runner| {
-        tracing::info!(
-            faces = train_faces.len(),
-            crops = args.crops,
-            "running DAN on the training crops"
-        );
-        answer_training_crops(&train_faces, args.crops, 0, &args, runner, &mut detector)
-    })?;
-    if !teacher_faces.is_empty() {
-        let mut key = teacher_cache_key(&args, teacher_faces.len())?;
-        key.extend_from_slice(&cache_key(&args.runtime.dan_model, &args, train_faces.len())?);
-        let path = args.cache.with_extension("teacher.bin");
-        answered.extend(cached_answers(&path, &key, size, &mut runner, |runner| {
-            tracing::info!(
-                faces = teacher_faces.len(),
-                crops = args.teacher_crops,
-                "running DAN on the teacher-labelled crops"
-            );
-            let first = train_faces.len();
-            answer_training_crops(
-                &teacher_faces,
-                args.teacher_crops,
-                first,
-                &args,
-                runner,
-                &mut detector,
-            )
-        })?);
-    }
+    let faces = (&train_faces[..], &teacher_faces[..]);
+    let answered = training_answers(&args, faces, size, &mut runner, &mut detector)?;
     let dan_seconds = t0.elapsed().as_secs_f64();
     let mut samples: Vec<RefineSample<'_>> = answered
         .iter()
@@ -763,89 +689,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let borrowed = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
     samples.extend(borrowed);
-    let cfg = RefineConfig {
-        stages: args.stages,
-        trees: args.trees,
-        depth: args.depth,
-        features: args.features,
-        split_tests: args.split_tests,
-        learning_rate: args.learning_rate,
-        seed: args.seed,
-        threads: args.train_threads,
-        lambda: args.lambda,
-        sampling: if args.bilinear {
-            Sampling::Bilinear
-        } else {
-            Sampling::Nearest
-        },
-        local_radius: args
-            .local_radius
-            .as_ref()
-            .and_then(|v| Some((*v.first()?, *v.get(1)?))),
-        name: format!("holoface-ert {}", args.version),
-        ..RefineConfig::default()
-    };
+    let cfg = refine_config(&args);
     let val_set = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
-    // The validation shapes follow the cascade stage by stage (held-out error per stage).
-    let mut val_shapes: Vec<[Point2; 68]> = val_set.answered.iter().map(|a| a.start).collect();
-    let mut scratch = RefineScratch::default();
-    let mut stage_nme = Vec::new();
     let t1 = Instant::now();
-    let refiner = train(&samples, &mean, size, &cfg, &mut |r, stage| {
-        let before = mean_nme68(&val_set, &val_shapes);
-        for (shape, a) in val_shapes.iter_mut().zip(&val_set.answered) {
-            stage.apply(
-                &mean,
-                cfg.depth,
-                (size, cfg.sampling),
-                &a.crop,
-                shape,
-                &mut scratch,
-            );
-        }
-        let after = mean_nme68(&val_set, &val_shapes);
-        eprintln!(
-            "stage {:>2}: training NME68 {:.3} % -> {:.3} %, validation {:.3} % -> {:.3} % ({:.0} s)",
-            r.stage,
-            100.0 * r.nme_before,
-            100.0 * r.nme_after,
-            100.0 * before,
-            100.0 * after,
-            t1.elapsed().as_secs_f64()
-        );
-        stage_nme.push(StageNme {
-            train_before: r.nme_before,
-            train_after: r.nme_after,
-            validation_before: before,
-            validation_after: after,
-        });
-    })?;
+    let (mut refiner, stage_nme) = train_watched(&samples, &mean, size, &cfg, &val_set)?;
     let train_seconds = t1.elapsed().as_secs_f64();
-    let mut refiner = refiner;
-    let mut val = validate(&refiner, &val_set)?;
-    if args.starts > 1 || args.mirror {
-        crate::say!(
-            "validation, 1 start, no mirror: NME68 {:.2} % NME49 {:.2} % ({:.0} us per crop)",
-            100.0 * val.refined_nme68,
-            100.0 * val.refined_nme49,
-            val.refine_us_per_crop
-        );
-        refiner.starts = args.starts;
-        refiner.mirror = args.mirror;
-        val = validate(&refiner, &val_set)?;
-    }
-    crate::say!(
-        "validation (detector init, {} faces, {} detected): NME68 DAN {:.2} % -> refined {:.2} %; NME49 {:.2} % -> {:.2} %; failures68 {:.2} % -> {:.2} %; {:.0} us per crop",
-        val.faces,
-        val.detected,
-        100.0 * val.dan_nme68,
-        100.0 * val.refined_nme68,
-        100.0 * val.dan_nme49,
-        100.0 * val.refined_nme49,
-        100.0 * val.dan_failure68,
-        100.0 * val.refined_failure68,
-        val.refine_us_per_crop
-    );
+    let val = final_validation(&mut refiner, &args, &val_set)?;
     let bytes = refiner.to_bytes();
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
@@ -890,4 +739,212 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         json.display()
     );
     Ok(())
+}
+
+/// The settings' ranges.
+fn check(args: &Args) -> anyhow::Result<()> {
+    if !(1..=holoface_models::refine::START_OFFSETS.len()).contains(&args.starts) {
+        bail!(
+            "--starts must be within 1..={}",
+            holoface_models::refine::START_OFFSETS.len()
+        );
+    }
+    if !(1..=2).contains(&args.crop_scale) {
+        bail!("--crop-scale must be 1 or 2");
+    }
+    if args
+        .local_radius
+        .as_ref()
+        .is_some_and(|v| v.len() != 2 || v.iter().any(|r| !r.is_finite() || *r <= 0.0))
+    {
+        bail!("--local-radius takes two positive radii: FIRST,LAST");
+    }
+    Ok(())
+}
+
+/// DAN through ONNX Runtime in batches, and its name and version.
+fn dan_runner(args: &Args) -> anyhow::Result<(DanRunner, String)> {
+    let engine = OnnxEngine::load(&OnnxOptions {
+        model: args.runtime.dan_model.clone(),
+        ort_dylib: args.runtime.ort_dylib(),
+        intra_threads: args.runtime.threads,
+        max_batch: BATCH,
+        provider: holoface_inference::Provider::Cpu,
+        spin: false,
+    })
+    .with_context(|| format!("loading DAN model {}", args.runtime.dan_model.display()))?;
+    let threshold = engine.info().face_threshold;
+    let dan_name = format!("{} {}", engine.info().name, engine.info().version);
+    let runner = DanRunner {
+        engine,
+        batch: BatchTensor::new(BATCH, 112 * 112),
+        outs: vec![LandmarkOut::default(); BATCH],
+        queued: Vec::new(),
+        scale: args.crop_scale as f32,
+        threshold,
+        answered: Vec::new(),
+        rejected: 0,
+    };
+    Ok((runner, dan_name))
+}
+
+/// `--evaluate`: the cascade at `--out` on the validation faces, 1 and `--starts` starts, with and without
+/// the mirror pass.
+fn evaluate(
+    args: &Args,
+    val_faces: &[Sample],
+    runner: &mut DanRunner,
+    detector: &mut holoface_runtime::detect::BlazeFace,
+) -> anyhow::Result<()> {
+    let val = val_answers(val_faces, args, runner, detector)?;
+    let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
+    let mut refiner = RefineCascade::from_bytes(&bytes)?;
+    for (starts, mirror) in [(1, false), (args.starts, false), (1, true), (args.starts, true)] {
+        refiner.starts = starts;
+        refiner.mirror = mirror;
+        let v = validate(&refiner, &val)?;
+        crate::say!("{}", serde_json::to_string(&v)?);
+    }
+    Ok(())
+}
+
+/// DAN's answers on the annotated faces' training crops and on the teacher-labelled ones (`faces`), each from
+/// its cache when it matches. The two are cached apart, so that the ablation (the same recipe without teacher
+/// labels) and retrains reuse both.
+fn training_answers(
+    args: &Args,
+    (train_faces, teacher_faces): (&[Sample], &[Sample]),
+    size: usize,
+    runner: &mut DanRunner,
+    detector: &mut holoface_runtime::detect::BlazeFace,
+) -> anyhow::Result<Vec<Answered>> {
+    let key = cache_key(&args.runtime.dan_model, args, train_faces.len())?;
+    let mut answered = cached_answers(&args.cache, &key, size, runner, |runner| {
+        tracing::info!(
+            faces = train_faces.len(),
+            crops = args.crops,
+            "running DAN on the training crops"
+        );
+        answer_training_crops(train_faces, args.crops, 0, args, runner, detector)
+    })?;
+    if !teacher_faces.is_empty() {
+        let mut key = teacher_cache_key(args, teacher_faces.len())?;
+        key.extend_from_slice(&cache_key(&args.runtime.dan_model, args, train_faces.len())?);
+        let path = args.cache.with_extension("teacher.bin");
+        answered.extend(cached_answers(&path, &key, size, runner, |runner| {
+            tracing::info!(
+                faces = teacher_faces.len(),
+                crops = args.teacher_crops,
+                "running DAN on the teacher-labelled crops"
+            );
+            let first = train_faces.len();
+            answer_training_crops(teacher_faces, args.teacher_crops, first, args, runner, detector)
+        })?);
+    }
+    Ok(answered)
+}
+
+/// The cascade's settings from the command line.
+fn refine_config(args: &Args) -> RefineConfig {
+    RefineConfig {
+        stages: args.stages,
+        trees: args.trees,
+        depth: args.depth,
+        features: args.features,
+        split_tests: args.split_tests,
+        learning_rate: args.learning_rate,
+        seed: args.seed,
+        threads: args.train_threads,
+        lambda: args.lambda,
+        sampling: if args.bilinear {
+            Sampling::Bilinear
+        } else {
+            Sampling::Nearest
+        },
+        local_radius: args
+            .local_radius
+            .as_ref()
+            .and_then(|v| Some((*v.first()?, *v.get(1)?))),
+        name: format!("holoface-ert {}", args.version),
+        ..RefineConfig::default()
+    }
+}
+
+/// Trains the cascade; the validation shapes follow it stage by stage (held-out error per stage, printed
+/// and returned).
+fn train_watched(
+    samples: &[RefineSample<'_>],
+    mean: &[Point2; 68],
+    size: usize,
+    cfg: &RefineConfig,
+    val_set: &ValAnswers,
+) -> anyhow::Result<(RefineCascade, Vec<StageNme>)> {
+    let mut val_shapes: Vec<[Point2; 68]> = val_set.answered.iter().map(|a| a.start).collect();
+    let mut scratch = RefineScratch::default();
+    let mut stage_nme = Vec::new();
+    let t1 = Instant::now();
+    let refiner = train(samples, mean, size, cfg, &mut |r, stage| {
+        let before = mean_nme68(val_set, &val_shapes);
+        for (shape, a) in val_shapes.iter_mut().zip(&val_set.answered) {
+            stage.apply(
+                mean,
+                cfg.depth,
+                (size, cfg.sampling),
+                &a.crop,
+                shape,
+                &mut scratch,
+            );
+        }
+        let after = mean_nme68(val_set, &val_shapes);
+        eprintln!(
+            "stage {:>2}: training NME68 {:.3} % -> {:.3} %, validation {:.3} % -> {:.3} % ({:.0} s)",
+            r.stage,
+            100.0 * r.nme_before,
+            100.0 * r.nme_after,
+            100.0 * before,
+            100.0 * after,
+            t1.elapsed().as_secs_f64()
+        );
+        stage_nme.push(StageNme {
+            train_before: r.nme_before,
+            train_after: r.nme_after,
+            validation_before: before,
+            validation_after: after,
+        });
+    })?;
+    Ok((refiner, stage_nme))
+}
+
+/// The trained cascade on the validation faces, with `--starts` and `--mirror` set on it (and, when those
+/// differ from one plain pass, the plain pass printed first).
+fn final_validation(
+    refiner: &mut RefineCascade,
+    args: &Args,
+    val_set: &ValAnswers,
+) -> anyhow::Result<ValReport> {
+    let mut val = validate(refiner, val_set)?;
+    if args.starts > 1 || args.mirror {
+        crate::say!(
+            "validation, 1 start, no mirror: NME68 {:.2} % NME49 {:.2} % ({:.0} us per crop)",
+            100.0 * val.refined_nme68,
+            100.0 * val.refined_nme49,
+            val.refine_us_per_crop
+        );
+        refiner.starts = args.starts;
+        refiner.mirror = args.mirror;
+        val = validate(refiner, val_set)?;
+    }
+    crate::say!(
+        "validation (detector init, {} faces, {} detected): NME68 DAN {:.2} % -> refined {:.2} %; NME49 {:.2} % -> {:.2} %; failures68 {:.2} % -> {:.2} %; {:.0} us per crop",
+        val.faces,
+        val.detected,
+        100.0 * val.dan_nme68,
+        100.0 * val.refined_nme68,
+        100.0 * val.dan_nme49,
+        100.0 * val.refined_nme49,
+        100.0 * val.dan_failure68,
+        100.0 * val.refined_failure68,
+        val.refine_us_per_crop
+    );
+    Ok(val)
 }
