@@ -323,17 +323,21 @@ fn frames_without_faces_get_explicit_no_face_lines() {
 
 /// `--aligner remote` with nobody at the server address: every frame is still answered (locally), each JSON
 /// line says where the link stands, and the run ends with a warning on stderr instead of silence.
-#[test]
-fn remote_tracking_without_a_server_says_so() {
-    let (d, frames) = faceless_frames("remote-down", 3);
-    let out = d.join("track.jsonl");
+/// An address where no alignment server answers (a port just free) and a fingerprint to pin.
+fn no_server() -> (String, String) {
     let port = std::net::UdpSocket::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
         .port();
-    let server = format!("127.0.0.1:{port}");
-    let fingerprint = "ab".repeat(32);
+    (format!("127.0.0.1:{port}"), "ab".repeat(32))
+}
+
+#[test]
+fn remote_tracking_without_a_server_says_so() {
+    let (d, frames) = faceless_frames("remote-down", 3);
+    let out = d.join("track.jsonl");
+    let (server, fingerprint) = no_server();
     let (ok, text) = holoface(&[
         "track",
         "--source",
@@ -368,13 +372,7 @@ fn remote_tracking_without_a_server_says_so() {
 fn link_cuts_follow_media_time_and_need_the_remote_aligner() {
     let (d, frames) = faceless_frames("link-cuts", 4);
     let out = d.join("track.jsonl");
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let server = format!("127.0.0.1:{port}");
-    let fingerprint = "ab".repeat(32);
+    let (server, fingerprint) = no_server();
     let track = |extra: &[&str]| {
         let mut args = vec![
             "track",
