@@ -5,7 +5,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{holoface, tmp, workspace, write_png};
+use common::{holoface, json_lines, tmp, workspace, write_png};
 
 /// A temporary folder with `n` small textured frames that hold no face: `(folder, frames folder)`.
 fn faceless_frames(tag: &str, n: usize) -> (std::path::PathBuf, std::path::PathBuf) {
@@ -308,11 +308,7 @@ fn frames_without_faces_get_explicit_no_face_lines() {
         out.to_str().unwrap(),
     ]);
     assert!(ok, "{text}");
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = json_lines(&out);
     assert_eq!(lines.len(), 4, "one line per frame");
     for (i, l) in lines.iter().enumerate() {
         assert_eq!(l["frame"], i);
@@ -356,11 +352,7 @@ fn remote_tracking_without_a_server_says_so() {
         text.contains("warning: the alignment server link is not up"),
         "{text}"
     );
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = json_lines(&out);
     assert_eq!(lines.len(), 3);
     for l in &lines {
         let state = l["link"]["state"].as_str().unwrap();
@@ -407,14 +399,9 @@ fn link_cuts_follow_media_time_and_need_the_remote_aligner() {
         "--no-adapt",
     ]);
     assert!(ok, "{text}");
-    let cut: Vec<bool> = std::fs::read_to_string(&out)
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["link_cut"]
-                .as_bool()
-                .unwrap()
-        })
+    let cut: Vec<bool> = json_lines(&out)
+        .iter()
+        .map(|l| l["link_cut"].as_bool().unwrap())
         .collect();
     assert_eq!(cut, [false, false, true, false]);
 }

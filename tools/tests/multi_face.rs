@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{holoface, tmp};
+use common::{holoface, json_lines, tmp};
 
 #[test]
 fn three_faces_keep_three_ids_and_their_accuracy() {
@@ -84,11 +84,7 @@ fn track_follows_every_face_of_a_recorded_scene_with_stable_ids() {
         out.to_str().unwrap(),
     ]);
     assert!(ok, "{text}");
-    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&out)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = json_lines(&out);
     assert_eq!(lines.len(), 30);
     let truth: Vec<serde_json::Value> = std::fs::read_to_string(seq.join("truth.jsonl"))
         .unwrap()
