@@ -173,7 +173,7 @@ fn a_group_photograph_gives_most_of_its_faces_each_once() {
         "warn",
     ]);
     assert!(ok, "{text}");
-    let lines = common::json_lines(&out);
+    let lines = json_lines(&out);
     assert_eq!(lines.len(), 1, "a photograph is one frame");
     let faces = lines[0]["faces"].as_array().unwrap();
     assert!(
@@ -224,7 +224,7 @@ fn a_group_photograph_gives_most_of_its_faces_each_once() {
         "warn",
     ]);
     assert!(ok, "{text}");
-    let lines = common::json_lines(&out);
+    let lines = json_lines(&out);
     assert!(
         lines[0]["faces"].as_array().unwrap().len() < 5,
         "3 x 3 tiles cannot see 50-px faces in a 1666-px photo: {}",
