@@ -18,7 +18,8 @@ use crate::align::{AdaptState, AlignError, Aligner, Alignment, AnsweredBy, Candi
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdaptOptions {
     /// The local aligner runs beside every this many remote answers of a face (1: every one) to learn a
-    /// pair; each run costs one tracked local alignment (KRFWS: about 0.3 ms).
+    /// pair; each run costs one tracked local alignment (KRFWS: 0.3 ms when it runs often, about 0.65 ms run
+    /// this rarely, its model out of the caches; BENCHMARKS.md).
     pub learn_every: u32,
     /// A face's first this many remote answers each get a local run beside them (a link that drops early
     /// still leaves a correction), then every `learn_every`-th.

@@ -82,7 +82,7 @@ impl RemoteOptions {
             deadline: link.deadline,
             codec: link.codec,
             client_name: ConnectConfig::new(server, fingerprint, "").client_name,
-            adapt: crate::defaults::ADAPT.then(crate::adapt::AdaptOptions::default),
+            adapt: link.adapt,
         }
     }
 
