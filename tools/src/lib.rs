@@ -1,7 +1,7 @@
 //! The `holoface` command-line tools and what only they need: teacher-label files ([`labels`]), the synthetic
 //! headset renderer ([`render`]), annotated output ([`annotate`]), how the blendshapes follow real faces
 //! ([`expressions`]), the in-process loopback server
-//! ([`loopback`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]). A leaf:
+//! ([`loopback`]), link cuts on a schedule in media time ([`link_cuts`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]). A leaf:
 //! nothing else in the workspace depends on this crate; what the load tester and the end-to-end tests share
 //! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-toolkit`.
 //!
