@@ -207,6 +207,7 @@ deps-check:
 	$(CARGO) doc --locked -q $(FACADE_SEL) --no-deps --lib
 	@if grep -rqi quinn target/doc/holoface_headset_client; then \
 	  echo "the runtime's app-facing API mentions quinn" >&2; exit 1; fi
+	python3 tools/doc-links.py target/doc/holoface_headset_client
 	@echo "holoface-headset-client: the facade alone serves the C ABI, Python and the embedding example; no quinn in it"
 	@# The leaf: nothing in the workspace depends on the command line's crate (the load tester and the tests
 	@# share holoface-toolkit with it instead).

@@ -44,12 +44,14 @@
 pub use holoface_runtime::defaults;
 
 // The tracker, its options, a frame and what it gives back: what most apps name.
+mod tracker;
 #[doc(inline)]
 pub use holoface_runtime::{
-    AlignerChoice, DetectorOptions, FaceResult, FaceTracker, Frame, FrameResult, GrayImage, GrayView,
-    Intrinsics, LiveTracker, NoFaceReason, OwnedFrame, Pose, RemoteOptions, RunningMode, SessionOptions,
-    TrackerError, TrackerOptions,
+    AlignerChoice, DetectorOptions, FaceResult, Frame, FrameResult, GrayImage, GrayView, Intrinsics,
+    LiveTracker, NoFaceReason, OwnedFrame, Pose, RemoteOptions, RunningMode, SessionOptions, TrackerError,
+    TrackerOptions,
 };
+pub use tracker::FaceTracker;
 
 /// Every setting of [`SessionOptions`] and [`DetectorOptions`] and their limits.
 pub mod options {
@@ -75,22 +77,22 @@ pub mod results {
 pub mod errors {
     #[doc(inline)]
     pub use holoface_runtime::{
-        AlignError, AssetError, CropError, DetectError, EngineError, MissingAsset, RemoteOptionsError,
-        RemoteStartError, SessionOptionsError,
+        AlignError, AssetError, CandideError, CropError, DetectError, EngineError, ImageError, MissingAsset,
+        RemoteOptionsError, RemoteStartError, SessionOptionsError, TlsError,
     };
 }
 
 /// The remote aligner's link, as each [`FrameResult`] reports it.
 pub mod link {
     #[doc(inline)]
-    pub use holoface_runtime::{FailureKind, Fingerprint, LinkFailure, LinkInfo, LinkState};
+    pub use holoface_runtime::{FailureKind, Fingerprint, LinkFailure, LinkInfo, LinkState, ServerInfo};
 }
 
 /// The models and libraries the tracker loads, and where it looks for them.
 pub mod assets {
     #[doc(inline)]
     pub use holoface_runtime::{
-        Asset, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, ORT_DYLIB_ENV, home,
+        Asset, AssetPaths, CANDIDE_ENV, DETECTOR_ENV, HOME_ENV, KRFWS_ENV, ORT_DYLIB_ENV, Wfm, home,
         parse_face_model,
     };
 }
@@ -98,11 +100,5 @@ pub mod assets {
 /// Points, rotations and the camera, as the API takes and returns them.
 pub mod geometry {
     #[doc(inline)]
-    pub use holoface_runtime::{Point2, Quat, Vec3, default_intrinsics};
-}
-
-/// The aligner a [`FaceTracker`] is generic over (`FaceTracker<dyn Aligner + Send>` by default).
-pub mod aligner {
-    #[doc(inline)]
-    pub use holoface_runtime::align::Aligner;
+    pub use holoface_runtime::{Mat3, Point2, Quat, Similarity2, Vec3, default_intrinsics};
 }

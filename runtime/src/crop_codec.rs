@@ -24,52 +24,52 @@ impl Default for CropCodec {
     }
 }
 
-impl CropCodec {
-    /// The wire encoding this codec produces.
-    pub fn encoding(self) -> CropEncoding {
-        match self {
-            Self::Raw => CropEncoding::Raw,
-            Self::Png => CropEncoding::Png,
-            Self::Jpeg { .. } => CropEncoding::Jpeg,
-        }
-    }
+// What a codec does is kept in free functions, not methods: `CropCodec` is an option an app names, and the wire
+// types (`Crop`, `CropEncoding`) and the image crate's error stay out of the app's API.
 
-    /// This codec for the encoding the server chose (keeping our JPEG quality).
-    pub fn for_encoding(self, chosen: CropEncoding) -> Self {
-        match (chosen, self) {
-            (CropEncoding::Jpeg, Self::Jpeg { quality }) => Self::Jpeg { quality },
-            (CropEncoding::Jpeg, _) => Self::default(),
-            (CropEncoding::Png, _) => Self::Png,
-            _ => Self::Raw,
-        }
+/// The wire encoding `codec` produces.
+pub fn wire_encoding(codec: CropCodec) -> CropEncoding {
+    match codec {
+        CropCodec::Raw => CropEncoding::Raw,
+        CropCodec::Png => CropEncoding::Png,
+        CropCodec::Jpeg { .. } => CropEncoding::Jpeg,
     }
+}
 
-    /// Encodes `width` x `height` gray8 `pixels`.
-    pub fn encode(self, pixels: &[u8], width: u16, height: u16) -> Result<Crop, image::ImageError> {
-        let (w, h) = (u32::from(width), u32::from(height));
-        let data: Bytes = match self {
-            Self::Raw => Bytes::copy_from_slice(pixels),
-            Self::Png => {
-                let mut out = Vec::with_capacity(pixels.len());
-                let enc = image::codecs::png::PngEncoder::new(&mut out);
-                image::ImageEncoder::write_image(enc, pixels, w, h, image::ExtendedColorType::L8)?;
-                out.into()
-            }
-            Self::Jpeg { quality } => {
-                let mut out = Vec::with_capacity(pixels.len() / 4);
-                let mut enc =
-                    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100));
-                enc.encode(pixels, w, h, image::ExtendedColorType::L8)?;
-                out.into()
-            }
-        };
-        Ok(Crop {
-            encoding: self.encoding(),
-            width,
-            height,
-            data,
-        })
+/// `codec` for the encoding the server chose (keeping our JPEG quality).
+pub fn for_encoding(codec: CropCodec, chosen: CropEncoding) -> CropCodec {
+    match (chosen, codec) {
+        (CropEncoding::Jpeg, CropCodec::Jpeg { quality }) => CropCodec::Jpeg { quality },
+        (CropEncoding::Jpeg, _) => CropCodec::default(),
+        (CropEncoding::Png, _) => CropCodec::Png,
+        _ => CropCodec::Raw,
     }
+}
+
+/// Encodes `width` x `height` gray8 `pixels` with `codec`.
+pub fn encode(codec: CropCodec, pixels: &[u8], width: u16, height: u16) -> Result<Crop, image::ImageError> {
+    let (w, h) = (u32::from(width), u32::from(height));
+    let data: Bytes = match codec {
+        CropCodec::Raw => Bytes::copy_from_slice(pixels),
+        CropCodec::Png => {
+            let mut out = Vec::with_capacity(pixels.len());
+            let enc = image::codecs::png::PngEncoder::new(&mut out);
+            image::ImageEncoder::write_image(enc, pixels, w, h, image::ExtendedColorType::L8)?;
+            out.into()
+        }
+        CropCodec::Jpeg { quality } => {
+            let mut out = Vec::with_capacity(pixels.len() / 4);
+            let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100));
+            enc.encode(pixels, w, h, image::ExtendedColorType::L8)?;
+            out.into()
+        }
+    };
+    Ok(Crop {
+        encoding: wire_encoding(codec),
+        width,
+        height,
+        data,
+    })
 }
 
 impl std::str::FromStr for CropCodec {
@@ -124,8 +124,8 @@ mod tests {
     fn lossless_codecs_round_trip_exactly() {
         let px = pattern();
         for codec in [CropCodec::Raw, CropCodec::Png] {
-            let crop = codec.encode(&px, 112, 112).unwrap();
-            assert_eq!(crop.encoding, codec.encoding());
+            let crop = encode(codec, &px, 112, 112).unwrap();
+            assert_eq!(crop.encoding, wire_encoding(codec));
             assert_eq!(
                 holoface_inference::decode_crop(&crop).unwrap().to_vec(),
                 px,
@@ -137,7 +137,7 @@ mod tests {
     #[test]
     fn jpeg_is_smaller_and_close() {
         let px = pattern();
-        let crop = CropCodec::Jpeg { quality: 90 }.encode(&px, 112, 112).unwrap();
+        let crop = encode(CropCodec::Jpeg { quality: 90 }, &px, 112, 112).unwrap();
         assert!(crop.data.len() < px.len() / 3, "{} bytes", crop.data.len());
         let back = holoface_inference::decode_crop(&crop).unwrap().to_vec();
         let mae: f64 = back
@@ -162,8 +162,8 @@ mod tests {
     #[test]
     fn follows_the_servers_choice() {
         let ours = CropCodec::Jpeg { quality: 70 };
-        assert_eq!(ours.for_encoding(CropEncoding::Jpeg), ours);
-        assert_eq!(ours.for_encoding(CropEncoding::Raw), CropCodec::Raw);
-        assert_eq!(CropCodec::Raw.for_encoding(CropEncoding::Png), CropCodec::Png);
+        assert_eq!(for_encoding(ours, CropEncoding::Jpeg), ours);
+        assert_eq!(for_encoding(ours, CropEncoding::Raw), CropCodec::Raw);
+        assert_eq!(for_encoding(CropCodec::Raw, CropEncoding::Png), CropCodec::Png);
     }
 }

@@ -80,7 +80,7 @@ pub use holoface_models::adapt::AdaptParams;
 pub use holoface_models::crop::CropError;
 pub use link::{
     FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,
-    RemoteStartError,
+    RemoteStartError, ServerInfo,
 };
 pub use session::{
     Blendshape, BlendshapeParams, Blendshapes, FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S,
@@ -102,4 +102,10 @@ pub use holoface_models::kalman::KalmanParams;
 pub use holoface_models::math3::{Pose, Quat, Vec3};
 pub use holoface_models::pose::AttributeThresholds;
 pub use holoface_models::pose::{Attributes, WorldPose};
-pub use holoface_quic::Fingerprint;
+pub use holoface_quic::{Fingerprint, TlsError};
+
+// The types those types carry (an error's source, a link's welcome), so that every type of the API can be named.
+pub use holoface_models::candide::{CandideError, Wfm};
+pub use holoface_models::geometry::Similarity2;
+pub use holoface_models::image::ImageError;
+pub use holoface_models::math3::Mat3;

@@ -95,8 +95,10 @@ impl TrackerError {
     }
 }
 
-impl From<StepError> for TrackerError {
-    fn from(e: StepError) -> Self {
+impl TrackerError {
+    /// A step's error as the API reports it (a plain function, not `From`, so that the step's own error type
+    /// stays out of the facade's API).
+    fn from_step(e: StepError) -> Self {
         match e {
             StepError::Detect(e) => Self::Detect(e),
             StepError::Align(e) => Self::Align(e),
@@ -203,8 +205,8 @@ impl DetectorOptions {
 /// Detects, aligns, fits and filters faces frame by frame (see the module docs).
 ///
 /// Every tracker of the workspace, whatever its aligner, is assembled here ([`FaceTracker::new`]; the
-/// tools' own aligners through `with_aligner`, behind the `tools` feature): the detector with its
-/// settings, CANDIDE-3, the mean shape and the several-face session.
+/// tools' own aligners through `with_aligner`): the detector with its settings, CANDIDE-3, the mean shape
+/// and the several-face session. An app holds the facade's `FaceTracker`, which wraps this one.
 pub struct FaceTracker<A: ?Sized = dyn Aligner + Send> {
     mode: RunningMode,
     session: TrackerSession,
@@ -274,7 +276,7 @@ impl FaceTracker {
         let (aligner, link): (Box<dyn Aligner + Send>, _) = match &opts.aligner {
             AlignerChoice::Local => (Box::new(local), None),
             AlignerChoice::Remote(remote) => {
-                let linked = remote.start(local, opts.session.max_faces)?;
+                let linked = crate::link::LinkedAligner::start(remote, local, opts.session.max_faces)?;
                 let watch = linked.link().watch();
                 (Box::new(linked), Some(watch))
             }
@@ -359,11 +361,8 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
             }
             self.last_timestamp = Some(frame.timestamp_us);
         }
-        Ok(crate::frame_step::step_faces(
-            &mut self.session,
-            &mut *self.aligner,
-            frame,
-        )?)
+        crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)
+            .map_err(TrackerError::from_step)
     }
 }
 

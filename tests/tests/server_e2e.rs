@@ -161,7 +161,7 @@ async fn the_servers_answer_is_what_eval_remote_measures() {
         .await
         .unwrap();
     let mut req = frame(1, 0, DEADLINE_MS);
-    req.crop = CropCodec::default().encode(crop.as_slice(), 112, 112).unwrap();
+    req.crop = holoface_runtime::crop_codec::encode(CropCodec::default(), crop.as_slice(), 112, 112).unwrap();
     let reply = within("reply", client.request(&req)).await.unwrap();
     let ReplyOutcome::Landmarks {
         landmarks, face_prob, ..

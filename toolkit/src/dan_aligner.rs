@@ -140,9 +140,9 @@ impl<E: InferenceEngine> DanAligner<E> {
             None => self.batch.push(self.crop.as_slice())?,
             Some(codec) => {
                 let bad = |e: image::ImageError| AlignError::BadOutput(format!("crop codec {codec}: {e}"));
-                let crop = codec
-                    .encode(self.crop.as_slice(), CROP_SIDE, CROP_SIDE)
-                    .map_err(bad)?;
+                let crop =
+                    holoface_runtime::crop_codec::encode(codec, self.crop.as_slice(), CROP_SIDE, CROP_SIDE)
+                        .map_err(bad)?;
                 let req = holoface_protocol::FrameRequest {
                     track_id: 0,
                     frame_id: 0,

@@ -158,12 +158,8 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         if let Some(n) = Neighbours::of(faces, i) {
             n.blank(&mut self.crop, &sim);
         }
-        let crop = self
-            .opts
-            .codec
-            .for_encoding(welcome.encoding)
-            .encode(self.crop.as_slice(), CROP_SIDE, CROP_SIDE)
-            .ok()?;
+        let codec = crate::crop_codec::for_encoding(self.opts.codec, welcome.encoding);
+        let crop = crate::crop_codec::encode(codec, self.crop.as_slice(), CROP_SIDE, CROP_SIDE).ok()?;
         let req = FrameRequest {
             track_id,
             frame_id,
@@ -576,7 +572,7 @@ mod tests {
     impl Link for FakeLink {
         fn status(&self) -> super::super::LinkInfo {
             match &self.up {
-                Some(w) => super::super::LinkInfo::Up(Arc::clone(w)),
+                Some(w) => super::super::LinkInfo::Up(super::super::ServerInfo::new(Arc::clone(w))),
                 None => super::super::LinkInfo::Connecting { last_error: None },
             }
         }

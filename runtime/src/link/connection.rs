@@ -186,15 +186,11 @@ impl LinkFailure {
     }
 }
 
-impl From<&LinkError> for LinkFailure {
-    fn from(e: &LinkError) -> Self {
-        Self::new(e.kind(), e.to_string())
-    }
-}
-
-impl From<LinkError> for LinkFailure {
-    fn from(e: LinkError) -> Self {
-        Self::from(&e)
+impl LinkError {
+    /// This error as the link's status reports it (a method rather than `From`, so that `LinkError`, the
+    /// connection's own type, stays out of the app's API through `LinkFailure`).
+    pub fn failure(&self) -> LinkFailure {
+        LinkFailure::new(self.kind(), self.to_string())
     }
 }
 
@@ -533,7 +529,7 @@ mod tests {
                 FailureKind::BadVersion
             ]
         );
-        let f = LinkFailure::from(closed_with(CloseCode::Unauthorized));
+        let f = closed_with(CloseCode::Unauthorized).failure();
         assert!(f.to_string().starts_with("unauthorized: "), "{f}");
     }
 

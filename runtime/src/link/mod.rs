@@ -58,7 +58,7 @@ pub enum LinkInfo {
         last_error: Option<LinkFailure>,
     },
     /// Handshake done; frames may be sent.
-    Up(Arc<ServerWelcome>),
+    Up(ServerInfo),
     /// The link gave up: retrying cannot help (wrong token, certificate mismatch, protocol version) or the
     /// UDP socket could not be opened. Every frame is answered locally.
     Failed(LinkFailure),
@@ -66,11 +66,41 @@ pub enum LinkInfo {
     Stopped,
 }
 
+/// The server a link is up to, as its welcome said.
+#[derive(Clone, Debug)]
+pub struct ServerInfo(Arc<ServerWelcome>);
+
+impl ServerInfo {
+    pub(crate) fn new(welcome: Arc<ServerWelcome>) -> Self {
+        Self(welcome)
+    }
+
+    /// The alignment model the server runs (its identifier, e.g. `holoface-dan`).
+    pub fn model_id(&self) -> &str {
+        &self.0.model_id
+    }
+
+    /// The alignment model's version.
+    pub fn model_version(&self) -> &str {
+        &self.0.model_version
+    }
+
+    /// The protocol version the server speaks.
+    pub fn protocol_version(&self) -> u16 {
+        self.0.version
+    }
+
+    /// Frames the client may have in flight at once.
+    pub fn max_in_flight(&self) -> u16 {
+        self.0.max_in_flight
+    }
+}
+
 impl LinkInfo {
-    /// The welcome when the link is up.
-    pub fn welcome(&self) -> Option<&Arc<ServerWelcome>> {
+    /// The server's welcome when the link is up (the aligner cuts its crops by it).
+    pub(crate) fn welcome(&self) -> Option<&Arc<ServerWelcome>> {
         match self {
-            Self::Up(w) => Some(w),
+            Self::Up(w) => Some(&w.0),
             _ => None,
         }
     }
@@ -452,7 +482,7 @@ async fn supervise(
             }
             Err(e) => {
                 shared.counters.connect_failures.fetch_add(1, Ordering::Relaxed);
-                (LinkFailure::from(&e), false)
+                (e.failure(), false)
             }
         };
         let decision = sup.failed(Instant::now(), failure.clone());

@@ -125,29 +125,28 @@ impl RemoteOptions {
         }
         Ok(())
     }
+}
 
+// Here rather than on `RemoteOptions` (which an app names) so that the aligner's type stays out of the app's API.
+impl<A: crate::align::Aligner> LinkedAligner<A> {
     /// Starts connecting in the background (retrying with the default backoff) and returns the aligner that
     /// sends each frame's crops to the server and lets `local` answer what misses the deadline or arrives
     /// while the link is down. `max_faces` crops (one per tracked face) may be in flight at once. Options
-    /// out of range ([`Self::check`]) are refused.
-    pub fn start<A: crate::align::Aligner>(
-        &self,
-        local: A,
-        max_faces: usize,
-    ) -> Result<LinkedAligner<A>, RemoteStartError> {
-        self.check()?;
-        let mut cfg = ConnectConfig::new(self.server, self.fingerprint, self.token.clone());
-        cfg.client_name.clone_from(&self.client_name);
-        cfg.encodings = vec![self.codec.encoding()];
+    /// out of range ([`RemoteOptions::check`]) are refused.
+    pub fn start(remote: &RemoteOptions, local: A, max_faces: usize) -> Result<Self, RemoteStartError> {
+        remote.check()?;
+        let mut cfg = ConnectConfig::new(remote.server, remote.fingerprint, remote.token.clone());
+        cfg.client_name.clone_from(&remote.client_name);
+        cfg.encodings = vec![crate::crop_codec::wire_encoding(remote.codec)];
         cfg.max_in_flight = u16::try_from(max_faces.max(1)).unwrap_or(u16::MAX);
         let link = RemoteLink::start(cfg, Backoff::default())?;
         let opts = LinkOptions {
-            deadline: self.deadline,
-            codec: self.codec,
-            adapt: self.adapt,
+            deadline: remote.deadline,
+            codec: remote.codec,
+            adapt: remote.adapt,
             ..LinkOptions::default()
         };
-        Ok(LinkedAligner::new(link, local, opts))
+        Ok(Self::new(link, local, opts))
     }
 }
 

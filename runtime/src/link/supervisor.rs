@@ -77,7 +77,7 @@ impl Supervisor {
     /// A connection is up (handshake done): the backoff starts over.
     pub fn connected(&mut self, welcome: Arc<ServerWelcome>) {
         self.delay = self.backoff.initial;
-        self.status = LinkInfo::Up(welcome);
+        self.status = LinkInfo::Up(super::ServerInfo::new(welcome));
     }
 
     /// A connection attempt failed, or an established connection ended, at `now`.
@@ -114,7 +114,7 @@ impl Supervisor {
 /// How an established connection ended: a timeout there is the connection going silent (idle timeout), not
 /// an unreachable server.
 pub fn established_failure(e: LinkError) -> LinkFailure {
-    let mut f = LinkFailure::from(e);
+    let mut f = e.failure();
     if f.kind == FailureKind::Unreachable {
         f.kind = FailureKind::ConnectionLost;
     }

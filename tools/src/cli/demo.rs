@@ -357,7 +357,7 @@ fn start_link(
     remote.client_name = "holoface-demo".into();
     remote.deadline = Duration::from_millis(args.deadline_ms);
     remote.codec = args.crop_encoding;
-    let linked = remote.start(args.runtime.krfws_aligner()?, 1)?;
+    let linked = holoface_runtime::link::LinkedAligner::start(&remote, args.runtime.krfws_aligner()?, 1)?;
     let watch = linked.link().watch();
     let opts = args
         .runtime

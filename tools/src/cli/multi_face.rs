@@ -619,7 +619,8 @@ fn remote_aligner(
     remote.deadline = std::time::Duration::from_millis(args.deadline_ms);
     // One crop per face per frame in flight.
     let max_faces = args.counts.iter().copied().max().unwrap_or(1);
-    let mut aligner = remote.start(args.runtime.krfws_aligner()?, max_faces)?;
+    let mut aligner =
+        holoface_runtime::link::LinkedAligner::start(&remote, args.runtime.krfws_aligner()?, max_faces)?;
     let blank = GrayImage::zeros(FRAME_W, FRAME_H);
     let init = dan_mean_shape().map(|p| Point2::new(p.x + 260.0, p.y + 180.0));
     let give_up = std::time::Instant::now() + std::time::Duration::from_secs(10);

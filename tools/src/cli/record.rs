@@ -85,7 +85,7 @@ impl CropCutter {
         let sim = holoface_runtime::align::crop_from_image(&first.init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
-        let crop = self.codec.encode(self.crop.as_slice(), 112, 112)?;
+        let crop = holoface_runtime::crop_codec::encode(self.codec, self.crop.as_slice(), 112, 112)?;
         Ok(Some(FramePayload::Crop {
             image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],
             crop,

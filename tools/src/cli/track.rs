@@ -335,7 +335,7 @@ fn say_summary(
         crate::say!("{a}");
     }
     if let Some(status) = tracker.link_status() {
-        if status.welcome().is_some() {
+        if matches!(status, holoface_runtime::LinkInfo::Up(_)) {
             crate::say!("{remote_frames} of {faces} faces aligned by the remote DAN");
         } else {
             let why = match (&status, status.failure()) {

@@ -229,7 +229,7 @@ fn augment(px: &mut [u8], size: usize, rng: &mut Rng) {
 /// The JPEG q75 round trip of the wire.
 fn wire_round_trip(px: &[u8], size: usize) -> anyhow::Result<Vec<u8>> {
     let side = u16::try_from(size).context("crop too large")?;
-    let crop = WIRE.encode(px, side, side)?;
+    let crop = holoface_runtime::crop_codec::encode(WIRE, px, side, side)?;
     Ok(holoface_inference::decode_crop(&crop)?.to_vec())
 }
 
