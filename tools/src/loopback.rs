@@ -73,8 +73,8 @@ impl LoopbackServer {
         let _ = self.stop.send(());
         match self.rt.block_on(self.task) {
             Ok(Ok(())) => {}
-            Ok(Err(e)) => eprintln!("server stopped with an error: {e}"),
-            Err(e) => eprintln!("server task failed: {e}"),
+            Ok(Err(e)) => tracing::error!(error = %e, "the loopback server stopped with an error"),
+            Err(e) => tracing::error!(error = %e, "the loopback server's task failed"),
         }
     }
 }

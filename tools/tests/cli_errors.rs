@@ -348,10 +348,7 @@ fn remote_tracking_without_a_server_says_so() {
         &fingerprint,
     ]);
     assert!(ok, "{text}");
-    assert!(
-        text.contains("warning: the alignment server link is not up"),
-        "{text}"
-    );
+    assert!(text.contains("the alignment server link is not up"), "{text}");
     let lines = json_lines(&out);
     assert_eq!(lines.len(), 3);
     for l in &lines {

@@ -348,7 +348,7 @@ impl Fetcher {
                 while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) =
                     done_rx.recv_timeout(PROGRESS_EVERY)
                 {
-                    eprintln!(
+                    crate::say!(
                         "  still waiting for {}: {:.1} of {:.1} MB after {:.0} s (gives up after {} s)",
                         archive.url,
                         received.load(std::sync::atomic::Ordering::Relaxed) as f64 / 1e6,

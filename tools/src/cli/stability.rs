@@ -154,6 +154,9 @@ pub struct AdaptArgs {
     /// The local aligner learns beside every this many remote answers of a face.
     #[arg(long, default_value_t = AdaptOptions::default().learn_every, value_parser = clap::value_parser!(u32).range(1..))]
     pub adapt_every: u32,
+    /// A face's first this many remote answers each get a local run beside them, before `--adapt-every`.
+    #[arg(long, default_value_t = AdaptOptions::default().warm_pairs)]
+    pub adapt_warm: u32,
     /// The correction's memory in learnt pairs.
     #[arg(long, default_value_t = AdaptParams::default().memory_pairs)]
     pub adapt_memory: f64,
@@ -169,7 +172,7 @@ impl AdaptArgs {
     fn options(&self) -> AdaptOptions {
         AdaptOptions {
             learn_every: self.adapt_every,
-            warm_pairs: AdaptOptions::default().warm_pairs,
+            warm_pairs: self.adapt_warm,
             params: AdaptParams {
                 memory_pairs: self.adapt_memory,
                 ridge: self.adapt_ridge,
@@ -686,8 +689,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(p) = &peer
         && p.len() != frames
     {
-        eprintln!(
-            "warning: the peer file has {} frames, the video {frames}; the common prefix is compared",
+        tracing::warn!(
+            "the peer file has {} frames, the video {frames}; the common prefix is compared",
             p.len()
         );
     }

@@ -343,9 +343,9 @@ fn say_summary(
                 (_, Some(f)) => format!("retrying: {f}"),
                 (_, None) => "still connecting".to_owned(),
             };
-            eprintln!(
-                "warning: the alignment server link is not up ({why}); {remote_frames} of {faces} faces were \
-                 aligned remotely, the rest by the local aligner"
+            tracing::warn!(
+                "the alignment server link is not up ({why}); {remote_frames} of {faces} faces were aligned \
+                 remotely, the rest by the local aligner"
             );
         }
     }

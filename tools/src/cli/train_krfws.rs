@@ -328,7 +328,7 @@ fn box_fits(model: &Krfws, faces: &[TrainFace], jitter: usize, seed: u64) -> (Ve
 /// Runs `holoface train-krfws`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let root = faces68_or(args.data.as_deref());
-    eprintln!("loading faces from {}", root.display());
+    crate::say!("loading faces from {}", root.display());
     let mut train_faces = to_train_faces(&root, Split::Train)?;
     if let Some(n) = args.limit {
         train_faces.truncate(n);
@@ -338,7 +338,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if train_faces.is_empty() || val_faces.is_empty() {
         bail!("need training and validation faces in {}", root.display());
     }
-    eprintln!(
+    crate::say!(
         "{} training faces (x2 mirrored), {} validation faces",
         train_faces.len(),
         val_faces.len()
@@ -421,7 +421,7 @@ fn add_teacher_faces(args: &Args, train_faces: &mut Vec<TrainFace>) -> anyhow::R
         let faces =
             crate::labels::load_samples_where(path, args.teacher_limit, |l| !turned_only || turned(l))?;
         let kind = if turned_only { "turned " } else { "" };
-        eprintln!(
+        crate::say!(
             "{} {kind}teacher-labelled faces from {}",
             faces.len(),
             path.display()
@@ -502,7 +502,7 @@ fn failure_detector(
         let k: Vec<&train::PerturbedFit> = fits.iter().filter(|f| f.kind == kind).collect();
         let fail = k.iter().filter(|f| f.nme > FAILURE_THRESHOLD).count();
         let flagged = k.iter().filter(|f| f.score >= thr).count();
-        eprintln!(
+        crate::say!(
             "  val {kind:?}: {} fits, {fail} with NME > 0.08, {flagged} flagged",
             k.len()
         );

@@ -896,7 +896,7 @@ fn train_watched(
             );
         }
         let after = mean_nme68(val_set, &val_shapes);
-        eprintln!(
+        crate::say!(
             "stage {:>2}: training NME68 {:.3} % -> {:.3} %, validation {:.3} % -> {:.3} % ({:.0} s)",
             r.stage,
             100.0 * r.nme_before,
