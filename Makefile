@@ -210,7 +210,7 @@ deps-check:
 	python3 tools/doc-links.py target/doc/holoface_headset_client
 	@echo "holoface-headset-client: the facade alone serves the C ABI, Python and the embedding example; no quinn in it"
 	@# The leaf: nothing in the workspace depends on the command line's crate (the load tester and the tests
-	@# share holoface-toolkit with it instead).
+	@# share holoface-harness with it instead).
 	@users=$$($(CARGO) tree --locked --workspace -i holoface-tools -e normal,dev,build --prefix none | { grep -v '^holoface-tools ' || true; } | sort -u | tr '\n' ' '); \
 	  if [ -n "$$users" ]; then echo "holoface-tools is a leaf, but these depend on it: $$users" >&2; exit 1; fi
 	@echo "holoface-tools: a leaf (nothing depends on it)"

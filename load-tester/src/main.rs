@@ -132,7 +132,7 @@ fn main() -> ExitCode {
 /// it ran; a second ends the process at once.
 fn stop_on_signals() {
     use holoface_sources::stop;
-    let installed = holoface_toolkit::signals::on_signals(|sig| {
+    let installed = holoface_harness::signals::on_signals(|sig| {
         if stop::request(sig) {
             eprintln!(
                 "{}: ending the test and writing its report for the time it ran (send it again to stop at once)",

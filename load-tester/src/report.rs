@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use hdrhistogram::Histogram;
-use holoface_toolkit::plot::{Series, series_plot_png};
+use holoface_harness::plot::{Series, series_plot_png};
 use serde_json::json;
 
 use crate::Args;

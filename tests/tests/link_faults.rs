@@ -9,6 +9,8 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use holoface_harness::data::{Split, default_data_root, load_folder};
+use holoface_harness::relay::UdpRelay;
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_quic::Fingerprint;
@@ -17,8 +19,6 @@ use holoface_runtime::link::{
     Backoff, ConnectConfig, FailureKind, LinkInfo, LinkOptions, LinkState, LinkedAligner, Mode, RemoteLink,
 };
 use holoface_tests::{TEST_TOKEN, workspace_root};
-use holoface_toolkit::data::{Split, default_data_root, load_folder};
-use holoface_toolkit::relay::UdpRelay;
 
 const FRAME: Duration = Duration::from_micros(33_333);
 

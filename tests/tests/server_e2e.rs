@@ -117,12 +117,12 @@ async fn good_client_gets_correct_landmarks_and_welcome_from_model_metadata() {
 /// did move them away from DAN's.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_servers_answer_is_what_eval_remote_measures() {
+    use holoface_harness::data::{Split, default_data_root, load_folder};
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
     use holoface_runtime::align::{Aligner, crop_from_image, landmarks_from_crop};
     use holoface_runtime::link::CropCodec;
-    use holoface_toolkit::data::{Split, default_data_root, load_folder};
 
     let faces = load_folder(
         &default_data_root().join("faces68/train"),
@@ -143,9 +143,9 @@ async fn the_servers_answer_is_what_eval_remote_measures() {
         provider: holoface_inference::Provider::Cpu,
         spin: false,
     };
-    let mut remote = holoface_toolkit::dan_aligner::server_pipeline(&engine, &refiner_path()).unwrap();
+    let mut remote = holoface_harness::dan_aligner::server_pipeline(&engine, &refiner_path()).unwrap();
     let eval = remote.align(&face.image.view(), &init).unwrap();
-    let mut dan_alone = holoface_toolkit::dan_aligner::dan_alone(&engine).unwrap();
+    let mut dan_alone = holoface_harness::dan_aligner::dan_alone(&engine).unwrap();
     dan_alone.set_wire_codec(Some(CropCodec::default()));
     let dan = dan_alone.align(&face.image.view(), &init).unwrap();
     assert!(eval.accepted, "a validation face is accepted");

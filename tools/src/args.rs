@@ -87,16 +87,16 @@ impl RuntimeArgs {
 
     /// DAN alone in this process.
     pub fn dan_aligner(&self) -> anyhow::Result<DanAligner<OnnxEngine>> {
-        holoface_toolkit::dan_aligner::dan_alone(&self.dan_options())
+        holoface_harness::dan_aligner::dan_alone(&self.dan_options())
             .map_err(|e| e.given_by(CLI_OPTIONS))
             .with_context(|| format!("loading DAN model {}", self.dan_model.display()))
     }
 
-    /// The server's pipeline in this process (`holoface_toolkit::dan_aligner::server_pipeline`).
+    /// The server's pipeline in this process (`holoface_harness::dan_aligner::server_pipeline`).
     pub fn remote_aligner(
         &self,
     ) -> anyhow::Result<DanAligner<holoface_inference::CascadeEngine<OnnxEngine>>> {
-        holoface_toolkit::dan_aligner::server_pipeline(&self.dan_options(), &self.refine_model)
+        holoface_harness::dan_aligner::server_pipeline(&self.dan_options(), &self.refine_model)
             .map_err(|e| e.given_by(CLI_OPTIONS))
             .with_context(|| format!("loading DAN model {} and the refiner", self.dan_model.display()))
     }

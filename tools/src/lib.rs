@@ -3,7 +3,7 @@
 //! ([`expressions`]), the in-process loopback server
 //! ([`loopback`]), link cuts on a schedule in media time ([`link_cuts`]), summary statistics ([`stats`]) and the command-line asset options ([`args`]). A leaf:
 //! nothing else in the workspace depends on this crate; what the load tester and the end-to-end tests share
-//! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-toolkit`.
+//! with it (data folders, plots, the fault relay, DAN in-process) is `holoface-harness`.
 //!
 //! The headset runtime they drive is `holoface-runtime`; the demo's in-process alignment server is
 //! `holoface-server`. A headset app depends on neither this crate nor the server.
@@ -21,5 +21,5 @@ pub mod render;
 pub mod stability;
 pub mod stats;
 
-// Shared with the load tester and the end-to-end tests (holoface-toolkit); kept at their old paths here.
-pub use holoface_toolkit::{dan_aligner, data, plot, relay};
+// Shared with the load tester and the end-to-end tests (holoface-harness); kept at their old paths here.
+pub use holoface_harness::{dan_aligner, data, plot, relay};

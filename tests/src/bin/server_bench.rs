@@ -331,10 +331,10 @@ async fn connect(server: &ServerChild, max_in_flight: u16) -> anyhow::Result<Tes
 /// replies that arrive between `count_from` and `until`.
 /// Raw 112-px crops of the validation faces, each on its ground-truth box (`--face-crops`).
 fn face_crops() -> anyhow::Result<Vec<holoface_protocol::Crop>> {
+    use holoface_harness::data::{Split, default_data_root, load_folder};
     use holoface_models::crop::{Crop112, crop_bilinear};
     use holoface_models::geometry::{Point2, Rect, Similarity2};
     use holoface_models::shape::{dan_mean_shape, fit_to_box};
-    use holoface_toolkit::data::{Split, default_data_root, load_folder};
     let mean = dan_mean_shape();
     let faces = load_folder(
         &default_data_root().join("faces68/train"),

@@ -116,7 +116,7 @@ pub fn stop_gracefully() {
 /// not yet committed); the exit code is the shell's for the signal (130 / 143).
 pub fn handle_signals() {
     use holoface_sources::stop;
-    let installed = holoface_toolkit::signals::on_signals(|sig| {
+    let installed = holoface_harness::signals::on_signals(|sig| {
         let graceful = GRACEFUL.load(std::sync::atomic::Ordering::SeqCst);
         if graceful && stop::request(sig) {
             eprintln!(
