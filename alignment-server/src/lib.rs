@@ -10,8 +10,8 @@
 //!   injected shutdown future, [`run`], [`shutdown_signal`]. Split by
 //!   responsibility: `server/mod.rs` (the server, its shared state, transport
 //!   settings and the accept loop), `lifecycle.rs` (systemd readiness,
-//!   signals), `auth.rs` (hello, version and token checks), `connection.rs`
-//!   (the per-connection task), `reply.rs` (the reply sink), `frame.rs` (one
+//!   signals), `auth.rs` (hello, version and token checks), `client.rs`
+//!   (the per-connection task), `reply.rs` (the reply sink), `frame_stream.rs` (one
 //!   frame stream), `rate_limit.rs`, `scheduler.rs` (the batcher's task) and
 //!   `engine_thread.rs` (the inference thread).
 //! * [`config`]: [`ServerConfig`] (TOML + CLI + env, CLI cannot clobber the

@@ -19,8 +19,9 @@
 //! No IO besides loading the library, the model files and the bounded reads of [`files`]; no async runtime, no network.
 #![deny(missing_docs)]
 
+pub mod cascade;
 pub mod contract;
-pub mod crop;
+pub mod crop_decode;
 pub mod error;
 #[cfg(any(test, feature = "test-util"))]
 pub mod fake;
@@ -29,18 +30,17 @@ pub mod home;
 pub mod integrity;
 pub mod onnx;
 pub mod precision;
-pub mod refine;
 pub mod runtime;
 
+pub use cascade::{CascadeEngine, LoadedCascade};
 pub use contract::{
     BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, CascadeStats, Execution, InferenceEngine, LandmarkOut,
     ModelInfo,
 };
-pub use crop::{CropDecodeError, decode_crop};
+pub use crop_decode::{CropDecodeError, decode_crop};
 pub use error::EngineError;
 #[cfg(any(test, feature = "test-util"))]
 pub use fake::FakeEngine;
 pub use onnx::{OnnxEngine, OnnxOptions, Provider};
 pub use precision::{CpuInt8, Decision, PrecisionChoice};
-pub use refine::{CascadeEngine, LoadedCascade};
 pub use runtime::{ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

@@ -1,4 +1,4 @@
-//! Pure algorithms of HoloFace: crop geometry, landmark metrics, HOG, the KRFWS aligner, the server's
+//! Pure algorithms of HoloFace: crop geometry, landmark accuracy, HOG, the KRFWS aligner, the server's
 //! refinement cascade (`refine`), DAN pre- and
 //! post-processing, the CANDIDE-3 fit and the Kalman predictor.
 //!
@@ -7,6 +7,7 @@
 //! caller-provided buffers.
 #![deny(missing_docs)]
 
+pub mod accuracy;
 pub mod adapt;
 pub mod blendshapes;
 pub mod camera;
@@ -20,7 +21,6 @@ pub mod isa;
 pub mod kalman;
 pub mod krfws;
 pub mod math3;
-pub mod metrics;
 pub mod pose;
 pub mod refine;
 pub mod rng;

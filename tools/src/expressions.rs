@@ -12,7 +12,7 @@ use holoface_models::geometry::Point2;
 use holoface_models::shape::OUTER_EYE_CORNERS;
 use serde::Serialize;
 
-use crate::stability::Landmarks;
+use crate::track_measures::Landmarks;
 
 /// Pearson's correlation of paired samples; `None` with fewer than 3 pairs or without spread in either.
 pub fn pearson(pairs: &[(f64, f64)]) -> Option<f64> {

@@ -38,10 +38,10 @@
 
 mod admission;
 mod auth;
-mod connection;
+mod client;
 mod engine_thread;
 mod fault;
-mod frame;
+mod frame_stream;
 pub(crate) mod lifecycle;
 mod rate_limit;
 mod reply;
@@ -71,7 +71,7 @@ use holoface_inference::{
 };
 
 use admission::{Admission, Admit};
-use connection::connection;
+use client::connection;
 use engine_thread::engine_loop;
 use lifecycle::notify_systemd_ready;
 use scheduler::{FrameJob, SchedMsg, scheduler_loop};

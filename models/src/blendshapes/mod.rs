@@ -33,8 +33,8 @@
 
 use crate::geometry::Point2;
 
-mod pose;
-pub use pose::{HeadTurn, PoseTerms};
+mod head_turn;
+pub use head_turn::{HeadTurn, PoseTerms};
 
 /// The committed pose terms (`holoface train-blendshapes`; see [`PoseTerms`]).
 const POSE_TERMS_TXT: &str = include_str!("../../assets/blendshape_pose.txt");

@@ -1093,7 +1093,7 @@ impl Krfws {
 pub fn nme49_inner(pred: &[Point2; N_POINTS], gt: &[Point2; 68]) -> f64 {
     let mut full = *gt;
     full[INNER51].copy_from_slice(pred);
-    crate::metrics::nme49(&full, gt).unwrap_or(f64::INFINITY)
+    crate::accuracy::nme49(&full, gt).unwrap_or(f64::INFINITY)
 }
 
 #[cfg(test)]

@@ -19,8 +19,8 @@ use super::{
     REFINE_LANDMARKS, RefineCascade, RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest, frame_of,
     read_features,
 };
+use crate::accuracy::nme68;
 use crate::geometry::{Point2, Rect};
-use crate::metrics::nme68;
 use crate::rng::Rng;
 use thiserror::Error;
 

@@ -16,10 +16,10 @@ use crate::render::SCENE_CAMERA;
 use crate::stats::percentile;
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
+use holoface_models::accuracy::{nme49, nme68};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
-use holoface_models::metrics::{nme49, nme68};
 use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 

@@ -7,9 +7,9 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::{Args as ClapArgs, ValueEnum};
+use holoface_models::accuracy::{ErrorSummary, largest_yaw, nme49, nme68, summarise};
 use holoface_models::blendshapes::{BlendshapeEstimator, Blendshapes};
 use holoface_models::geometry::{Point2, Rect};
-use holoface_models::metrics::{ErrorSummary, largest_yaw, nme49, nme68, summarise};
 use holoface_models::shape::{dan_mean_shape, fit_to_box};
 use serde::Serialize;
 

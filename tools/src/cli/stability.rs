@@ -1,6 +1,6 @@
 //! `holoface stability`: how steady the landmarks are on real, unannotated video, per aligner, raw and
 //! steadied, against a per-frame peer (dlib through `models/peer_video_dlib.py`). Measures in
-//! [`crate::stability`].
+//! [`crate::track_measures`].
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -21,7 +21,7 @@ use serde_json::json;
 use crate::args::RuntimeArgs;
 use crate::expressions::{RestRule, VideoReport, video_report};
 use crate::link_cuts::CutRelay;
-use crate::stability::{Landmarks, Summary, agreement, jitter49, jump, parse_peer, summarise};
+use crate::track_measures::{Landmarks, Summary, agreement, jitter49, jump, parse_peer, summarise};
 
 /// `NAME=FILE` of `--also-peer`.
 fn parse_named_peer(s: &str) -> Result<(String, PathBuf), String> {

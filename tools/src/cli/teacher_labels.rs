@@ -18,8 +18,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail, ensure};
+use holoface_models::accuracy::{nme49, nme68};
 use holoface_models::geometry::Point2;
-use holoface_models::metrics::{nme49, nme68};
 use holoface_runtime::align::Aligner;
 use serde::Serialize;
 

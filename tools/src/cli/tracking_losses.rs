@@ -23,10 +23,10 @@ use std::path::PathBuf;
 use crate::render::SCENE_CAMERA;
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
+use holoface_models::accuracy::nme49;
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::image::GrayImage;
 use holoface_models::math3::{Mat3, Pose, Vec3};
-use holoface_models::metrics::nme49;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};

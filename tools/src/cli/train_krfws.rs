@@ -8,12 +8,12 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use holoface_models::accuracy::{FAILURE_THRESHOLD, summarise, yaw_proxy};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::krfws::train::{
     self, FitKind, Progress, TrainConfig, TrainFace, gt_box, roc_auc, youden_threshold,
 };
 use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS, nme49_inner};
-use holoface_models::metrics::{FAILURE_THRESHOLD, summarise, yaw_proxy};
 use holoface_models::rng::Rng;
 use serde::Serialize;
 
@@ -96,7 +96,7 @@ pub struct Args {
     /// towards frontal faces. Same starts as `--teacher-labels`.
     #[arg(long, value_delimiter = ',')]
     pub teacher_turned: Vec<PathBuf>,
-    /// Smallest yaw proxy (`holoface_models::metrics::yaw_proxy`: 0 frontal, towards 1 turned) of a face
+    /// Smallest yaw proxy (`holoface_models::accuracy::yaw_proxy`: 0 frontal, towards 1 turned) of a face
     /// kept from `--teacher-turned`.
     #[arg(long, default_value_t = 0.2)]
     pub turned_min_yaw: f64,

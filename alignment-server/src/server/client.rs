@@ -17,7 +17,7 @@ use tracing::{debug, info, warn};
 use super::admission::PendingSlot;
 use super::auth::{authorize, read_hello};
 use super::fault::{ConnectionEnd, Fault, close_conn};
-use super::frame::{ConnCtx, frame_task};
+use super::frame_stream::{ConnCtx, frame_task};
 use super::rate_limit::RateLimit;
 use super::reply::{CLOSE_GRACE, max_reply_len, reply_sink};
 use super::scheduler::SchedMsg;
@@ -134,7 +134,7 @@ async fn serve_connection(
         client,
         shared: Arc::clone(shared),
         sink,
-        newest: std::sync::Mutex::new(super::frame::NewestFrames::default()),
+        newest: std::sync::Mutex::new(super::frame_stream::NewestFrames::default()),
         read_timeout: settings.hello_timeout.max(settings.max_frame_age),
         version: hello.version,
     });
