@@ -198,6 +198,9 @@ deps-check:
 	@echo "holoface-runtime, holoface-headset-client, holoface-ffi, holoface-python, holoface-alignment-server: no trainers"
 	@# The facade: the C ABI, the Python module and the embedding example name holoface-headset-client only (never
 	@# the runtime's modules directly) and compile against it alone; no quinn type in its documented API.
+	@for c in holoface-ffi holoface-python; do \
+	  bad=$$($(CARGO) tree --locked -p $$c -e normal --depth 1 --prefix none | grep -oE '^holoface-(models|inference|quic|protocol) ' | tr -d ' ' | tr '\n' ' ' || true); \
+	  if [ -n "$$bad" ]; then echo "$$c depends on $$bad directly: it must use the facade" >&2; exit 1; fi; done
 	@for c in holoface-ffi holoface-python holoface-headset-client; do \
 	  if $(CARGO) tree --locked -p $$c -e normal --depth 1 --prefix none | grep -q '^holoface-runtime '; then \
 	    test $$c = holoface-headset-client || { echo "$$c depends on holoface-runtime directly: it must use the facade" >&2; exit 1; }; \

@@ -14,16 +14,15 @@ use std::path::PathBuf;
 use std::sync::{Mutex, PoisonError};
 
 use holoface_headset_client::geometry::default_intrinsics;
+use holoface_headset_client::geometry::{Quat, Vec3};
 use holoface_headset_client::link::LinkState;
 use holoface_headset_client::options::{AdaptOptions, SteadySettings};
 use holoface_headset_client::results::AnsweredBy;
 use holoface_headset_client::results::FaceUpdate;
 use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
 use holoface_headset_client::{Frame, OwnedFrame};
+use holoface_headset_client::{GrayView, Intrinsics, Pose};
 use holoface_headset_client::{RemoteOptions, defaults};
-use holoface_models::camera::Intrinsics;
-use holoface_models::image::GrayView;
-use holoface_models::math3::{Pose, Quat, Vec3};
 use holoface_sources::FrameSource;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayDescrMethods, PyArrayMethods, PyUntypedArray};
