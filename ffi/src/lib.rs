@@ -25,7 +25,6 @@ use holoface_headset_client::errors::RemoteOptionsError;
 use holoface_headset_client::link::{FailureKind, LinkInfo, LinkState};
 use holoface_headset_client::options::{AdaptOptions, SteadySettings};
 use holoface_headset_client::results::AnsweredBy;
-use holoface_headset_client::results::FaceUpdate;
 use holoface_headset_client::{AlignerChoice, FaceTracker, RunningMode, TrackerOptions, defaults};
 use holoface_headset_client::{FaceResult, NoFaceReason};
 
@@ -998,7 +997,7 @@ fn empty_result(answered_by: HfAnsweredBy, no_face_reason: u32) -> HfResult {
     }
 }
 
-fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
+fn face_to_c(u: &FaceResult, answered_by: HfAnsweredBy) -> HfResult {
     let q = |q: holoface_headset_client::geometry::Quat| [q.w, q.x, q.y, q.z];
     let mut c = empty_result(answered_by, 0);
     c.has_face = 1;
@@ -1030,9 +1029,9 @@ fn face_to_c(u: &FaceUpdate, answered_by: HfAnsweredBy) -> HfResult {
 
 fn to_c(r: &holoface_headset_client::FrameResult) -> HfResult {
     let by = answered_by_c(r.answered_by);
-    match r.first() {
-        FaceResult::Face(u) => face_to_c(&u, by),
-        FaceResult::NoFace(reason) => empty_result(by, no_face_code(reason)),
+    match (r.face(), r.no_face) {
+        (Some(u), _) => face_to_c(u, by),
+        (None, reason) => empty_result(by, no_face_code(reason.unwrap_or(NoFaceReason::NotDetected))),
     }
 }
 
@@ -1050,7 +1049,7 @@ fn faces_to_c(r: &holoface_headset_client::FrameResult, struct_size: u32) -> HfF
     for (slot, f) in out.faces.iter_mut().zip(&r.faces) {
         *slot = HfFace {
             id: f.id,
-            face: face_to_c(&f.update, answered_by_c(Some(f.update.answered_by))),
+            face: face_to_c(f, answered_by_c(Some(f.answered_by))),
         };
     }
     out.count = u32::try_from(r.faces.len().min(HF_MAX_FACES)).unwrap_or(0);

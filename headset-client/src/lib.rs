@@ -69,7 +69,7 @@ pub mod results {
     #[doc(inline)]
     pub use holoface_runtime::{
         AdaptState, AnsweredBy, Attributes, Blendshape, Blendshapes, Confidence, ExpressionWeights,
-        FaceModel, FaceUpdate, FitResult, InitSource, LandmarkSet, Timings, TrackedFace, Unit, WorldPose,
+        FaceModel, FitResult, InitSource, LandmarkSet, Timings, Unit, WorldPose,
     };
 }
 

@@ -18,7 +18,6 @@ use holoface_headset_client::geometry::{Quat, Vec3};
 use holoface_headset_client::link::LinkState;
 use holoface_headset_client::options::{AdaptOptions, SteadySettings};
 use holoface_headset_client::results::AnsweredBy;
-use holoface_headset_client::results::FaceUpdate;
 use holoface_headset_client::{self as tracker, AlignerChoice, RunningMode, TrackerError};
 use holoface_headset_client::{Frame, OwnedFrame};
 use holoface_headset_client::{GrayView, Intrinsics, Pose};
@@ -459,7 +458,7 @@ fn matrix4(py: Python<'_>, rotation: Quat, translation: Vec3) -> Py<PyArray2<f64
     m.into_pyarray(py).unbind()
 }
 
-fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
+fn face_to_py(py: Python<'_>, u: &tracker::FaceResult) -> PyResult<PyFace> {
     let mut lm = Array2::<f32>::zeros((68, 2));
     let mut raw = Array2::<f32>::zeros((68, 2));
     for (i, (p, r)) in u.landmarks.iter().zip(&u.raw_landmarks).enumerate() {
@@ -477,7 +476,7 @@ fn face_to_py(py: Python<'_>, id: u32, u: &FaceUpdate) -> PyResult<PyFace> {
         holoface_headset_client::results::Confidence::PredictedError(e) => (None, Some(e)),
     };
     Ok(PyFace {
-        id,
+        id: u.id,
         landmarks: lm.into_pyarray(py).unbind(),
         raw_landmarks: raw.into_pyarray(py).unbind(),
         landmark_set: match u.landmark_set {
@@ -509,7 +508,7 @@ fn result_to_py(py: Python<'_>, r: &tracker::FrameResult) -> PyResult<PyFaceResu
     let faces = r
         .faces
         .iter()
-        .map(|f| Py::new(py, face_to_py(py, f.id, &f.update)?))
+        .map(|f| Py::new(py, face_to_py(py, f)?))
         .collect::<PyResult<Vec<_>>>()?;
     let no_face_reason = r.no_face.map(|reason| variant_name(&reason));
     let (link_state, link_failure) = match r.link.map(link_names) {

@@ -83,9 +83,9 @@ pub use link::{
     RemoteStartError, ServerInfo,
 };
 pub use session::{
-    Blendshape, BlendshapeParams, Blendshapes, FaceResult, FaceUpdate, FilterParams, MAX_LOOKAHEAD_S,
+    Blendshape, BlendshapeParams, Blendshapes, FaceOutcome, FaceResult, FilterParams, MAX_LOOKAHEAD_S,
     MAX_TRACKED_FACES, NoFaceReason, OneEuroParams, SessionOptions, SessionOptionsError, SteadyParams,
-    SteadySettings, TrackedFace,
+    SteadySettings,
 };
 pub use tracker::{
     AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,

@@ -56,7 +56,7 @@ pub struct SessionOptions {
     /// frames to find the others (at least 1); with no face tracked it runs on every frame.
     pub detect_every: u32,
     /// The landmark filter (One-Euro, in the face's own frame; [`holoface_models::steady`]): what
-    /// [`FaceUpdate::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
+    /// [`FaceResult::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
     /// `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
     pub steady: Option<SteadyParams>,
     /// Blendshape coefficients: how many of a track's first frames calibrate the person's neutral.
@@ -198,15 +198,6 @@ pub const DUPLICATE_TRACK_IOU: f32 = 0.5;
 
 pub use crate::align::Candidate;
 
-/// A face tracked in one frame, with its stable id.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TrackedFace {
-    /// The track's id: the same for as long as the face is tracked, never reused within a session.
-    pub id: u32,
-    /// The face.
-    pub update: FaceUpdate,
-}
-
 /// What happened to one [`Candidate`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CandidateOutcome {
@@ -214,14 +205,14 @@ pub struct CandidateOutcome {
     /// detection that was not accepted.
     pub id: Option<u32>,
     /// The face, or why this candidate has none.
-    pub result: FaceResult,
+    pub result: FaceOutcome,
 }
 
 /// Every face of one frame.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FrameFaces {
     /// The faces tracked in this frame, oldest track first.
-    pub faces: Vec<TrackedFace>,
+    pub faces: Vec<FaceResult>,
     /// Per candidate, in the order [`TrackerSession::prepare_faces`] returned them.
     pub outcomes: Vec<CandidateOutcome>,
 }
@@ -237,25 +228,27 @@ impl FrameFaces {
             self.outcomes
                 .iter()
                 .find_map(|o| match o.result {
-                    FaceResult::NoFace(r) => Some(r),
-                    FaceResult::Face(_) => None,
+                    FaceOutcome::NoFace(r) => Some(r),
+                    FaceOutcome::Face(_) => None,
                 })
                 .unwrap_or(NoFaceReason::NotDetected),
         )
     }
 
     /// The first face's answer in the single-face form.
-    pub fn first(&self) -> FaceResult {
+    pub fn first(&self) -> FaceOutcome {
         self.faces.first().map_or_else(
-            || FaceResult::NoFace(self.no_face_reason().unwrap_or(NoFaceReason::NotDetected)),
-            |f| FaceResult::Face(f.update),
+            || FaceOutcome::NoFace(self.no_face_reason().unwrap_or(NoFaceReason::NotDetected)),
+            |f| FaceOutcome::Face(*f),
         )
     }
 }
 
-/// A tracked face in one frame.
+/// A face tracked in one frame: the one result type per face.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FaceUpdate {
+pub struct FaceResult {
+    /// The track's id: the same for as long as the face is tracked, never reused within a session.
+    pub id: u32,
     /// Landmarks in image pixels, steadied over time ([`SessionOptions::steady`]): what an app draws.
     pub landmarks: [Point2; 68],
     /// The aligner's own landmarks for this frame, unfiltered (image pixels).
@@ -293,13 +286,14 @@ pub struct FaceUpdate {
     pub adaptation: Option<crate::align::AdaptState>,
 }
 
-/// The answer for one frame: a face, or an explicit absence with the reason.
-// One value per frame, moved once: boxing the large variant would only add an allocation per frame.
+/// What came of one candidate: a face, or an explicit absence with the reason (the session's and the
+/// tools' view; an app reads [`FaceResult`]s and [`NoFaceReason`] in its frame result).
+// One value per candidate, moved once: boxing the large variant would only add an allocation per frame.
 #[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum FaceResult {
+pub enum FaceOutcome {
     /// A face was tracked.
-    Face(FaceUpdate),
+    Face(FaceResult),
     /// No face in this frame.
     NoFace(NoFaceReason),
 }
@@ -491,10 +485,10 @@ impl TrackerSession {
             outcomes.push(self.complete_one(frame, c, alignment));
         }
         self.merge_duplicates(&mut outcomes);
-        let mut faces: Vec<TrackedFace> = outcomes
+        let mut faces: Vec<FaceResult> = outcomes
             .iter()
             .filter_map(|o| match (o.id, o.result) {
-                (Some(id), FaceResult::Face(update)) => Some(TrackedFace { id, update }),
+                (Some(_), FaceOutcome::Face(face)) => Some(face),
                 _ => None,
             })
             .collect();
@@ -511,7 +505,7 @@ impl TrackerSession {
         let index = c.track.and_then(|id| self.tracks.iter().position(|t| t.id == id));
         let no_face = |id, reason| CandidateOutcome {
             id,
-            result: FaceResult::NoFace(reason),
+            result: FaceOutcome::NoFace(reason),
         };
         let Some(a) = alignment else {
             // Keep the track: a late answer is not evidence that the face is gone.
@@ -607,7 +601,8 @@ impl TrackerSession {
         self.tracks.insert(at, track);
         CandidateOutcome {
             id: Some(id),
-            result: FaceResult::Face(FaceUpdate {
+            result: FaceOutcome::Face(FaceResult {
+                id,
                 landmarks: shown,
                 raw_landmarks: a.landmarks,
                 landmark_set: a.set,
@@ -642,7 +637,7 @@ impl TrackerSession {
                 Some(j) => {
                     let gone = self.tracks.remove(j).id;
                     for o in outcomes.iter_mut().filter(|o| o.id == Some(gone)) {
-                        o.result = FaceResult::NoFace(NoFaceReason::Rejected);
+                        o.result = FaceOutcome::NoFace(NoFaceReason::Rejected);
                     }
                 }
                 None => i += 1,
@@ -757,7 +752,7 @@ mod tests {
         let f1 = frame(0);
         let (c, r) = one(&mut s, &f1, Some(answer(true)));
         assert_eq!(c.map(|c| c.source), Some(InitSource::Detection));
-        let FaceResult::Face(u) = r else {
+        let FaceOutcome::Face(u) = r else {
             panic!("expected a face")
         };
         assert!(
@@ -771,17 +766,17 @@ mod tests {
         let c = c.expect("a tracked candidate");
         assert_eq!(c.source, InitSource::Tracking);
         assert!(c.init[30].dist(lm[30]) < 1e-3);
-        assert!(matches!(r, FaceResult::Face(_)));
+        assert!(matches!(r, FaceOutcome::Face(_)));
         // Frame 3: no answer in time keeps the track; frame 4: rejection loses it.
         let f3 = frame(66_000);
         assert_eq!(
             one(&mut s, &f3, None).1,
-            FaceResult::NoFace(NoFaceReason::NoAnswer)
+            FaceOutcome::NoFace(NoFaceReason::NoAnswer)
         );
         assert!(s.is_tracking());
         assert_eq!(
             one(&mut s, &f3, Some(answer(false))).1,
-            FaceResult::NoFace(NoFaceReason::Rejected)
+            FaceOutcome::NoFace(NoFaceReason::Rejected)
         );
         assert!(!s.is_tracking());
     }
@@ -858,7 +853,7 @@ mod tests {
                     answered_by: crate::align::AnsweredBy::Krfws,
                     adaptation: None,
                 };
-                let FaceResult::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
+                let FaceOutcome::Face(u) = s.complete_faces(&f, &vec![Some(a); c.len()]).first() else {
                     panic!("frame {k}: no face")
                 };
                 assert_eq!(
@@ -1024,7 +1019,7 @@ mod tests {
         let (_, r) = run(&mut s, 20, Some(1));
         assert_eq!(ids(&r), [0, 2]);
         let lost = r.outcomes.iter().find(|o| o.id == Some(1)).unwrap();
-        assert_eq!(lost.result, FaceResult::NoFace(NoFaceReason::Rejected));
+        assert_eq!(lost.result, FaceOutcome::NoFace(NoFaceReason::Rejected));
         // Found again at the next detection: a new id, never a reused one.
         let mut found = None;
         for i in 21..30 {
@@ -1077,7 +1072,7 @@ mod tests {
         assert_eq!(r.faces.iter().map(|f| f.id).collect::<Vec<_>>(), [0]);
         assert_eq!(
             r.outcomes.iter().find(|o| o.id == Some(1)).map(|o| o.result),
-            Some(FaceResult::NoFace(NoFaceReason::Rejected))
+            Some(FaceOutcome::NoFace(NoFaceReason::Rejected))
         );
     }
 }

@@ -40,7 +40,7 @@ use crate::frame::{Frame, OwnedFrame};
 use crate::frame_step::StepError;
 pub use crate::frame_step::Timings;
 use crate::link::{LinkInfo, LinkState, LinkWatch, RemoteOptions};
-use crate::session::{FaceResult, FaceUpdate, NoFaceReason, SessionOptions, TrackedFace, TrackerSession};
+use crate::session::{FaceResult, NoFaceReason, SessionOptions, TrackerSession};
 
 /// How frames relate to each other.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -145,11 +145,11 @@ pub struct FrameResult {
     pub timestamp_us: u64,
     /// Every face tracked in this frame with its stable id, oldest track first (at most
     /// [`SessionOptions::max_faces`]); empty when there is none (`no_face` says why).
-    pub faces: Vec<TrackedFace>,
+    pub faces: Vec<FaceResult>,
     /// Why the frame has no face (`None` when `faces` is not empty).
     pub no_face: Option<NoFaceReason>,
     /// Which aligner answered the first candidate (`None` when nothing was aligned); per face in
-    /// [`FaceUpdate::answered_by`].
+    /// [`FaceResult::answered_by`].
     pub answered_by: Option<AnsweredBy>,
     /// Whether the face detector ran on this frame.
     pub detected: bool,
@@ -162,16 +162,8 @@ pub struct FrameResult {
 
 impl FrameResult {
     /// The oldest tracked face, if any (a one-face view of `faces`).
-    pub fn face(&self) -> Option<&FaceUpdate> {
-        self.faces.first().map(|f| &f.update)
-    }
-
-    /// The one-face view: the oldest face, or "no face" with the reason.
-    pub fn first(&self) -> FaceResult {
-        match (self.face(), self.no_face) {
-            (Some(u), _) => FaceResult::Face(*u),
-            (None, reason) => FaceResult::NoFace(reason.unwrap_or(NoFaceReason::NotDetected)),
-        }
+    pub fn face(&self) -> Option<&FaceResult> {
+        self.faces.first()
     }
 }
 

@@ -32,7 +32,7 @@ use holoface_runtime::align::{
 };
 use holoface_runtime::detect::BlazeFace;
 use holoface_runtime::{
-    AnsweredBy, AssetPaths, Confidence, CropCodec, FaceResult, FaceTracker, Frame, GrayView, LandmarkSet,
+    AnsweredBy, AssetPaths, Confidence, CropCodec, FaceTracker, Frame, FrameResult, GrayView, LandmarkSet,
     SessionOptions, TrackerOptions,
 };
 use holoface_sources::images::read_gray;
@@ -212,7 +212,7 @@ fn bench_frame(c: &mut Criterion) {
         "prepare+crop+fit+pose+filter+adapt",
     ];
     for ((mut tracker, truths), name) in trackers.into_iter().zip(names) {
-        let mut step = |n: usize| -> FaceResult {
+        let mut step = |n: usize| -> FrameResult {
             let (img, cam, truth) = &frames[n % frames.len()];
             *truths.lock().unwrap() = vec![*truth];
             let frame = Frame {
@@ -221,19 +221,16 @@ fn bench_frame(c: &mut Criterion) {
                 intrinsics: SCENE_CAMERA,
                 world_from_camera: *cam,
             };
-            tracker.process(&frame).unwrap().first()
+            tracker.process(&frame).unwrap()
         };
         // Start tracking (the detector runs here, outside the measurement).
         let mut n = 0usize;
-        assert!(
-            matches!(step(n), FaceResult::Face(_)),
-            "no face in the first frame"
-        );
+        assert!(step(n).face().is_some(), "no face in the first frame");
         g.bench_function(name, |b| {
             b.iter(|| {
                 n += 1;
                 let r = step(n);
-                assert!(matches!(r, FaceResult::Face(_)), "tracking lost at frame {n}");
+                assert!(r.face().is_some(), "tracking lost at frame {n}");
                 black_box(r)
             })
         });

@@ -8,7 +8,7 @@ use holoface_models::math3::Vec3;
 
 use crate::plot::Canvas;
 use holoface_runtime::align::AnsweredBy;
-use holoface_runtime::session::{FaceUpdate, NoFaceReason, TrackedFace};
+use holoface_runtime::session::{FaceResult, NoFaceReason};
 
 /// Length of the drawn pose axes, metres.
 const AXIS_M: f64 = 0.05;
@@ -29,7 +29,7 @@ pub fn aligner_style(by: Option<AnsweredBy>) -> ([u8; 3], &'static str) {
 pub fn annotate(
     image: &GrayImage,
     index: usize,
-    faces: &[TrackedFace],
+    faces: &[FaceResult],
     no_face: Option<NoFaceReason>,
     model: &FaceModel,
     k: &Intrinsics,
@@ -38,15 +38,15 @@ pub fn annotate(
     let mut cv = Canvas::new(w, h);
     cv.blit_gray(0, 0, image.as_bytes(), w, h, 1);
     for f in faces {
-        draw_face(&mut cv, &f.update, model, k);
-        let (colour, _) = aligner_style(Some(f.update.answered_by));
-        if let Some(b) = holoface_models::geometry::Rect::bounding(&f.update.landmarks) {
+        draw_face(&mut cv, f, model, k);
+        let (colour, _) = aligner_style(Some(f.answered_by));
+        if let Some(b) = holoface_models::geometry::Rect::bounding(&f.landmarks) {
             cv.text(b.x0 as i64, b.y0 as i64 - 14, &format!("#{}", f.id), colour);
         }
     }
     match (faces, no_face) {
         ([f], _) => {
-            let u = &f.update;
+            let u = f;
             let (colour, label) = aligner_style(Some(u.answered_by));
             let t = u.world.position;
             cv.text(
@@ -73,7 +73,7 @@ pub fn annotate(
             cv.text(6, 6, &format!("frame {index} no face {why}"), colour);
         }
         (many, _) => {
-            let (colour, _) = aligner_style(Some(many[0].update.answered_by));
+            let (colour, _) = aligner_style(Some(many[0].answered_by));
             cv.text(6, 6, &format!("frame {index} {} faces", many.len()), colour);
         }
     }
@@ -98,7 +98,7 @@ fn blendshape_bars(cv: &mut Canvas, b: &holoface_runtime::Blendshapes, y0: i64) 
     }
 }
 
-fn draw_face(cv: &mut Canvas, u: &FaceUpdate, model: &FaceModel, k: &Intrinsics) {
+fn draw_face(cv: &mut Canvas, u: &FaceResult, model: &FaceModel, k: &Intrinsics) {
     let (colour, _) = aligner_style(Some(u.answered_by));
     // Mesh: every triangle edge whose ends are in front of the camera.
     let verts: Vec<_> = model

@@ -32,7 +32,7 @@ use holoface_runtime::assets::home;
 use holoface_runtime::detect::{FaceDetector, shape_from_detection};
 use holoface_runtime::frame::Frame;
 use holoface_runtime::link::{CropCodec, RemoteOptions};
-use holoface_runtime::{FaceResult, SessionOptions};
+use holoface_runtime::{FaceOutcome, SessionOptions};
 
 /// Arguments of `holoface demo`.
 #[derive(Debug, ClapArgs)]
@@ -274,7 +274,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "nme68_vs_reference": n68,
         });
         add_face(&mut line, &result);
-        if let FaceResult::Face(u) = &result {
+        if let FaceOutcome::Face(u) = &result {
             expressions.push(u.blendshapes);
         }
         serde_json::to_writer(&mut log, &line)?;
@@ -367,9 +367,9 @@ fn start_link(
 }
 
 /// A frame line's face: poses, weights, attributes and blendshapes, or why there is none.
-fn add_face(line: &mut serde_json::Value, result: &FaceResult) {
+fn add_face(line: &mut serde_json::Value, result: &FaceOutcome) {
     match result {
-        FaceResult::Face(u) => {
+        FaceOutcome::Face(u) => {
             line["face"] = json!(true);
             line["world_position_m"] = json!(u.world.position.to_array());
             line["display_position_m"] = json!(u.display.0.to_array());
@@ -386,7 +386,7 @@ fn add_face(line: &mut serde_json::Value, result: &FaceResult) {
                 .collect::<serde_json::Map<_, _>>()
                 .into();
         }
-        FaceResult::NoFace(reason) => {
+        FaceOutcome::NoFace(reason) => {
             line["face"] = json!(false);
             line["reason"] = json!(reason);
         }

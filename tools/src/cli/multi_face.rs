@@ -35,7 +35,7 @@ use crate::data::{Split, faces68_or, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
 use holoface_runtime::align::Aligner;
 use holoface_runtime::frame::Frame;
-use holoface_runtime::{SessionOptions, TrackedFace};
+use holoface_runtime::{FaceResult, SessionOptions};
 
 /// Arguments of `holoface multi-face`.
 #[derive(Debug, ClapArgs)]
@@ -222,11 +222,11 @@ impl FaceTally {
 }
 
 /// Greedy matching of tracked faces to true faces (smallest NME49 first, each at most once).
-fn match_faces(faces: &[TrackedFace], truths: &[[Point2; 68]]) -> Vec<Option<(u32, f64)>> {
+fn match_faces(faces: &[FaceResult], truths: &[[Point2; 68]]) -> Vec<Option<(u32, f64)>> {
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for (i, f) in faces.iter().enumerate() {
         for (j, t) in truths.iter().enumerate() {
-            if let Some(e) = nme49(&f.update.landmarks, t).filter(|e| e.is_finite() && *e < MATCH_NME) {
+            if let Some(e) = nme49(&f.landmarks, t).filter(|e| e.is_finite() && *e < MATCH_NME) {
                 pairs.push((e, i, j));
             }
         }

@@ -387,7 +387,7 @@ fn track_clip(
                 .tracker
                 .process_step(&frame)
                 .with_context(|| format!("frame {} ({})", sf.index, r.name))?;
-            let face = step.faces.faces.first().map(|f| f.update);
+            let face = step.faces.faces.first().copied();
             r.raw.push(face.map(|u| u.raw_landmarks));
             r.steady.push(face.map(|u| u.landmarks));
             r.by.push(face.map(|u| u.answered_by));

@@ -10,7 +10,7 @@ use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_runtime::{
-    AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackedFace, TrackerOptions,
+    AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackerOptions,
 };
 use holoface_sources::source::open_source;
 use holoface_sources::stop;
@@ -115,8 +115,8 @@ fn remote_options(args: &Args) -> anyhow::Result<RemoteOptions> {
 }
 
 /// One face of a `track` line.
-fn face_json(f: &TrackedFace) -> serde_json::Value {
-    let u = &f.update;
+fn face_json(f: &holoface_runtime::FaceResult) -> serde_json::Value {
+    let u = f;
     json!({
         "id": f.id,
         "aligner": u.answered_by,
@@ -227,7 +227,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .faces
             .faces
             .iter()
-            .filter(|f| f.update.answered_by == AnsweredBy::RemoteDan)
+            .filter(|f| f.answered_by == AnsweredBy::RemoteDan)
             .count();
         let no_face = step.faces.no_face_reason();
         if let Some(out) = annotated.as_mut() {

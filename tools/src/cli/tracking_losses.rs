@@ -33,7 +33,7 @@ use crate::args::{AlignerKind, RuntimeArgs};
 use crate::data::{Split, faces68_or, load_folder};
 use crate::render::PlanarScene;
 use holoface_runtime::frame::Frame;
-use holoface_runtime::{FaceResult, FaceTracker, InitSource, SessionOptions};
+use holoface_runtime::{FaceOutcome, FaceTracker, InitSource, SessionOptions};
 
 /// Arguments of `holoface tracking-losses`.
 #[derive(Debug, ClapArgs)]
@@ -177,13 +177,13 @@ struct Tally {
 }
 
 impl Tally {
-    fn record(&mut self, result: &FaceResult, init: Option<InitSource>, truth: &[Point2; 68]) {
+    fn record(&mut self, result: &FaceOutcome, init: Option<InitSource>, truth: &[Point2; 68]) {
         self.frames += 1;
         if init == Some(InitSource::Detection) {
             self.detections += 1;
         }
         let good = match result {
-            FaceResult::Face(u) => {
+            FaceOutcome::Face(u) => {
                 let e = nme49(&u.landmarks, truth).unwrap_or(f64::INFINITY);
                 let raw = nme49(&u.raw_landmarks, truth).unwrap_or(f64::INFINITY);
                 if e.is_finite() && raw.is_finite() {
@@ -212,7 +212,7 @@ impl Tally {
                     false
                 }
             }
-            FaceResult::NoFace(_) => {
+            FaceOutcome::NoFace(_) => {
                 self.no_face += 1;
                 false
             }
