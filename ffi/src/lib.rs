@@ -182,8 +182,7 @@ impl HfSettings {
             precise_shape_beta: self.steady_precise_shape_beta,
             precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
             precise_rigid_beta: self.steady_precise_rigid_beta,
-        }
-        .params();
+        };
         let bad = |e: &dyn std::fmt::Display| fail(HfStatus::InvalidArgument, e.to_string());
         t.session.validate().map_err(|e| bad(&e))?;
         t.detector.validate().map_err(|e| bad(&e))

@@ -57,8 +57,8 @@ pub use tracker::FaceTracker;
 pub mod options {
     #[doc(inline)]
     pub use holoface_runtime::{
-        AdaptOptions, AdaptParams, BlendshapeParams, CropCodec, FilterParams, MAX_DEADLINE, MAX_DETECT_TILES,
-        MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, OneEuroParams, SteadyParams, SteadySettings,
+        AdaptOptions, AdaptParams, BlendshapeParams, CropCodec, MAX_DEADLINE, MAX_DETECT_TILES,
+        MAX_LOOKAHEAD_S, MAX_TRACKED_FACES, SteadySettings,
     };
     #[doc(inline)]
     pub use holoface_runtime::{AttributeThresholds, FitOptions, KalmanParams};

@@ -275,8 +275,7 @@ impl PyTrackerOptions {
             precise_shape_beta: self.steady_precise_shape_beta,
             precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
             precise_rigid_beta: self.steady_precise_rigid_beta,
-        }
-        .params();
+        };
         o.detector.tiles = self.detect_tiles;
         o.detector
             .validate()

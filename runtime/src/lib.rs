@@ -38,7 +38,7 @@ pub mod tracker;
 
 /// The defaults of every binding, defined once: [`TrackerOptions::default`], the C ABI's
 /// `hf_options_default`/`hf_settings_default`, Python's `TrackerOptions()` and the `holoface` CLI's flags all
-/// take them from here. The landmark filter's defaults are [`SteadyParams::default`].
+/// take them from here. The landmark filter's defaults are [`SteadySettings::default`].
 pub mod defaults {
     /// Per-frame deadline for the alignment server, ms: one frame interval at 30 fps, so a missed frame is
     /// still answered (deadline + the local aligner) well within two intervals.
@@ -83,9 +83,8 @@ pub use link::{
     RemoteStartError, ServerInfo,
 };
 pub use session::{
-    Blendshape, BlendshapeParams, Blendshapes, FaceOutcome, FaceResult, FilterParams, MAX_LOOKAHEAD_S,
-    MAX_TRACKED_FACES, NoFaceReason, OneEuroParams, SessionOptions, SessionOptionsError, SteadyParams,
-    SteadySettings,
+    Blendshape, BlendshapeParams, Blendshapes, FaceOutcome, FaceResult, MAX_LOOKAHEAD_S, MAX_TRACKED_FACES,
+    NoFaceReason, SessionOptions, SessionOptionsError, SteadySettings,
 };
 pub use tracker::{
     AlignerChoice, DetectorOptions, FaceTracker, FrameResult, LiveTracker, MAX_DETECT_TILES, RunningMode,

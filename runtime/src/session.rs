@@ -27,7 +27,7 @@ use holoface_models::pose::{
     AttributeThresholds, Attributes, WorldPose, compensate_headset_motion, world_pose,
 };
 use holoface_models::shape::OUTER_EYE_CORNERS;
-pub use holoface_models::steady::{FilterParams, OneEuroParams, SteadyParams};
+use holoface_models::steady::SteadyParams;
 use holoface_models::steady::{LandmarkFilter, Source};
 use serde::Serialize;
 
@@ -58,7 +58,7 @@ pub struct SessionOptions {
     /// The landmark filter (One-Euro, in the face's own frame; [`holoface_models::steady`]): what
     /// [`FaceResult::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
     /// `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
-    pub steady: Option<SteadyParams>,
+    pub steady: SteadySettings,
     /// Blendshape coefficients: how many of a track's first frames calibrate the person's neutral.
     pub blendshapes: BlendshapeParams,
 }
@@ -76,17 +76,18 @@ impl Default for SessionOptions {
             motion_compensation: crate::defaults::MOTION_COMPENSATION,
             max_faces: crate::defaults::MAX_FACES,
             detect_every: crate::defaults::DETECT_EVERY,
-            steady: crate::defaults::STEADY.then(SteadyParams::default),
+            steady: SteadySettings::default(),
             blendshapes: BlendshapeParams::default(),
         }
     }
 }
 
-/// The landmark filter's settings as every binding offers them, flat and by name (the CLI's `--no-steady` and
-/// `--steady-*` flags, Python's `steady*` options, C's `HfSettings.steady*`): the One-Euro cut-off at rest and
-/// speed coefficient of the face's shape and of its placement (translation, scale, rotation), for the local
-/// aligner's noisy answers and for the server's precise ones. [`SteadySettings::params`] turns them into
-/// [`SessionOptions::steady`]; the defaults are [`SteadyParams::default`]'s.
+/// The landmark filter's settings, the one steadying type of the API, flat and by name as every binding offers
+/// them (the CLI's `--no-steady` and `--steady-*` flags, Python's `steady*` options, C's `HfSettings.steady*`):
+/// whether it runs, and the One-Euro cut-off at rest and speed coefficient of the face's shape and of its
+/// placement (translation, scale, rotation), for the local aligner's noisy answers and for the server's precise
+/// ones. The filter's other constants (speed cut-offs, the fade after an aligner switch, the longest gap) are
+/// `holoface_models::steady::SteadyParams::default`'s, as are these defaults.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SteadySettings {
     /// The filter is on ([`crate::defaults::STEADY`]).
@@ -127,9 +128,9 @@ impl Default for SteadySettings {
 }
 
 impl SteadySettings {
-    /// [`SessionOptions::steady`]: `None` when off; the other settings (speed cut-offs, fade, gap) are the
+    /// The filter's parameters: `None` when off; the other constants (speed cut-offs, fade, gap) are the
     /// defaults'. [`SessionOptions::validate`] checks the values.
-    pub fn params(&self) -> Option<SteadyParams> {
+    pub(crate) fn params(&self) -> Option<SteadyParams> {
         let mut p = SteadyParams::default();
         p.noisy.shape.min_cutoff_hz = self.shape_cutoff_hz;
         p.noisy.shape.beta = self.shape_beta;
@@ -179,7 +180,7 @@ impl SessionOptions {
         if !(1..=MAX_TRACKED_FACES).contains(&self.max_faces) {
             return Err(SessionOptionsError::MaxFaces(self.max_faces));
         }
-        if self.steady.is_some_and(|p| !p.is_valid()) {
+        if self.steady.params().is_some_and(|p| !p.is_valid()) {
             return Err(SessionOptionsError::Steady);
         }
         if self.detect_every == 0 {
@@ -522,6 +523,7 @@ impl TrackerSession {
         let mut steady = index.and_then(|i| self.tracks[i].steady.take()).or_else(|| {
             self.opts
                 .steady
+                .params()
                 .and_then(|p| LandmarkFilter::new(&self.mean, OUTER_EYE_CORNERS, p).ok())
         });
         // The headset's own motion since the track's last frame, as the image sees it: the similarity
@@ -795,14 +797,20 @@ mod tests {
             ..SessionOptions::default()
         };
         assert!(with(faces).unwrap_err().to_string().contains("max_faces"));
-        let mut p = SteadyParams::default();
-        p.noisy.shape.min_cutoff_hz = f64::INFINITY;
+        let bad = SteadySettings {
+            shape_cutoff_hz: f64::INFINITY,
+            ..SteadySettings::default()
+        };
         let steady = |steady| SessionOptions {
             steady,
             ..SessionOptions::default()
         };
-        assert_eq!(with(steady(Some(p))), Err(SessionOptionsError::Steady));
-        assert_eq!(with(steady(None)), Ok(()));
+        assert_eq!(with(steady(bad)), Err(SessionOptionsError::Steady));
+        let off = SteadySettings {
+            enabled: false,
+            ..SteadySettings::default()
+        };
+        assert_eq!(with(steady(off)), Ok(()));
         let never = SessionOptions {
             detect_every: 0,
             ..SessionOptions::default()
@@ -825,9 +833,12 @@ mod tests {
         let noisy: Vec<[Point2; 68]> = (0..60)
             .map(|_| lm.map(|p| Point2::new(p.x + rng.normal() as f32, p.y + rng.normal() as f32)))
             .collect();
-        let run = |steady: Option<SteadyParams>| {
+        let run = |enabled: bool| {
             let opts = SessionOptions {
-                steady,
+                steady: SteadySettings {
+                    enabled,
+                    ..SteadySettings::default()
+                },
                 ..SessionOptions::default()
             };
             let mut s = TrackerSession::new(
@@ -871,7 +882,7 @@ mod tests {
                 .sum::<f32>()
                 / (40.0 * 68.0)
         };
-        let (steadied, raw) = (run(Some(SteadyParams::default())), run(None));
+        let (steadied, raw) = (run(true), run(false));
         assert_eq!(
             raw, noisy,
             "without the filter the shown landmarks are the raw ones"

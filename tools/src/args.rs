@@ -6,7 +6,6 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use holoface_inference::{ORT_DYLIB_ENV, OnnxEngine, OnnxOptions};
-use holoface_models::steady::SteadyParams;
 use holoface_runtime::{
     AssetPaths, CANDIDE_ENV, DETECTOR_ENV, FaceTracker, KRFWS_ENV, SessionOptions, SteadySettings,
     TrackerError, TrackerOptions, home,
@@ -176,7 +175,7 @@ impl AlignerKind {
     }
 }
 
-/// The landmark filter's settings (`holoface_models::steady`); defaults are `SteadyParams::default()`.
+/// The landmark filter's settings ([`SteadySettings`], with its defaults).
 #[derive(Debug, Clone, Copy, Args)]
 pub struct SteadyArgs {
     /// Turn the landmark filter off (the steadied landmarks then equal the aligner's raw ones).
@@ -211,7 +210,7 @@ pub struct SteadyArgs {
 
 impl SteadyArgs {
     /// The session's `steady` setting.
-    pub fn params(&self) -> Option<SteadyParams> {
+    pub fn settings(&self) -> SteadySettings {
         SteadySettings {
             enabled: !self.no_steady,
             shape_cutoff_hz: self.steady_shape_cutoff_hz,
@@ -223,6 +222,5 @@ impl SteadyArgs {
             precise_rigid_cutoff_hz: self.steady_precise_rigid_cutoff_hz,
             precise_rigid_beta: self.steady_precise_rigid_beta,
         }
-        .params()
     }
 }

@@ -662,7 +662,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     anyhow::ensure!(!args.aligners.is_empty(), "--aligners names none");
     let peer = args.peer.as_deref().map(read_peer).transpose()?;
     let session_opts = SessionOptions {
-        steady: args.steady.params(),
+        steady: args.steady.settings(),
         ..SessionOptions::default()
     };
     let opts = args.runtime.tracker_options(&args.candide, session_opts);

@@ -156,7 +156,7 @@ fn start_tracker(args: &Args) -> anyhow::Result<(FaceTracker, Option<crate::link
         lookahead_s: args.lookahead_ms / 1e3,
         max_faces: usize::from(args.max_faces),
         detect_every: args.detect_every,
-        steady: args.steady.params(),
+        steady: args.steady.settings(),
         ..SessionOptions::default()
     };
     let mut opts = args.runtime.tracker_options(&args.candide, session);

@@ -381,7 +381,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for compensate in [true, false] {
         let opts = SessionOptions {
             motion_compensation: compensate,
-            steady: args.steady.params(),
+            steady: args.steady.settings(),
             ..SessionOptions::default()
         };
         let opts = args.runtime.tracker_options(&args.candide, opts);
