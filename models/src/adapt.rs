@@ -240,7 +240,7 @@ impl PersonCorrection {
             let mut inv = [[0.0; FEATURES]; FEATURES];
             for (c, row) in inv.iter_mut().enumerate() {
                 let e = std::array::from_fn(|r| f64::from(u8::from(r == c)));
-                *row = crate::blendshapes::solve(cxx, e)?;
+                *row = crate::linalg::solve_spd(cxx, e)?;
             }
             for (a, row) in slopes.iter_mut().enumerate() {
                 for (k, s) in row.iter_mut().enumerate() {

@@ -594,7 +594,7 @@ pub fn fit(
             for (a, row) in m.iter_mut().enumerate() {
                 row[a] += lambda * (jtj[a][a] + 1e-9);
             }
-            let Some(delta) = solve_spd(m, jtr.map(|x| -x)) else {
+            let Some(delta) = crate::linalg::solve_spd(m, jtr.map(|x| -x)) else {
                 lambda *= 10.0;
                 continue;
             };
@@ -636,43 +636,6 @@ pub fn fit(
     cur.iterations = iterations;
     cur.converged = converged;
     Ok(cur)
-}
-
-/// Cholesky solve of a symmetric positive-definite system; `None` when not positive definite.
-fn solve_spd(mut a: [[f64; NP]; NP], mut b: [f64; NP]) -> Option<[f64; NP]> {
-    for j in 0..NP {
-        let mut d = a[j][j];
-        for k in 0..j {
-            d -= a[j][k] * a[j][k];
-        }
-        if d <= 0.0 || !d.is_finite() {
-            return None;
-        }
-        let d = d.sqrt();
-        a[j][j] = d;
-        for i in j + 1..NP {
-            let mut s = a[i][j];
-            for k in 0..j {
-                s -= a[i][k] * a[j][k];
-            }
-            a[i][j] = s / d;
-        }
-    }
-    for i in 0..NP {
-        let mut s = b[i];
-        for k in 0..i {
-            s -= a[i][k] * b[k];
-        }
-        b[i] = s / a[i][i];
-    }
-    for i in (0..NP).rev() {
-        let mut s = b[i];
-        for k in i + 1..NP {
-            s -= a[k][i] * b[k];
-        }
-        b[i] = s / a[i][i];
-    }
-    Some(b)
 }
 
 /// Projects the model's correspondence points for a fit into 68-point landmark slots (others untouched).

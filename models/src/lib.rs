@@ -20,6 +20,7 @@ pub mod image;
 pub mod isa;
 pub mod kalman;
 pub mod krfws;
+pub mod linalg;
 pub mod math3;
 pub mod pose;
 pub mod refine;

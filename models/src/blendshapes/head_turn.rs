@@ -14,7 +14,7 @@
 //! The committed terms (`models/assets/blendshape_pose.txt`) come from `holoface train-blendshapes` over the
 //! training split of the annotated faces (the validation split excluded): statistics our code produced.
 
-use super::{P, solve};
+use super::P;
 use crate::math3::{Quat, Vec3};
 
 /// The quadratic basis of the turn.
@@ -105,7 +105,7 @@ impl PoseTerms {
         for rhs in &atb {
             let mut t = [[0.0; BASIS]; 2];
             for axis in 0..2 {
-                let x = solve(ata, rhs[axis])?;
+                let x = crate::linalg::solve_spd(ata, rhs[axis])?;
                 t[axis].copy_from_slice(&x[1..]);
             }
             terms.push(t);

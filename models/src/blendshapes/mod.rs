@@ -363,7 +363,7 @@ fn face_frame(lm: &[Point2; 68]) -> Option<[P; 68]> {
             atb[r][1] += row[r] * TEMPLATE[k].1;
         }
     }
-    let col = |k: usize| solve(ata, [atb[0][k], atb[1][k], atb[2][k]]);
+    let col = |k: usize| crate::linalg::solve_spd(ata, [atb[0][k], atb[1][k], atb[2][k]]);
     let (mu, mv) = (col(0)?, col(1)?);
     let mut out = [(0.0, 0.0); 68];
     for (o, p) in out.iter_mut().zip(lm) {
@@ -373,27 +373,6 @@ fn face_frame(lm: &[Point2; 68]) -> Option<[P; 68]> {
     out.iter()
         .all(|p| p.0.is_finite() && p.1.is_finite())
         .then_some(out)
-}
-
-/// Solves `a · x = b` by Gaussian elimination with partial pivoting (`None` when singular).
-pub(crate) fn solve<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
-    for col in 0..N {
-        let pivot = (col..N).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[pivot][col].is_nan() || a[pivot][col].abs() <= 1e-12 {
-            return None;
-        }
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        let (ra, rb) = (a[col], b[col]);
-        for r in (0..N).filter(|&r| r != col) {
-            let f = a[r][col] / ra[col];
-            for (x, y) in a[r].iter_mut().zip(ra) {
-                *x -= f * y;
-            }
-            b[r] -= f * rb;
-        }
-    }
-    Some(std::array::from_fn(|r| b[r] / a[r][r]))
 }
 
 /// Every feature of one frame (in [`Feature`] order of [`FEATURES`]).

@@ -360,43 +360,6 @@ fn stage_data(
     data
 }
 
-/// Cholesky solve of the symmetric positive definite `a` (n×n, row-major, lower triangle used).
-fn cholesky_solve(a: &mut [f64], n: usize, b: &mut [f64]) -> bool {
-    for j in 0..n {
-        let mut d = a[j * n + j];
-        for k in 0..j {
-            d -= a[j * n + k] * a[j * n + k];
-        }
-        if d <= 0.0 || !d.is_finite() {
-            return false;
-        }
-        let d = d.sqrt();
-        a[j * n + j] = d;
-        for i in j + 1..n {
-            let mut s = a[i * n + j];
-            for k in 0..j {
-                s -= a[i * n + k] * a[j * n + k];
-            }
-            a[i * n + j] = s / d;
-        }
-    }
-    for i in 0..n {
-        let mut s = b[i];
-        for k in 0..i {
-            s -= a[i * n + k] * b[k];
-        }
-        b[i] = s / a[i * n + i];
-    }
-    for i in (0..n).rev() {
-        let mut s = b[i];
-        for k in i + 1..n {
-            s -= a[k * n + i] * b[k];
-        }
-        b[i] = s / a[i * n + i];
-    }
-    true
-}
-
 struct TreeBuilder<'a> {
     hog: &'a [f32],
     targets: &'a [f32],
@@ -634,7 +597,7 @@ impl TreeBuilder<'_> {
             s[a * D + a] += ridge;
         }
         let mut b: Vec<f64> = (0..D).map(|a| mu[1][a] - mu[0][a]).collect();
-        if !cholesky_solve(&mut s, D, &mut b) {
+        if !crate::linalg::cholesky_solve(&mut s, D, &mut b) {
             return None;
         }
         let norm = b.iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -1426,17 +1389,6 @@ mod tests {
         let v = xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / xs.len() as f64;
         assert!(m.abs() < 0.03 && (v - 1.0).abs() < 0.05, "{m} {v}");
         assert!((0..1000).all(|_| a.below(7) < 7));
-    }
-
-    #[test]
-    fn cholesky_solves_a_small_system() {
-        let mut a = vec![4.0, 0.0, 2.0, 3.0];
-        let mut b = vec![2.0, 4.0];
-        assert!(cholesky_solve(&mut a, 2, &mut b));
-        // [[4,2],[2,3]] x = [2,4] → x = [-0.25, 1.5]
-        assert!((b[0] + 0.25).abs() < 1e-12 && (b[1] - 1.5).abs() < 1e-12);
-        let mut bad = vec![-1.0];
-        assert!(!cholesky_solve(&mut bad, 1, &mut [1.0]));
     }
 
     /// λ = 1, solved to round-off, on `threads` threads.
