@@ -42,10 +42,8 @@ pub fn cholesky_solve(a: &mut [f64], n: usize, b: &mut [f64]) -> bool {
 }
 
 /// [`cholesky_solve`] of a small fixed-size system; `None` when `a` is not positive definite.
-pub fn solve_spd<const N: usize>(a: [[f64; N]; N], b: [f64; N]) -> Option<[f64; N]> {
-    let mut flat: Vec<f64> = a.iter().flatten().copied().collect();
-    let mut x = b;
-    cholesky_solve(&mut flat, N, &mut x).then_some(x)
+pub fn solve_spd<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N]) -> Option<[f64; N]> {
+    cholesky_solve(a.as_flattened_mut(), N, &mut b).then_some(b)
 }
 
 #[cfg(test)]
