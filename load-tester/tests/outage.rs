@@ -20,6 +20,7 @@ const TOKEN: &str = "outage-test";
 /// close frames, the socket simply gone.
 struct Killable {
     rt: tokio::runtime::Runtime,
+    metrics: std::sync::Arc<holoface_alignment_server::metrics::Metrics>,
 }
 
 fn start(dir: &Path, listen: SocketAddr) -> (Killable, SocketAddr, String) {
@@ -45,19 +46,28 @@ fn start(dir: &Path, listen: SocketAddr) -> (Killable, SocketAddr, String) {
         .enable_all()
         .build()
         .unwrap();
-    let server = rt
-        .block_on(holoface_alignment_server::AlignmentServer::bind(s))
-        .unwrap();
+    // A killed server's port is free once its runtime has dropped the socket: bind again until it is.
+    let server = common::wait_for_some("the port to bind", || {
+        rt.block_on(holoface_alignment_server::AlignmentServer::bind(s.clone()))
+            .ok()
+    });
+    let metrics = server.metrics();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint().to_string());
     rt.spawn(server.run(std::future::pending()));
-    (Killable { rt }, addr, fp)
+    (Killable { rt, metrics }, addr, fp)
 }
 
 impl Killable {
     fn kill(self) {
         self.rt.shutdown_background();
-        // Let the socket close before anyone binds the port again.
-        std::thread::sleep(Duration::from_millis(200));
+    }
+
+    /// Returns once the server has aligned `frames` frames: the load is under way (20 a second here).
+    fn wait_aligned(&self, frames: u64) {
+        let m = &self.metrics;
+        common::wait_for_some("the load's frames to be aligned", || {
+            (m.frames_aligned.load(std::sync::atomic::Ordering::Relaxed) >= frames).then_some(())
+        });
     }
 }
 
@@ -121,7 +131,7 @@ fn a_server_killed_for_good_breaks_the_slo_and_the_outage_is_reported() {
     let (dir, rec) = setup("killed");
     let (server, addr, fp) = start(&dir, "127.0.0.1:0".parse().unwrap());
     let child = load(&dir, &rec, addr, &fp, &[]);
-    std::thread::sleep(Duration::from_secs(2));
+    server.wait_aligned(40);
     server.kill();
     let (code, stderr, report) = finish(child, &dir);
     assert_eq!(code, Some(3), "{stderr}\n{report}");
@@ -151,8 +161,9 @@ fn a_server_killed_and_restarted_is_reconnected_to() {
     // The frames sent between the kill and QUIC noticing it (its idle timeout) go unanswered; the SLO
     // here asks only that the run goes on.
     let child = load(&dir, &rec, addr, &fp, &["--min-answered", "0.3"]);
-    std::thread::sleep(Duration::from_secs(2));
+    server.wait_aligned(40);
     server.kill();
+    // The outage: half a second without a server (the scenario, not a wait for something).
     std::thread::sleep(Duration::from_millis(500));
     let (server, again, fp2) = start(&dir, addr);
     assert_eq!(

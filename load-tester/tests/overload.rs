@@ -204,6 +204,7 @@ fn headsets_stop_sending_on_the_servers_goaway() {
         .block_on(holoface_alignment_server::AlignmentServer::bind(s))
         .unwrap();
     let (addr, fp) = (server.local_addr().unwrap(), server.fingerprint());
+    let metrics = server.metrics();
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let task = rt.spawn(server.run(async move {
         let _ = stopped.await;
@@ -223,7 +224,10 @@ fn headsets_stop_sending_on_the_servers_goaway() {
         .arg(dir.join("goaway.png"))
         .spawn()
         .unwrap();
-    std::thread::sleep(std::time::Duration::from_secs(3));
+    // The Goaway comes once both headsets are being answered (20 frames: a second of the load).
+    common::wait_for_some("the load's frames to be aligned", || {
+        (metrics.frames_aligned.load(std::sync::atomic::Ordering::Relaxed) >= 20).then_some(())
+    });
     stop.send(()).unwrap();
     rt.block_on(task).unwrap().unwrap();
     let status = child.wait().unwrap();

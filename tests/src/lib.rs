@@ -35,6 +35,17 @@ use tokio::task::JoinHandle;
 /// The token the test servers accept.
 pub const TEST_TOKEN: &str = "e2e-token";
 
+/// How long a test waits for something that should happen at once (a reply, a handshake, a close): a bound
+/// that only a hang reaches, never a timing the test measures.
+pub const WAIT: Duration = Duration::from_secs(20);
+
+/// `fut`, or a panic naming `what` after [`WAIT`]: a test that would hang fails instead.
+pub async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
+    tokio::time::timeout(WAIT, fut)
+        .await
+        .unwrap_or_else(|_| panic!("timed out waiting for {what}"))
+}
+
 /// Client-side failures: the headset link's own error type.
 pub type ClientError = LinkError;
 

@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 
 use holoface_protocol::ReplyOutcome;
 use holoface_quic::Fingerprint;
-use holoface_tests::{RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, send_frame_on};
+use holoface_tests::{
+    RunningServer, TEST_TOKEN, TestClient, frame, hello, loopback_settings, send_frame_on, within,
+};
 
 const INTERVAL: Duration = Duration::from_millis(33);
 const DEADLINE_MS: u16 = 100;
@@ -48,8 +50,15 @@ fn percentile(v: &mut [Duration], pct: usize) -> Duration {
 }
 
 /// A headset sending `faces` crops (tracks 1..=faces, or track 0 for one face) every 33 ms for `length`,
-/// counting the frames answered with landmarks and their latencies.
-async fn headset(addr: SocketAddr, fp: Fingerprint, name: &str, faces: u16, length: Duration) -> Seen {
+/// counting the frames answered with landmarks and their latencies; `answering` hears of its first answer.
+async fn headset(
+    addr: SocketAddr,
+    fp: Fingerprint,
+    name: &str,
+    faces: u16,
+    length: Duration,
+    mut answering: Option<tokio::sync::oneshot::Sender<()>>,
+) -> Seen {
     let mut h = hello(TEST_TOKEN);
     h.client_name = name.to_owned();
     h.max_in_flight = faces;
@@ -97,6 +106,9 @@ async fn headset(addr: SocketAddr, fp: Fingerprint, name: &str, faces: u16, leng
         } = r.outcome
         {
             seen.answered += 1;
+            if let Some(tx) = answering.take() {
+                let _ = tx.send(());
+            }
             seen.latencies.push(t.elapsed());
             seen.server_times
                 .push(Duration::from_micros(u64::from(queue_us) + u64::from(infer_us)));
@@ -110,10 +122,21 @@ async fn headset(addr: SocketAddr, fp: Fingerprint, name: &str, faces: u16, leng
 async fn a_headset_with_eight_faces_does_not_starve_a_one_face_headset() {
     let server = RunningServer::start(loopback_settings()).await.unwrap();
     let (addr, fp) = (server.addr, server.fingerprint);
-    let mut alone = headset(addr, fp, "one-face", 1, Duration::from_secs(3)).await;
-    let heavy = tokio::spawn(headset(addr, fp, "eight-faces", 8, Duration::from_secs(5)));
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    let mut shared = headset(addr, fp, "one-face", 1, Duration::from_secs(4)).await;
+    let mut alone = headset(addr, fp, "one-face", 1, Duration::from_secs(3), None).await;
+    // The one-face headset starts again once the eight-face one is being answered.
+    let (answering, answered) = tokio::sync::oneshot::channel();
+    let heavy = tokio::spawn(headset(
+        addr,
+        fp,
+        "eight-faces",
+        8,
+        Duration::from_secs(5),
+        Some(answering),
+    ));
+    within("the eight-face headset's first answer", answered)
+        .await
+        .unwrap();
+    let mut shared = headset(addr, fp, "one-face", 1, Duration::from_secs(4), None).await;
     let heavy = heavy.await.unwrap();
     let (p95_alone, p95_shared) = (alone.percentile(95), shared.percentile(95));
     let (p99_alone, p99_shared) = (alone.percentile(99), shared.percentile(99));

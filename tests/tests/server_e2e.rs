@@ -18,26 +18,19 @@ use holoface_protocol::{
     CloseCode, CropEncoding, DropReason, FrameReply, Message, PROTOCOL_VERSION, ReplyChannel, ReplyOutcome,
 };
 use holoface_tests::{
-    RunningServer, TEST_TOKEN, TestClient, client_endpoint, connect_raw, frame, hello, loopback_settings,
-    model_path, ort_dylib_path, refiner_path, refused_with, send_frame_on, write_framed,
+    RunningServer, TEST_TOKEN, TestClient, WAIT, client_endpoint, connect_raw, frame, hello,
+    loopback_settings, model_path, ort_dylib_path, refiner_path, refused_with, send_frame_on, within,
+    write_framed,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Generous: the untrained DAN takes tens of ms per crop on a loaded 2-core box.
 const DEADLINE_MS: u16 = 3_000;
-const WAIT: Duration = Duration::from_secs(20);
 
 fn settings() -> Settings {
     let mut s = loopback_settings();
     s.max_frame_age = Duration::from_millis(u64::from(DEADLINE_MS));
     s
-}
-
-async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
-    match tokio::time::timeout(WAIT, fut).await {
-        Ok(v) => v,
-        Err(_) => panic!("timed out waiting for {what}"),
-    }
 }
 
 /// Landmarks the server's pipeline (DAN, then the refinement cascade) computes for the same crop, run
@@ -345,6 +338,8 @@ async fn a_refusal_whose_stream_ends_before_the_close_is_still_the_refusal() {
         let conn = endpoint.accept().await.unwrap().await.unwrap();
         let (mut send, _recv) = conn.accept_bi().await.unwrap();
         send.finish().unwrap();
+        // The scenario itself: the stream's end reaches the client well before the close (not a wait for
+        // something; the client's report is checked whatever the gap).
         tokio::time::sleep(Duration::from_millis(100)).await;
         conn.close(CloseCode::Unauthorized.as_u32().into(), b"token rejected");
         endpoint.wait_idle().await;
@@ -739,6 +734,7 @@ async fn idle_and_half_open_connections_do_not_lock_out_a_valid_client() {
         half_open.push(sock);
     }
     // 300 idle connections (TLS done, no hello), then more of them, continuously, in the background.
+    let (count, mut opened_so_far) = tokio::sync::watch::channel(0_usize);
     let attack = tokio::spawn(async move {
         let endpoint = client_endpoint(fp).unwrap();
         let mut held = std::collections::VecDeque::new();
@@ -749,6 +745,7 @@ async fn idle_and_half_open_connections_do_not_lock_out_a_valid_client() {
             {
                 held.push_back(c);
                 opened += 1;
+                count.send_replace(opened);
             }
             if held.len() > 300 {
                 held.pop_front();
@@ -758,8 +755,10 @@ async fn idle_and_half_open_connections_do_not_lock_out_a_valid_client() {
             }
         }
     });
-    // Let the first 300 pile up.
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    // The valid client comes once the first 300 have piled up.
+    within("300 idle connections", opened_so_far.wait_for(|&n| n >= 300))
+        .await
+        .unwrap();
 
     let mut good = within(
         "a valid client's handshake",
@@ -837,16 +836,25 @@ async fn shutdown_is_bounded_and_closes_shutting_down_when_a_client_ignores_goaw
             .is_ok()
     );
     let conn = client.conn.clone();
+    let (count, mut sent_so_far) = tokio::sync::watch::channel(0_u64);
     let stubborn = tokio::spawn(async move {
         let mut id = 2;
         while conn.close_reason().is_none() {
             let _ = send_frame_on(&conn, &frame(id, 5, DEADLINE_MS)).await;
+            count.send_replace(id - 1);
             id += 1;
+            // A client's pace, not a wait for something.
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         id
     });
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    // The shutdown starts while the stubborn client is sending.
+    within(
+        "the stubborn sender's first frames",
+        sent_so_far.wait_for(|&n| n >= 10),
+    )
+    .await
+    .unwrap();
     let started = std::time::Instant::now();
     server.shutdown().await.unwrap();
     let took = started.elapsed();

@@ -15,12 +15,11 @@ use std::time::{Duration, Instant};
 use holoface_protocol::{CloseCode, DropReason, Message, ReplyOutcome};
 use holoface_quic::Fingerprint;
 use holoface_tests::{
-    TEST_TOKEN, TestClient, frame, hello, model_path, ort_dylib_path, refiner_path, server_binary,
+    TEST_TOKEN, TestClient, frame, hello, model_path, ort_dylib_path, refiner_path, server_binary, within,
     workspace_root,
 };
 
 const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(3);
-const WAIT: Duration = Duration::from_secs(20);
 /// Frames sent back to back just before the signal: more than one batch, so some are queued.
 const IN_FLIGHT: u64 = 12;
 
@@ -70,12 +69,6 @@ fn start() -> Server {
         addr: words[2].parse().unwrap(),
         fingerprint: words[4].parse().unwrap(),
     }
-}
-
-async fn within<T>(what: &str, fut: impl Future<Output = T>) -> T {
-    tokio::time::timeout(WAIT, fut)
-        .await
-        .unwrap_or_else(|_| panic!("timed out waiting for {what}"))
 }
 
 /// Frames in flight when `signal` arrives: every one is answered (landmarks) or explicitly dropped,

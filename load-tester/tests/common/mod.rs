@@ -59,3 +59,16 @@ pub(crate) fn recording(dir: &Path) -> PathBuf {
     w.finish().unwrap();
     path
 }
+
+/// Polls `ready` every 10 ms until it gives a value, for at most 20 s (a bound only a hang reaches), then
+/// panics naming `what`: the tests wait for events, not for fixed times.
+pub(crate) fn wait_for_some<T>(what: &str, mut ready: impl FnMut() -> Option<T>) -> T {
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    loop {
+        if let Some(v) = ready() {
+            return v;
+        }
+        assert!(std::time::Instant::now() < end, "timed out waiting for {what}");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
