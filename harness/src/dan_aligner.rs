@@ -52,7 +52,7 @@ impl<E: InferenceEngine> DanAligner<E> {
         let info = engine.info();
         if info.landmark_count != 68 || info.crop_size != CROP_SIZE || info.mean_shape.len() != 68 {
             return Err(AlignError::BadOutput(format!(
-                "model has {} landmarks on a {} px crop; the client needs 68 on 112",
+                "model has {} landmarks on a {} px crop; the client needs 68 on {CROP_SIZE}",
                 info.landmark_count, info.crop_size
             )));
         }

@@ -8,12 +8,10 @@ use thiserror::Error;
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::image::GrayView;
 
-/// Side of the DAN crop in pixels.
-pub const CROP_SIZE: usize = 112;
+/// Side of the DAN crop in pixels and the pixels in one: the wire's contract, defined once in the protocol.
+pub use holoface_protocol::{CROP_PIXELS, CROP_SIZE};
 /// [`CROP_SIZE`] as the wire's crop encoders and the protocol's `u16` fields take it.
 pub const CROP_SIDE: u16 = CROP_SIZE as u16;
-/// Pixels in one DAN crop.
-pub const CROP_PIXELS: usize = CROP_SIZE * CROP_SIZE;
 
 /// Errors of the crop functions.
 #[derive(Debug, Error, Clone, PartialEq)]

@@ -1,5 +1,6 @@
 //! `holoface record`: writes a recorded stream (`.hfrec`, the protocol's format) from any frame source.
 
+use holoface_models::crop::CROP_SIDE;
 use holoface_sources::output::Output;
 use std::path::PathBuf;
 
@@ -85,7 +86,8 @@ impl CropCutter {
         let sim = holoface_runtime::align::crop_from_image(&first.init, &self.mean)?;
         holoface_models::crop::crop_bilinear(&frame.image, &sim, &mut self.crop)?;
         let back = sim.inverse().context("degenerate crop similarity")?;
-        let crop = holoface_runtime::crop_codec::encode(self.codec, self.crop.as_slice(), 112, 112)?;
+        let crop =
+            holoface_runtime::crop_codec::encode(self.codec, self.crop.as_slice(), CROP_SIDE, CROP_SIDE)?;
         Ok(Some(FramePayload::Crop {
             image_from_crop: [back.a as f32, back.b as f32, back.tx as f32, back.ty as f32],
             crop,

@@ -22,7 +22,7 @@ use anyhow::{Context, bail};
 use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, OnnxOptions};
 use holoface_models::GrayView;
 use holoface_models::accuracy::{nme49, nme68, summarise};
-use holoface_models::crop::warp_bilinear;
+use holoface_models::crop::{CROP_SIZE, warp_bilinear};
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
 use holoface_models::refine::train::{RefineConfig, RefineSample, borrowed_error_starts, train};
 use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
@@ -256,14 +256,14 @@ fn make_crops(
         tx: sim.tx * scale as f64,
         ty: sim.ty * scale as f64,
     };
-    let size = 112 * scale;
+    let size = CROP_SIZE * scale;
     let mut px = vec![0u8; size * size];
     warp_bilinear(image, &big, size, size, &mut px)?;
     let mut dan = if scale == 1 {
         Vec::new()
     } else {
-        let mut d = vec![0u8; 112 * 112];
-        warp_bilinear(image, &sim, 112, 112, &mut d)?;
+        let mut d = vec![0u8; CROP_SIZE * CROP_SIZE];
+        warp_bilinear(image, &sim, CROP_SIZE, CROP_SIZE, &mut d)?;
         d
     };
     if let Some(rng) = rng {
@@ -271,14 +271,14 @@ fn make_crops(
         let seed = rng.next_u64();
         augment(&mut px, size, &mut Rng::new(seed));
         if scale != 1 {
-            augment(&mut dan, 112, &mut Rng::new(seed));
+            augment(&mut dan, CROP_SIZE, &mut Rng::new(seed));
         }
     }
     let refiner_crop = wire_round_trip(&px, size)?;
     let dan_crop = if scale == 1 {
         refiner_crop.clone()
     } else {
-        wire_round_trip(&dan, 112)?
+        wire_round_trip(&dan, CROP_SIZE)?
     };
     Ok(CropJob {
         dan_crop,
@@ -670,7 +670,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.evaluate {
         return evaluate(&args, &val_faces, &mut runner, &mut detector);
     }
-    let size = 112 * args.crop_scale;
+    let size = CROP_SIZE * args.crop_scale;
     let t0 = Instant::now();
     let faces = (&train_faces[..], &teacher_faces[..]);
     let answered = training_answers(&args, faces, size, &mut runner, &mut detector)?;
@@ -685,7 +685,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .collect();
     let mean: [Point2; 68] = {
         let m = dan_mean_shape();
-        std::array::from_fn(|i| Point2::new(m[i].x * size as f32 / 112.0, m[i].y * size as f32 / 112.0))
+        std::array::from_fn(|i| {
+            Point2::new(
+                m[i].x * size as f32 / CROP_SIZE as f32,
+                m[i].y * size as f32 / CROP_SIZE as f32,
+            )
+        })
     };
     let borrowed = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
     samples.extend(borrowed);
@@ -777,7 +782,7 @@ fn dan_runner(args: &Args) -> anyhow::Result<(DanRunner, String)> {
     let dan_name = format!("{} {}", engine.info().name, engine.info().version);
     let runner = DanRunner {
         engine,
-        batch: BatchTensor::new(BATCH, 112 * 112),
+        batch: BatchTensor::new(BATCH, CROP_SIZE * CROP_SIZE),
         outs: vec![LandmarkOut::default(); BATCH],
         queued: Vec::new(),
         scale: args.crop_scale as f32,
