@@ -31,14 +31,14 @@ fn bench_blendshapes(c: &mut Criterion) {
         down: -0.05,
     });
     for f in &frames[..30] {
-        e.update(f, true, turn);
+        e.update(f, true, turn, 1.0 / 30.0);
     }
     let mut k = 0usize;
     let mut g = c.benchmark_group("blendshapes");
     g.bench_function("one_face_one_frame", |b| {
         b.iter(|| {
             k += 1;
-            black_box(e.update(black_box(&frames[k % frames.len()]), true, turn))
+            black_box(e.update(black_box(&frames[k % frames.len()]), true, turn, 1.0 / 30.0))
         })
     });
     g.finish();

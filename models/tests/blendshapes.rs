@@ -26,6 +26,8 @@ fn model() -> FaceModel {
     FaceModel::from_wfm(&Wfm::parse(&String::from_utf8_lossy(&bytes)).unwrap()).unwrap()
 }
 
+/// A 30-fps camera.
+const DT: f64 = 1.0 / 30.0;
 const K: Intrinsics = Intrinsics::new(600.0, 600.0, 320.0, 240.0);
 
 /// The 68 landmarks of CANDIDE-3 at this pose and these unit weights (jaw drop, lip stretcher, brow
@@ -79,7 +81,7 @@ const DRIVEN: [(usize, &[Blendshape]); 5] = [
 fn reading(m: &FaceModel, yaw: f64, pitch: f64, w: [f64; 5]) -> holoface_models::blendshapes::Blendshapes {
     let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
     assert!(e.set_neutral(&synth(m, yaw, pitch, [0.0; 5]), turn(yaw, pitch)));
-    e.update(&synth(m, yaw, pitch, w), true, turn(yaw, pitch))
+    e.update(&synth(m, yaw, pitch, w), true, turn(yaw, pitch), DT)
 }
 
 #[test]
@@ -138,12 +140,17 @@ fn recovery_under_head_turns_and_noise_is_within_a_tenth() {
             let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
             let rest = synth(&m, yaw, pitch, [0.0; 5]);
             for _ in 0..30 {
-                e.update(&noisy(&mut rng, rest), true, turn(yaw, pitch));
+                e.update(&noisy(&mut rng, rest), true, turn(yaw, pitch), DT);
             }
             assert!(e.is_calibrated());
             for _ in 0..8 {
                 let w: [f64; 5] = std::array::from_fn(|_| rng.uniform());
-                let b = e.update(&noisy(&mut rng, synth(&m, yaw, pitch, w)), true, turn(yaw, pitch));
+                let b = e.update(
+                    &noisy(&mut rng, synth(&m, yaw, pitch, w)),
+                    true,
+                    turn(yaw, pitch),
+                    DT,
+                );
                 for (unit, shapes) in DRIVEN {
                     for &s in shapes {
                         let d = (f64::from(b.get(s)) - w[unit]).abs();
@@ -234,7 +241,12 @@ fn on_held_out_real_faces_a_head_turn_leaks_less_into_the_coefficients() {
         let coefs: Vec<_> = faces
             .iter()
             .map(|(lm, t)| {
-                BlendshapeEstimator::new(BlendshapeParams::default()).update(lm, true, undo.then_some(*t))
+                BlendshapeEstimator::new(BlendshapeParams::default()).update(
+                    lm,
+                    true,
+                    undo.then_some(*t),
+                    0.0,
+                )
             })
             .collect();
         let per: Vec<f64> = (0..Blendshape::ALL.len())

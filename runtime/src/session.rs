@@ -559,11 +559,16 @@ impl TrackerSession {
             .unwrap_or_else(|| BlendshapeEstimator::new(self.opts.blendshapes));
         let turn = HeadTurn::from_pose(fitted.rotation, fitted.translation);
         // Each aligner calibrates its own neutral: they place a resting face a little differently.
+        // Time since the track's previous frame (0 for a new face): the neutral calibrates and drifts in seconds.
+        let dt = index.map_or(0.0, |i| {
+            frame.timestamp_us.saturating_sub(self.tracks[i].timestamp_us) as f64 * 1e-6
+        });
         let blendshapes = expressions.update_from(
             a.answered_by as u8,
             &shown,
             a.set == LandmarkSet::Ibug68,
             Some(turn),
+            dt,
         );
         let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
             Some(mut t) => {

@@ -287,7 +287,7 @@ mod tests {
                 0.0
             };
             let lm = face(open, blink);
-            ours.push(Some(est.update(&lm, true, None)));
+            ours.push(Some(est.update(&lm, true, None, 1.0 / 30.0)));
             lms.push(Some(lm));
         }
         let r = video_report(&ours, &lms, 30, RestRule::default());
@@ -311,7 +311,7 @@ mod tests {
         let base = holoface_models::shape::dan_mean_shape();
         let eye = f64::from(base[36].dist(base[45])) as f32;
         let ours: Vec<Blendshapes> = (0..20)
-            .map(|i| est.update(&face(0.01 * eye * i as f32, 0.0), true, None))
+            .map(|i| est.update(&face(0.01 * eye * i as f32, 0.0), true, None, 1.0 / 30.0))
             .collect();
         let rows = agreement(&ours, &ours);
         assert_eq!(rows.len(), N_BLENDSHAPES);

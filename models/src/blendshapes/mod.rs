@@ -9,8 +9,8 @@
 //! the head's turn from the runtime's CANDIDE-3 fit ([`HeadTurn`]). There each coefficient is one
 //! displacement (a lid, a brow, a lip corner, the lip gap, ...) against the same person's **neutral**, in
 //! eye distances, divided by its
-//! full movement. The neutral is the per-feature median over the first [`BlendshapeParams::calibration_frames`]
-//! frames of tracking (the quarter of them with the lips closest: a person may talk meanwhile), so a resting face
+//! full movement. The neutral is the per-feature median over the frames of the first
+//! [`BlendshapeParams::calibration_s`] of tracking (the quarter of them with the lips closest: a person may talk meanwhile), so a resting face
 //! reads near 0 whoever it is; each aligner calibrates its own (see [`BlendshapeEstimator`]). Until then it is
 //! another aligner's, else the median of the frames so far (from the fifth), else (the first frames, still
 //! images) a mean face's (the 300-W mean shape). Once calibrated, the neutral follows the face as it settles:
@@ -502,15 +502,14 @@ impl Blendshapes {
 /// Settings of the estimator.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BlendshapeParams {
-    /// Frames whose median is the person's neutral (the first frames of tracking): 1 s at 30 fps.
-    pub calibration_frames: usize,
+    /// Seconds of a track's first frames whose median is the person's neutral (time enters as each frame's
+    /// `dt`, so a 25-fps and a 60-fps camera calibrate over the same second).
+    pub calibration_s: f64,
 }
 
 impl Default for BlendshapeParams {
     fn default() -> Self {
-        Self {
-            calibration_frames: 30,
-        }
+        Self { calibration_s: 1.0 }
     }
 }
 
@@ -525,6 +524,9 @@ struct Calibration {
     /// The chin's two features and the lips' gap, calibrated on frames with a jaw line only.
     seen_jaw: Vec<[f64; 3]>,
     neutral_jaw: Option<[f64; 2]>,
+    /// Time spanned by `seen` and by `seen_jaw` (the sum of their frames' `dt`), seconds.
+    seen_s: f64,
+    seen_jaw_s: f64,
 }
 
 /// How far apart (eye distances) the inner lips of a closed mouth may read: a few pixels of landmark noise.
@@ -564,9 +566,9 @@ fn soft_knee(c: f64) -> f64 {
 /// are closed as in the neutral (within [`CLOSED_LIPS`]).
 const DRIFT_BELOW: f32 = 0.25;
 
-/// Frames over which a calibrated neutral follows the resting face (an exponential mean over the frames at
-/// rest): 5 s at 30 fps.
-const DRIFT_FRAMES: f64 = 150.0;
+/// Time constant with which a calibrated neutral follows the resting face (an exponential mean over the frames
+/// at rest, each weighing its `dt`), seconds.
+const DRIFT_S: f64 = 5.0;
 
 /// Frames after which a calibrating neutral is used provisionally (their median) instead of a mean face's.
 const PROVISIONAL_FRAMES: usize = 5;
@@ -610,11 +612,12 @@ impl Calibration {
         (self.seen_jaw.len() >= PROVISIONAL_FRAMES).then(|| self.resting_jaw())
     }
 
-    /// Moves the calibrated neutral a [`DRIFT_FRAMES`]th of the way to a frame at rest: the first second of
+    /// Moves the calibrated neutral `dt / DRIFT_S` of the way to a frame at rest ([`DRIFT_S`]): the first second of
     /// tracking is not always at rest (brows raised to speak, eyes narrowed against the light), and a face
     /// settles; only frames that already read near rest move it, so a held expression is never absorbed.
-    fn drift(&mut self, f: &Features, s: [f64; 4], jaw_line: bool) {
-        let step = |n: &mut f64, v: f64| *n += (v - *n) / DRIFT_FRAMES;
+    fn drift(&mut self, f: &Features, s: [f64; 4], jaw_line: bool, dt: f64) {
+        let w = (dt / DRIFT_S).clamp(0.0, 1.0);
+        let step = |n: &mut f64, v: f64| *n += (v - *n) * w;
         if let Some((n, ns)) = &mut self.neutral {
             n.iter_mut().zip(f).for_each(|(n, &v)| step(n, v));
             ns.iter_mut().zip(s).for_each(|(n, v)| step(n, v));
@@ -625,15 +628,22 @@ impl Calibration {
         }
     }
 
-    /// Takes one frame's features into the calibration while it lasts.
-    fn observe(&mut self, f: &Features, s: [f64; 4], jaw_line: bool, frames: usize) {
+    /// Takes one frame's features into the calibration while it lasts: until the frames seen span
+    /// `calibration_s` (the time between them, and the last one's own `dt`: 30 frames at 30 fps make a
+    /// second).
+    fn observe(&mut self, f: &Features, s: [f64; 4], jaw_line: bool, dt: f64, calibration_s: f64) {
+        let dt = if dt.is_finite() { dt.max(0.0) } else { 0.0 };
+        let spans = |seen_s: f64| seen_s + dt >= calibration_s - 1e-9;
         if jaw_line && self.neutral_jaw.is_none() {
             self.seen_jaw.push([
                 f[slot(Feature::ChinX)],
                 f[slot(Feature::ClosedJawDrop)],
                 f[slot(Feature::LipGap)],
             ]);
-            if self.seen_jaw.len() >= frames {
+            if self.seen_jaw.len() > 1 {
+                self.seen_jaw_s += dt;
+            }
+            if spans(self.seen_jaw_s) {
                 self.neutral_jaw = Some(self.resting_jaw());
                 self.seen_jaw = Vec::new();
             }
@@ -641,7 +651,10 @@ impl Calibration {
         if self.neutral.is_none() {
             self.seen.push(*f);
             self.seen_sides.push(s);
-            if self.seen.len() >= frames {
+            if self.seen.len() > 1 {
+                self.seen_s += dt;
+            }
+            if spans(self.seen_s) {
                 self.neutral = Some(self.resting());
                 self.seen = Vec::new();
                 self.seen_sides = Vec::new();
@@ -702,8 +715,14 @@ impl BlendshapeEstimator {
     }
 
     /// [`Self::update_from`] for one source of landmarks (source 0).
-    pub fn update(&mut self, lm: &[Point2; 68], jaw_line: bool, turn: Option<HeadTurn>) -> Blendshapes {
-        self.update_from(0, lm, jaw_line, turn)
+    pub fn update(
+        &mut self,
+        lm: &[Point2; 68],
+        jaw_line: bool,
+        turn: Option<HeadTurn>,
+        dt: f64,
+    ) -> Blendshapes {
+        self.update_from(0, lm, jaw_line, turn, dt)
     }
 
     /// The coefficients of one frame's landmarks (image pixels) from `source` (an aligner's id: each has
@@ -711,12 +730,16 @@ impl BlendshapeEstimator {
     /// aligned (not with KRFWS's 51 points). `turn`: the head's turn (from the frame's CANDIDE-3 fit), whose
     /// shift of the landmarks is undone first ([`PoseTerms`]); `None` reads the landmarks as they are (a
     /// still image without a fit). Give it on every frame or on none: the neutral is read the same way.
+    /// `dt`: seconds since the face's previous frame (0 for its first, and for a still image): the neutral
+    /// calibrates over [`BlendshapeParams::calibration_s`] and follows a resting face with a time constant
+    /// of seconds, whatever the frame rate.
     pub fn update_from(
         &mut self,
         source: u8,
         lm: &[Point2; 68],
         jaw_line: bool,
         turn: Option<HeadTurn>,
+        dt: f64,
     ) -> Blendshapes {
         let Some(n) = frame(lm, turn) else {
             return Blendshapes::default();
@@ -747,7 +770,7 @@ impl BlendshapeEstimator {
             .or_else(|| own.provisional_jaw());
         self.sources[k]
             .1
-            .observe(&f, s, jaw_line, self.params.calibration_frames.max(1));
+            .observe(&f, s, jaw_line, dt, self.params.calibration_s);
         let (mut f0, s0) = neutral.unwrap_or_else(mean_face);
         // The chin's features from frames that aligned the jaw only (KRFWS's jaw slots hold its start).
         let [chin_x, jaw_drop] = neutral_jaw.unwrap_or_else(|| {
@@ -783,7 +806,7 @@ impl BlendshapeEstimator {
         out[index(Blendshape::MouthPucker)] *= 1.0 - open;
         let gap = slot(Feature::LipGap);
         if calibrated && (f[gap] - f0[gap]).abs() <= CLOSED_LIPS && out.iter().all(|&v| v <= DRIFT_BELOW) {
-            self.sources[k].1.drift(&f, s, jaw_line);
+            self.sources[k].1.drift(&f, s, jaw_line, dt);
         }
         Blendshapes(out)
     }
@@ -870,6 +893,8 @@ fn median<const N: usize>(rows: &[[f64; N]]) -> [f64; N] {
 
 #[cfg(test)]
 mod tests {
+    /// A 30-fps camera.
+    const DT: f64 = 1.0 / 30.0;
     use super::*;
 
     /// A face read against its own neutral: the lids at their knee's foot, everything else 0.
@@ -885,17 +910,17 @@ mod tests {
     fn the_lids_read_small_moves_on_both_sides_of_the_neutral() {
         let rest = crate::shape::dan_mean_shape();
         let mut e = BlendshapeEstimator::new(BlendshapeParams {
-            calibration_frames: 5,
+            calibration_s: 5.0 * DT,
         });
         for _ in 0..5 {
-            e.update(&rest, true, None);
+            e.update(&rest, true, None, DT);
         }
         // The subject's left upper lid (iBUG 43, 44) moved by `dy` pixels (positive: down, closing).
         let mut lid = |dy: f32| {
             let mut p = rest;
             p[43].y += dy;
             p[44].y += dy;
-            let b = e.update(&p, true, None);
+            let b = e.update(&p, true, None, DT);
             (b.get(Blendshape::EyeBlinkLeft), b.get(Blendshape::EyeWideLeft))
         };
         let neutral = soft_knee(0.0) as f32;
@@ -928,7 +953,7 @@ mod tests {
     #[test]
     fn each_source_reads_against_its_own_neutral_once_calibrated() {
         let params = BlendshapeParams {
-            calibration_frames: 5,
+            calibration_s: 5.0 * DT,
         };
         let remote = crate::shape::dan_mean_shape();
         // The local aligner places the resting mouth corners systematically higher.
@@ -938,17 +963,17 @@ mod tests {
         let smile = |b: &Blendshapes| b.get(Blendshape::MouthSmileLeft);
         let mut e = BlendshapeEstimator::new(params);
         for _ in 0..5 {
-            e.update_from(1, &remote, true, None);
+            e.update_from(1, &remote, true, None, DT);
         }
         assert!(e.is_calibrated());
         // Before its own neutral, the local source reads against the remote one: the offset shows.
-        let first = e.update_from(2, &local, false, None);
+        let first = e.update_from(2, &local, false, None, DT);
         assert!(smile(&first) > 0.2, "{first:?}");
         for _ in 0..5 {
-            e.update_from(2, &local, false, None);
+            e.update_from(2, &local, false, None, DT);
         }
-        let local_now = e.update_from(2, &local, false, None);
-        let remote_now = e.update_from(1, &remote, true, None);
+        let local_now = e.update_from(2, &local, false, None, DT);
+        let remote_now = e.update_from(1, &remote, true, None, DT);
         assert!(
             [local_now, remote_now].iter().all(at_neutral),
             "{local_now:?} {remote_now:?}"
@@ -967,19 +992,19 @@ mod tests {
             p.y -= 1.0;
         }
         let params = BlendshapeParams {
-            calibration_frames: 5,
+            calibration_s: 5.0 * DT,
         };
         let mut e = BlendshapeEstimator::new(params);
         for _ in 0..5 {
-            e.update(&raised, true, None);
+            e.update(&raised, true, None, DT);
         }
         let brow_down = |b: &Blendshapes| b.get(Blendshape::BrowDownLeft);
-        let first = e.update(&rest, true, None);
+        let first = e.update(&rest, true, None, DT);
         assert!(brow_down(&first) > 0.05, "{first:?}");
-        for _ in 0..(4.0 * DRIFT_FRAMES) as usize {
-            e.update(&rest, true, None);
+        for _ in 0..(4.0 * DRIFT_S / DT) as usize {
+            e.update(&rest, true, None, DT);
         }
-        let settled = e.update(&rest, true, None);
+        let settled = e.update(&rest, true, None, DT);
         assert!(
             brow_down(&settled) < 0.03 * brow_down(&first),
             "{first:?} {settled:?}"
@@ -989,12 +1014,12 @@ mod tests {
         smile[48].y -= 2.0;
         smile[54].y -= 2.0;
         let smiling = |b: &Blendshapes| b.get(Blendshape::MouthSmileLeft);
-        let start = e.update(&smile, true, None);
+        let start = e.update(&smile, true, None, DT);
         assert!(smiling(&start) > DRIFT_BELOW, "{start:?}");
         for _ in 0..600 {
-            e.update(&smile, true, None);
+            e.update(&smile, true, None, DT);
         }
-        let end = e.update(&smile, true, None);
+        let end = e.update(&smile, true, None, DT);
         assert_eq!(smiling(&end), smiling(&start));
         // Talking (lips apart) does not move it either.
         let mut open = rest;
@@ -1003,9 +1028,12 @@ mod tests {
         }
         let mut before = e.clone();
         for _ in 0..600 {
-            e.update(&open, true, None);
+            e.update(&open, true, None, DT);
         }
-        assert_eq!(e.update(&rest, true, None), before.update(&rest, true, None));
+        assert_eq!(
+            e.update(&rest, true, None, DT),
+            before.update(&rest, true, None, DT)
+        );
     }
 
     #[test]
@@ -1015,12 +1043,12 @@ mod tests {
         face[48].y -= 1.0;
         face[54].y -= 1.0;
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
-        let first = e.update(&face, true, None);
+        let first = e.update(&face, true, None, DT);
         assert!(first.get(Blendshape::MouthSmileLeft) > 0.2, "{first:?}");
         for _ in 1..PROVISIONAL_FRAMES {
-            e.update(&face, true, None);
+            e.update(&face, true, None, DT);
         }
-        let sixth = e.update(&face, true, None);
+        let sixth = e.update(&face, true, None, DT);
         assert!(!e.is_calibrated() && at_neutral(&sixth), "{sixth:?}");
     }
 
@@ -1035,12 +1063,12 @@ mod tests {
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         // Talking: open on three frames of every five.
         for k in 0..30 {
-            e.update(if k % 5 < 3 { &open } else { &closed }, true, None);
+            e.update(if k % 5 < 3 { &open } else { &closed }, true, None, DT);
         }
         assert!(e.is_calibrated());
-        let rest = e.update(&closed, true, None);
+        let rest = e.update(&closed, true, None, DT);
         assert!(at_neutral(&rest), "{rest:?}");
-        assert!(e.update(&open, true, None).get(Blendshape::JawOpen) > 0.2);
+        assert!(e.update(&open, true, None, DT).get(Blendshape::JawOpen) > 0.2);
     }
 
     #[test]
@@ -1110,15 +1138,15 @@ mod tests {
         let rest = crate::shape::dan_mean_shape().map(|p| Point2::new(200.0 + 2.0 * p.x, 150.0 + 2.0 * p.y));
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         for _ in 0..40 {
-            let b = e.update(&rest, true, None);
+            let b = e.update(&rest, true, None, DT);
             assert!(at_neutral(&b), "{b:?}");
         }
         assert!(e.is_calibrated());
         let flat = [Point2::new(5.0, 5.0); 68];
-        assert_eq!(e.update(&flat, true, None), Blendshapes::default());
+        assert_eq!(e.update(&flat, true, None, DT), Blendshapes::default());
         let mut nan = rest;
         nan[10] = Point2::new(f32::NAN, 1.0);
-        let b = e.update(&nan, true, None);
+        let b = e.update(&nan, true, None, DT);
         assert!(b.0.iter().all(|v| (0.0..=1.0).contains(v)), "{b:?}");
         e.recalibrate();
         assert!(!e.is_calibrated());
@@ -1132,19 +1160,19 @@ mod tests {
         off[8].x += 20.0;
         let mut e = BlendshapeEstimator::new(BlendshapeParams::default());
         for _ in 0..30 {
-            e.update(&off, false, None);
+            e.update(&off, false, None, DT);
         }
         assert!(e.is_calibrated());
         for _ in 0..30 {
-            e.update(&rest, true, None);
+            e.update(&rest, true, None, DT);
         }
-        let b = e.update(&rest, true, None);
+        let b = e.update(&rest, true, None, DT);
         assert!(
             b.get(Blendshape::JawLeft) < 1e-4 && b.get(Blendshape::JawRight) < 1e-4,
             "{b:?}"
         );
         // Without a jaw line the chin's coefficients are 0 whatever the slots hold.
-        let b = e.update(&off, false, None);
+        let b = e.update(&off, false, None, DT);
         assert_eq!(
             (b.get(Blendshape::JawLeft), b.get(Blendshape::JawRight)),
             (0.0, 0.0)

@@ -243,8 +243,8 @@ fn evaluate(
         // A still has no person to calibrate: both against the mean face (a fresh estimator's first frame).
         let jaw_line = a.set == holoface_runtime::LandmarkSet::Ibug68;
         let fresh = || BlendshapeEstimator::new(Default::default());
-        shapes_ours.push(fresh().update(&a.landmarks, jaw_line, None));
-        shapes_truth.push(fresh().update(&c.gt, jaw_line, None));
+        shapes_ours.push(fresh().update(&a.landmarks, jaw_line, None, 0.0));
+        shapes_truth.push(fresh().update(&c.gt, jaw_line, None, 0.0));
         e68.push(n68.unwrap_or(f64::INFINITY));
         e49.push(n49.unwrap_or(f64::INFINITY));
         per_image.push(PerImage {

@@ -200,6 +200,8 @@ struct Run {
     /// The tracker's time per frame (detection or motion-compensated start, the aligner, fit, expressions,
     /// filters), ms.
     ms: Vec<Option<f64>>,
+    /// Each frame's time from the clip's first, seconds.
+    times_s: Vec<f64>,
     /// A remote run's own server (each headset has its server to itself: two remote runs on one would
     /// delay each other's frames) and the relay that cuts its link.
     server: Option<(crate::loopback::LoopbackServer, Option<CutRelay>)>,
@@ -305,9 +307,16 @@ const CLIP_EDIT_JUMP: f64 = 0.05;
 
 fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>) -> Report {
     let frames = r.raw.len();
-    // Calibration takes the first frames of the first track.
-    let calibrated_from =
-        r.raw.iter().position(Option::is_some).unwrap_or(0) + BlendshapeParams::default().calibration_frames;
+    // Calibration takes the first second (`BlendshapeParams::calibration_s`) of the first track: its frames
+    // within that time of the first face, and the frame that completes it.
+    let first = r.raw.iter().position(Option::is_some).unwrap_or(0);
+    let t0 = r.times_s.get(first).copied().unwrap_or(0.0);
+    let calibration_s = BlendshapeParams::default().calibration_s;
+    let calibrated_from = first
+        + r.times_s[first.min(r.times_s.len())..]
+            .iter()
+            .take_while(|&&t| t - t0 < calibration_s - 1e-9)
+            .count();
     let all_switches = (1..frames)
         .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
         .count();
@@ -383,6 +392,8 @@ fn track_clip(
             if let Some((_, Some(relay))) = &mut r.server {
                 relay.at(sf.timestamp_us);
             }
+            r.times_s
+                .push(sf.timestamp_us.saturating_sub(origin) as f64 * 1e-6);
             let step = r
                 .tracker
                 .process_step(&frame)
@@ -623,6 +634,7 @@ fn start_run(a: StabilityAligner, args: &Args, opts: &TrackerOptions) -> anyhow:
         adapt: Vec::new(),
         link: Vec::new(),
         ms: Vec::new(),
+        times_s: Vec::new(),
         server,
     })
 }
