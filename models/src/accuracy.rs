@@ -110,6 +110,63 @@ pub fn summarise(errors: &[f64]) -> ErrorSummary {
     }
 }
 
+/// ROC AUC of `scores` for the positive `labels` (higher score = more positive), ties counted half.
+/// `None` when one class is empty.
+pub fn roc_auc(scores: &[f32], labels: &[bool]) -> Option<f64> {
+    let mut v: Vec<(f32, bool)> = scores.iter().copied().zip(labels.iter().copied()).collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let pos = v.iter().filter(|x| x.1).count();
+    let neg = v.len() - pos;
+    if pos == 0 || neg == 0 {
+        return None;
+    }
+    let mut rank_sum = 0.0f64;
+    let mut i = 0;
+    while i < v.len() {
+        let mut j = i;
+        while j < v.len() && v[j].0 == v[i].0 {
+            j += 1;
+        }
+        let avg = (i + j + 1) as f64 / 2.0;
+        rank_sum += avg * v[i..j].iter().filter(|x| x.1).count() as f64;
+        i = j;
+    }
+    Some((rank_sum - (pos * (pos + 1)) as f64 / 2.0) / (pos as f64 * neg as f64))
+}
+
+/// Threshold maximising Youden's J (TPR − FPR) for "score ≥ threshold ⇒ failure" on labelled scores;
+/// returns `(threshold, tpr, fpr)`.
+pub fn youden_threshold(scores: &[f32], labels: &[bool]) -> Option<(f32, f64, f64)> {
+    let mut v: Vec<(f32, bool)> = scores.iter().copied().zip(labels.iter().copied()).collect();
+    v.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let pos = v.iter().filter(|x| x.1).count() as f64;
+    let neg = v.len() as f64 - pos;
+    if pos == 0.0 || neg == 0.0 {
+        return None;
+    }
+    let (mut tp, mut fp) = (0.0, 0.0);
+    let mut best = (f64::NEG_INFINITY, f32::INFINITY, 0.0, 0.0);
+    for k in 0..v.len() {
+        if v[k].1 {
+            tp += 1.0;
+        } else {
+            fp += 1.0;
+        }
+        if k + 1 < v.len() && v[k + 1].0 == v[k].0 {
+            continue;
+        }
+        let j = tp / pos - fp / neg;
+        if j > best.0 {
+            let thr = match v.get(k + 1) {
+                Some(next) => 0.5 * (v[k].0 + next.0),
+                None => v[k].0,
+            };
+            best = (j, thr, tp / pos, fp / neg);
+        }
+    }
+    Some((best.1, best.2, best.3))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

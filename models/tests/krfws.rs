@@ -133,7 +133,7 @@ fn failure_score_ranks_gross_failures_above_good_fits() {
     let (fits, _) = train::perturbed_fits(m, &faces[30..], 8, 3, 1, false, &NoProgress);
     let scores: Vec<f32> = fits.iter().map(|f| f.score).collect();
     let labels: Vec<bool> = fits.iter().map(|f| f.nme > 0.08).collect();
-    let auc = train::roc_auc(&scores, &labels).unwrap();
+    let auc = holoface_models::accuracy::roc_auc(&scores, &labels).unwrap();
     assert!(auc > 0.8, "AUC {auc}");
 }
 

@@ -9,10 +9,9 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use holoface_models::accuracy::{FAILURE_THRESHOLD, summarise, yaw_proxy};
+use holoface_models::accuracy::{roc_auc, youden_threshold};
 use holoface_models::geometry::{Point2, Rect};
-use holoface_models::krfws::train::{
-    self, FitKind, Progress, TrainConfig, TrainFace, gt_box, roc_auc, youden_threshold,
-};
+use holoface_models::krfws::train::{self, FitKind, Progress, TrainConfig, TrainFace, gt_box};
 use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS, nme49_inner};
 use holoface_models::rng::Rng;
 use serde::Serialize;
