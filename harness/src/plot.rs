@@ -1,21 +1,22 @@
-//! Self-contained PNG plots (no font files needed): cumulative error distribution curves, time series
-//! (load-test latency) and annotated frame strips, with text in a built-in 3×5 pixel font.
+//! PNG plots drawn with `plotters` (its bitmap backend; text in DejaVu Sans, embedded through the `dejavu`
+//! crate, so that a plot reads the same on every machine and needs no system font): cumulative error
+//! distribution curves and time series (load-test latency, jitter) with axes, tick labels, axis titles and a
+//! legend; and [`Canvas`], the RGB surface annotated frames are drawn on, whose text uses the same font.
+
+use plotters::prelude::*;
+use plotters::style::{FontStyle, register_font};
 
 /// One curve of a CED plot.
 #[derive(Debug, Clone)]
 pub struct Curve {
-    /// Legend label (lowercase letters, digits, `-`, `.`, `%`, space).
+    /// Legend label.
     pub label: String,
     /// Per-sample errors (infinite or NaN = no answer).
     pub errors: Vec<f64>,
 }
 
-const W: usize = 640;
-const H: usize = 420;
-const LEFT: usize = 50;
-const BOTTOM: usize = 40;
-const TOP: usize = 20;
-const RIGHT: usize = 20;
+const W: usize = 800;
+const H: usize = 500;
 const COLOURS: [[u8; 3]; 6] = [
     [31, 119, 180],
     [214, 39, 40],
@@ -25,52 +26,158 @@ const COLOURS: [[u8; 3]; 6] = [
     [23, 23, 23],
 ];
 
-/// 3×5 glyphs, one row per 3 bits (MSB left).
-fn glyph(c: char) -> [u8; 5] {
-    match c {
-        '0' => [7, 5, 5, 5, 7],
-        '1' => [2, 6, 2, 2, 7],
-        '2' => [7, 1, 7, 4, 7],
-        '3' => [7, 1, 7, 1, 7],
-        '4' => [5, 5, 7, 1, 1],
-        '5' => [7, 4, 7, 1, 7],
-        '6' => [7, 4, 7, 5, 7],
-        '7' => [7, 1, 1, 1, 1],
-        '8' => [7, 5, 7, 5, 7],
-        '9' => [7, 5, 7, 1, 7],
-        '.' => [0, 0, 0, 0, 2],
-        '%' => [5, 1, 2, 4, 5],
-        '+' => [0, 2, 7, 2, 0],
-        '-' => [0, 0, 7, 0, 0],
-        '=' => [0, 7, 0, 7, 0],
-        'a' => [2, 5, 7, 5, 5],
-        'b' => [6, 5, 6, 5, 6],
-        'c' => [7, 4, 4, 4, 7],
-        'd' => [6, 5, 5, 5, 6],
-        'e' => [7, 4, 6, 4, 7],
-        'f' => [7, 4, 6, 4, 4],
-        'g' => [7, 4, 5, 5, 7],
-        'h' => [5, 5, 7, 5, 5],
-        'i' => [7, 2, 2, 2, 7],
-        'j' => [1, 1, 1, 5, 7],
-        'k' => [5, 5, 6, 5, 5],
-        'l' => [4, 4, 4, 4, 7],
-        'm' => [5, 7, 7, 5, 5],
-        'n' => [6, 5, 5, 5, 5],
-        'o' => [7, 5, 5, 5, 7],
-        'p' => [7, 5, 7, 4, 4],
-        'q' => [7, 5, 5, 7, 1],
-        'r' => [6, 5, 6, 5, 5],
-        's' => [7, 4, 7, 1, 7],
-        't' => [7, 2, 2, 2, 2],
-        'u' => [5, 5, 5, 5, 7],
-        'v' => [5, 5, 5, 5, 2],
-        'w' => [5, 5, 7, 7, 5],
-        'x' => [5, 5, 2, 5, 5],
-        'y' => [5, 5, 2, 2, 2],
-        'z' => [7, 1, 2, 4, 7],
-        _ => [0; 5],
+/// The font every plot and canvas writes with, registered once.
+fn font() -> &'static str {
+    static REGISTERED: std::sync::Once = std::sync::Once::new();
+    REGISTERED.call_once(|| {
+        // DejaVu Sans is a valid TrueType font: registering it cannot fail.
+        let _ = register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+    "sans-serif"
+}
+
+/// One line of a chart: its legend label, colour and points.
+type Line<'a> = (&'a str, [u8; 3], Vec<(f64, f64)>);
+
+fn rgb(c: [u8; 3]) -> RGBColor {
+    RGBColor(c[0], c[1], c[2])
+}
+
+/// Encodes `w` x `h` RGB pixels as PNG.
+fn png(px: &[u8], w: usize, h: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    // An in-memory buffer of the right size: the encoder has nothing to fail on.
+    let _ = image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut out),
+        px,
+        w as u32,
+        h as u32,
+        image::ExtendedColorType::Rgb8,
+    );
+    out
+}
+
+/// Draws a line chart on a fresh white `W` x `H` picture: `lines` (label, colour, points) over `x` and `y`,
+/// with a grid, tick labels, axis titles and a legend; the picture as PNG.
+fn line_chart(
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    x_title: &str,
+    y_title: &str,
+    lines: &[Line<'_>],
+    y_ticks: impl Fn(&f64) -> String,
+) -> Vec<u8> {
+    let mut px = vec![255u8; W * H * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut px, (W as u32, H as u32)).into_drawing_area();
+        let font = font();
+        // The drawing cannot fail on an in-memory buffer of the right size; a failure would leave a blank plot.
+        let _ = (|| -> Result<(), Box<dyn std::error::Error + '_>> {
+            let mut chart = ChartBuilder::on(&root)
+                .margin(16)
+                .x_label_area_size(44)
+                .y_label_area_size(64)
+                .build_cartesian_2d(x, y)?;
+            chart
+                .configure_mesh()
+                .x_desc(x_title)
+                .y_desc(y_title)
+                .y_label_formatter(&y_ticks)
+                .label_style((font, 15))
+                .axis_desc_style((font, 17))
+                .light_line_style(RGBColor(235, 235, 235))
+                .draw()?;
+            for (label, colour, points) in lines {
+                let c = rgb(*colour);
+                chart
+                    .draw_series(LineSeries::new(points.iter().copied(), c.stroke_width(2)))?
+                    .label(*label)
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(3)));
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerRight)
+                .label_font((font, 15))
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()?;
+            root.present()?;
+            Ok(())
+        })();
     }
+    png(&px, W, H)
+}
+
+/// Renders the CED of each curve from 0 to `max_error` as a PNG: x = error (normalised by the outer eye
+/// corners), y = share of samples with error ≤ x. Samples without an answer count in the denominator, never in
+/// the curve.
+pub fn ced_plot_png(curves: &[Curve], max_error: f64) -> Vec<u8> {
+    let steps = 400;
+    let lines: Vec<Line<'_>> = curves
+        .iter()
+        .enumerate()
+        .map(|(ci, curve)| {
+            let mut sorted: Vec<f64> = curve.errors.iter().copied().filter(|e| e.is_finite()).collect();
+            sorted.sort_by(f64::total_cmp);
+            let total = curve.errors.len().max(1) as f64;
+            let points = (0..=steps)
+                .map(|k| {
+                    let e = max_error * k as f64 / steps as f64;
+                    (e, sorted.partition_point(|&x| x <= e) as f64 / total)
+                })
+                .collect();
+            (curve.label.as_str(), COLOURS[ci % COLOURS.len()], points)
+        })
+        .collect();
+    line_chart(
+        0.0..max_error,
+        0.0..1.0,
+        "NME (outer eye corners)",
+        "share of faces",
+        &lines,
+        |v| format!("{v:.2}"),
+    )
+}
+
+/// One series of a time plot.
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Legend label.
+    pub label: String,
+    /// (x, y) points in data units.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A line plot of `series` (x from 0 to the largest x, y from 0 to the largest y and a tenth), with axis
+/// titles and a legend.
+pub fn series_plot_png(series: &[Series], x_label: &str, y_label: &str) -> Vec<u8> {
+    let x_max = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.0))
+        .filter(|v| v.is_finite())
+        .fold(1e-9, f64::max);
+    let y_max = series
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.1))
+        .filter(|v| v.is_finite())
+        .fold(1e-9, f64::max)
+        * 1.1;
+    let lines: Vec<Line<'_>> = series
+        .iter()
+        .enumerate()
+        .map(|(ci, s)| {
+            let points = s
+                .points
+                .iter()
+                .copied()
+                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .collect();
+            (s.label.as_str(), COLOURS[ci % COLOURS.len()], points)
+        })
+        .collect();
+    line_chart(0.0..x_max, 0.0..y_max, x_label, y_label, &lines, |v| {
+        format!("{v:.1}")
+    })
 }
 
 /// An RGB drawing surface.
@@ -130,17 +237,7 @@ impl Canvas {
     }
     /// Encodes as PNG.
     pub fn to_png(&self) -> Vec<u8> {
-        let mut png = Vec::new();
-        let enc = image::codecs::png::PngEncoder::new(&mut png);
-        // Encoding an in-memory RGB buffer of the right size cannot fail; an empty Vec shows as a bad file.
-        let _ = image::ImageEncoder::write_image(
-            enc,
-            &self.px,
-            self.w as u32,
-            self.h as u32,
-            image::ExtendedColorType::Rgb8,
-        );
-        png
+        png(&self.px, self.w, self.h)
     }
     /// A line of thickness `thick`.
     pub fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), c: [u8; 3], thick: i64) {
@@ -158,142 +255,20 @@ impl Canvas {
             }
         }
     }
-    /// Text in the built-in font (2x scale, 8 px per character).
+    /// Text in DejaVu Sans, 13 px high (a line every 14 px), its top-left corner at (x, y).
     pub fn text(&mut self, x: i64, y: i64, s: &str, c: [u8; 3]) {
-        let scale = 2;
-        for (k, ch) in s.chars().enumerate() {
-            let g = glyph(ch.to_ascii_lowercase());
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..3 {
-                    if bits & (4 >> col) != 0 {
-                        for sy in 0..scale {
-                            for sx in 0..scale {
-                                self.set(
-                                    x + (k as i64) * 4 * scale + col * scale + sx,
-                                    y + row as i64 * scale + sy,
-                                    c,
-                                );
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// Renders the CED of each curve from 0 to `max_error` as a PNG: x = error (normalised), y = share of
-/// samples with error ≤ x. Samples without an answer count in the denominator, never in the curve.
-pub fn ced_plot_png(curves: &[Curve], max_error: f64) -> Vec<u8> {
-    let mut cv = Canvas::new(W, H);
-    let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
-    let to_px = |e: f64, f: f64| (LEFT as f64 + e / max_error * pw, TOP as f64 + (1.0 - f) * ph);
-    let grey = [200, 200, 200];
-    let black = [0, 0, 0];
-    for k in 0..=4 {
-        let f = k as f64 / 4.0;
-        cv.line(to_px(0.0, f), to_px(max_error, f), grey, 1);
-        cv.text(8, to_px(0.0, f).1 as i64 - 5, &format!("{:.2}", f), black);
-    }
-    for k in 0..=8 {
-        let e = max_error * k as f64 / 8.0;
-        cv.line(to_px(e, 0.0), to_px(e, 1.0), grey, 1);
-        cv.text(
-            to_px(e, 0.0).0 as i64 - 12,
-            (H - BOTTOM + 8) as i64,
-            &format!("{:.3}", e),
-            black,
+        let (w, h) = (self.w as u32, self.h as u32);
+        let root = BitMapBackend::with_buffer(&mut self.px, (w, h)).into_drawing_area();
+        let colour = rgb(c);
+        let style = TextStyle::from((font(), 13).into_font()).color(&colour);
+        let at = (
+            i32::try_from(x).unwrap_or(i32::MAX),
+            i32::try_from(y).unwrap_or(i32::MAX),
         );
+        // Drawing into the canvas's own buffer cannot fail; a failure would leave the text out.
+        let _ = root.draw_text(s, &style, at);
+        let _ = root.present();
     }
-    cv.line(to_px(0.0, 0.0), to_px(max_error, 0.0), black, 1);
-    cv.line(to_px(0.0, 0.0), to_px(0.0, 1.0), black, 1);
-    cv.text(
-        (W / 2 - 40) as i64,
-        (H - 14) as i64,
-        "nme - outer eye corners",
-        black,
-    );
-    for (ci, curve) in curves.iter().enumerate() {
-        let colour = COLOURS[ci % COLOURS.len()];
-        let mut sorted: Vec<f64> = curve.errors.iter().copied().filter(|e| e.is_finite()).collect();
-        sorted.sort_by(f64::total_cmp);
-        let total = curve.errors.len().max(1) as f64;
-        let steps = 400;
-        let mut prev = to_px(0.0, sorted.partition_point(|&e| e <= 0.0) as f64 / total);
-        for k in 1..=steps {
-            let e = max_error * k as f64 / steps as f64;
-            let cur = to_px(e, sorted.partition_point(|&x| x <= e) as f64 / total);
-            cv.line(prev, cur, colour, 2);
-            prev = cur;
-        }
-        let ly = TOP as i64 + 10 + 16 * ci as i64;
-        cv.line(
-            ((LEFT + 20) as f64, ly as f64 + 4.0),
-            ((LEFT + 40) as f64, ly as f64 + 4.0),
-            colour,
-            3,
-        );
-        cv.text((LEFT + 48) as i64, ly, &curve.label, colour);
-    }
-    cv.to_png()
-}
-
-/// One series of a time plot.
-#[derive(Debug, Clone)]
-pub struct Series {
-    /// Legend label.
-    pub label: String,
-    /// (x, y) points in data units.
-    pub points: Vec<(f64, f64)>,
-}
-
-/// A line plot of `series` (x from 0 to the largest x, y from 0 to the largest y), with axis labels.
-pub fn series_plot_png(series: &[Series], x_label: &str, y_label: &str) -> Vec<u8> {
-    let mut cv = Canvas::new(W, H);
-    let x_max = series
-        .iter()
-        .flat_map(|s| s.points.iter().map(|p| p.0))
-        .fold(1e-9, f64::max);
-    let y_max = series
-        .iter()
-        .flat_map(|s| s.points.iter().map(|p| p.1))
-        .fold(1e-9, f64::max)
-        * 1.1;
-    let (pw, ph) = ((W - LEFT - RIGHT) as f64, (H - TOP - BOTTOM) as f64);
-    let to_px = |x: f64, y: f64| (LEFT as f64 + x / x_max * pw, TOP as f64 + (1.0 - y / y_max) * ph);
-    let (grey, black) = ([200, 200, 200], [0, 0, 0]);
-    for k in 0..=4 {
-        let y = y_max * k as f64 / 4.0;
-        cv.line(to_px(0.0, y), to_px(x_max, y), grey, 1);
-        cv.text(4, to_px(0.0, y).1 as i64 - 5, &format!("{y:.1}"), black);
-        let x = x_max * k as f64 / 4.0;
-        cv.line(to_px(x, 0.0), to_px(x, y_max), grey, 1);
-        cv.text(
-            to_px(x, 0.0).0 as i64 - 12,
-            (H - BOTTOM + 8) as i64,
-            &format!("{x:.0}"),
-            black,
-        );
-    }
-    cv.line(to_px(0.0, 0.0), to_px(x_max, 0.0), black, 1);
-    cv.line(to_px(0.0, 0.0), to_px(0.0, y_max), black, 1);
-    cv.text((W / 2 - 40) as i64, (H - 14) as i64, x_label, black);
-    cv.text(LEFT as i64 + 4, 4, y_label, black);
-    for (ci, s) in series.iter().enumerate() {
-        let colour = COLOURS[ci % COLOURS.len()];
-        for w in s.points.windows(2) {
-            cv.line(to_px(w[0].0, w[0].1), to_px(w[1].0, w[1].1), colour, 2);
-        }
-        let ly = TOP as i64 + 10 + 16 * ci as i64;
-        cv.line(
-            ((W - 200) as f64, ly as f64 + 4.0),
-            ((W - 180) as f64, ly as f64 + 4.0),
-            colour,
-            3,
-        );
-        cv.text((W - 172) as i64, ly, &s.label, colour);
-    }
-    cv.to_png()
 }
 
 #[cfg(test)]
@@ -302,20 +277,45 @@ mod tests {
 
     #[test]
     fn plot_is_a_png_with_the_curve_drawn() {
-        let png = ced_plot_png(
-            &[Curve {
-                label: "dan".into(),
-                errors: vec![0.01, 0.02, 0.03, f64::INFINITY],
-            }],
-            0.08,
-        );
-        let img = image::load_from_memory(&png).unwrap().to_rgb8();
+        let curve = |errors| {
+            ced_plot_png(
+                &[Curve {
+                    label: "dan".into(),
+                    errors,
+                }],
+                0.08,
+            )
+        };
+        let img = image::load_from_memory(&curve(vec![0.01, 0.02, 0.03, f64::INFINITY]))
+            .unwrap()
+            .to_rgb8();
         assert_eq!(img.dimensions(), (W as u32, H as u32));
-        // The curve reaches 3/4 at the right edge: a blue pixel near (x_max, 1/4 from the top of the plot).
-        let y = TOP as f64 + 0.25 * (H - TOP - BOTTOM) as f64;
-        let x = (W - RIGHT - 2) as u32;
-        let found = (y as u32 - 3..y as u32 + 3).any(|yy| img.get_pixel(x, yy).0 == COLOURS[0]);
-        assert!(found);
+        let blue = |img: &image::RgbImage| img.pixels().filter(|p| p.0 == COLOURS[0]).count();
+        // The curve is drawn, and it is the data's: a curve that stays at 0 draws less of it above the axis.
+        let flat = image::load_from_memory(&curve(vec![f64::INFINITY; 4]))
+            .unwrap()
+            .to_rgb8();
+        let top_half = |img: &image::RgbImage| {
+            (0..H as u32 / 2)
+                .flat_map(|y| (0..W as u32).map(move |x| (x, y)))
+                .filter(|&(x, y)| img.get_pixel(x, y).0 == COLOURS[0])
+                .count()
+        };
+        assert!(blue(&img) > 500, "{}", blue(&img));
+        assert!(top_half(&img) > top_half(&flat) + 300);
+    }
+
+    #[test]
+    fn text_is_drawn_in_a_real_font() {
+        let mut cv = Canvas::new(200, 40);
+        cv.text(4, 4, "holoface 0.5", [0, 0, 0]);
+        let dark = cv.rgb().chunks(3).filter(|p| p[0] < 128).count();
+        // Anti-aliased glyphs: some dark pixels and some grey ones, not the 3x5 font's blocks.
+        let grey = cv.rgb().chunks(3).filter(|p| p[0] > 32 && p[0] < 224).count();
+        assert!(dark > 50 && grey > 20, "dark {dark}, grey {grey}");
+        let mut empty = Canvas::new(200, 40);
+        empty.text(4, 4, "", [0, 0, 0]);
+        assert!(empty.rgb().iter().all(|&v| v == 255));
     }
 
     #[test]
