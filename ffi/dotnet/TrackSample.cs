@@ -157,9 +157,22 @@ static class TrackSample
             Check(last.adaptPairs == 0 && last.adaptCorrected == 0 && last.adaptCorrection == 0f,
                 "no server: no adaptation (" + last.adaptPairs + " pairs)");
         }
-        byte adaptDefault = 0;
-        using (new FaceTracker(configure: st => { adaptDefault = st.adapt; return st; })) { }
-        Check(adaptDefault == 1, "HfSettings.adapt defaults to 1 (the adaptation on)");
+        // The binding types no default of its own: what a tracker starts from is the C ABI's (which the C ABI's
+        // own test compares with the facade's), field by field.
+        var seen = new HfSettings();
+        using (new FaceTracker(configure: st => { seen = st; return st; })) { }
+        var want = new HfSettings { structSize = (uint)System.Runtime.InteropServices.Marshal.SizeOf(typeof(HfSettings)) };
+        Check(Native.hf_settings_default(ref want) == HfStatus.Ok, "hf_settings_default");
+        Check(seen.maxFaces == want.maxFaces && seen.detectEvery == want.detectEvery && seen.detectTiles == want.detectTiles
+            && seen.cropEncoding == want.cropEncoding && seen.steady == want.steady
+            && seen.steadyShapeCutoffHz == want.steadyShapeCutoffHz && seen.steadyShapeBeta == want.steadyShapeBeta
+            && seen.steadyRigidCutoffHz == want.steadyRigidCutoffHz && seen.steadyRigidBeta == want.steadyRigidBeta
+            && seen.steadyPreciseShapeCutoffHz == want.steadyPreciseShapeCutoffHz
+            && seen.steadyPreciseShapeBeta == want.steadyPreciseShapeBeta
+            && seen.steadyPreciseRigidCutoffHz == want.steadyPreciseRigidCutoffHz
+            && seen.steadyPreciseRigidBeta == want.steadyPreciseRigidBeta && seen.adapt == want.adapt,
+            "the C# defaults are hf_settings_default's, field by field (maxFaces " + seen.maxFaces + ", adapt " + seen.adapt + ")");
+        Check(want.adapt == 1 && want.maxFaces == 1, "HfSettings defaults: the adaptation on, one face");
 
         // A path the app passes wins over the environment; a missing one names the asset, the path and why.
         Expect<InvalidOperationException>("missing model file (passed by the app)", () =>

@@ -140,16 +140,17 @@ namespace HoloFace
     {
         IntPtr handle;
 
-        /// <param name="maxFaces">Faces tracked at once (1..HfFaces.MaxFaces); read them with ProcessFaces.</param>
+        /// <param name="maxFaces">Faces tracked at once (1..HfFaces.MaxFaces; null: hf_settings_default's, one); read
+        /// them with ProcessFaces.</param>
         /// <param name="ortDylib">The ONNX Runtime library the app ships; null: ORT_DYLIB_PATH, else the holoface
         /// data folder (the same rule for the three models below; see the README, "Installing").</param>
         /// <param name="detectorModel">face_detection_front_128x128.onnx (BlazeFace).</param>
         /// <param name="krfwsModel">krfws.bin (the local aligner).</param>
         /// <param name="candide">The CANDIDE-3 .wfm (head pose and expressions).</param>
         /// <param name="configure">Changes the further settings (detector, crop encoding, landmark filter) after
-        /// hf_settings_default filled them; maxFaces is set from the argument above.</param>
+        /// hf_settings_default filled them; a maxFaces given above is set after it.</param>
         /// <param name="cropEncoding">Crop encoding on the wire ("raw", "png", "jpeg", "jpeg:Q"); null: "jpeg:75".</param>
-        public FaceTracker(string server = null, string fingerprint = null, string token = null, uint maxFaces = 1,
+        public FaceTracker(string server = null, string fingerprint = null, string token = null, uint? maxFaces = null,
             string ortDylib = null, string detectorModel = null, string krfwsModel = null, string candide = null,
             Func<HfSettings, HfSettings> configure = null, string cropEncoding = null)
         {
@@ -158,7 +159,7 @@ namespace HoloFace
             var d = Native.hf_settings_default(ref settings);
             if (d != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {d}: {Native.LastError()}");
             if (configure != null) settings = configure(settings);
-            settings.maxFaces = maxFaces;
+            if (maxFaces.HasValue) settings.maxFaces = maxFaces.Value;
             var strings = new[] { server, fingerprint, token, ortDylib, detectorModel, krfwsModel, candide, cropEncoding };
             var ptrs = new IntPtr[strings.Length];
             try
