@@ -56,10 +56,10 @@ pub struct SessionOptions {
     /// frames to find the others (at least 1); with no face tracked it runs on every frame.
     pub detect_every: u32,
     /// The landmark filter (One-Euro, in the face's own frame; [`holoface_models::steady`]): what
-    /// [`FaceResult::landmarks`] shows, and what CANDIDE-3 is fitted to. `None` turns it off (then
-    /// `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
+    /// [`FaceResult::landmarks`] shows, and what CANDIDE-3 is fitted to. `enabled: false` turns it off
+    /// (then `landmarks` equals `raw_landmarks`). It only acts across frames, so still images are unaffected.
     pub steady: SteadySettings,
-    /// Blendshape coefficients: how many of a track's first frames calibrate the person's neutral.
+    /// Blendshape coefficients: how long a track's first frames calibrate the person's neutral.
     pub blendshapes: BlendshapeParams,
 }
 

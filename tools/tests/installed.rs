@@ -1,4 +1,4 @@
-//! The CLI and the server as a user installs them (`cargo install --path tools` / `--path server`): copies of
+//! The CLI and the server as a user installs them (`cargo install --path tools` / `--path alignment-server`): copies of
 //! the binaries in a temporary folder, run from another working directory with `HOME` pointed at a temporary
 //! folder and no `HOLOFACE_*` or `ORT_*` variable. Before `holoface setup` every missing asset is an error
 //! naming the data folder and the command; after it the CLI tracks the sample exactly as the checkout's build

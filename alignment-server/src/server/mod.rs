@@ -27,11 +27,11 @@
 //! * `auth`: reading the `ClientHello`, the version and token checks;
 //! * `fault`: how a connection ends (close code and reason), shared by the
 //!   modules below;
-//! * `connection`: the per-connection task (handshake, welcome, frame loop,
-//!   graceful drain) and how a connection ends;
+//! * `client`: the per-connection task (the hello's timeout, handshake, welcome,
+//!   frame loop, graceful drain) and how a connection ends;
 //! * `reply`: the reply sink (datagrams or the reply stream);
-//! * `frame`: the per-connection state its frame streams share, and one frame
-//!   stream: ordering, crop decoding, submission;
+//! * `frame_stream`: the per-connection state its frame streams share, and one
+//!   frame stream: ordering, crop decoding, submission;
 //! * `rate_limit`: the per-connection frame-rate token bucket;
 //! * `scheduler`: the task that owns the [`DynamicBatcher`];
 //! * `engine_thread`: the thread that runs the [`InferenceEngine`].
