@@ -1,11 +1,11 @@
 //! HoloFace inference: what the alignment server and the headset client share to run ONNX models.
 //!
-//! * [`crop`]: the one decoder of a crop's PNG/JPEG payload ([`decode_crop`]), hardened for network bytes.
+//! * [`crop_decode`]: the one decoder of a crop's PNG/JPEG payload ([`decode_crop`]), hardened for network bytes.
 //! * [`contract`]: the [`InferenceEngine`] trait and the DAN model contract (batch, outputs, metadata,
 //!   input/output validation), which every engine below meets.
 //! * [`onnx`]: [`OnnxEngine`] (ort, `load-dynamic`; CUDA with fail-over to the CPU).
 //! * [`precision`]: which DAN file serves (int8 on a CPU with VNNI, else fp32), as a pure rule.
-//! * [`refine`]: [`CascadeEngine`], an engine followed by the refinement cascade (the server's pipeline).
+//! * [`cascade`]: [`CascadeEngine`], an engine followed by the refinement cascade (the server's pipeline).
 //! * `fake`: `FakeEngine` under `cfg(test)` / the `test-util` feature.
 //! * [`files`]: bounded reads of the files front ends name (kind and size checked before reading).
 //! * [`integrity`]: model files checked before use (sidecar checksums, the shipped releases' checksums, a
