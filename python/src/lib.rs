@@ -126,7 +126,7 @@ impl PyTrackerOptions {
     // The defaults are the runtime's (`holoface_headset_client::defaults`, `SteadySettings::default`), as in
     // C's `hf_options_default`/`hf_settings_default` and the CLI's flags.
     #[new]
-    #[pyo3(signature = (*, mode = "video".to_owned(), server = None, fingerprint = None, token = String::new(),
+    #[pyo3(signature = (*, mode = mode_name(tracker::TrackerOptions::default().mode).to_owned(), server = None, fingerprint = None, token = String::new(),
         deadline_ms = defaults::DEADLINE_MS, crop_encoding = defaults::CROP_ENCODING.to_owned(),
         adapt = defaults::ADAPT, lookahead_ms = defaults::LOOKAHEAD_MS, motion_compensation = defaults::MOTION_COMPENSATION,
         max_faces = defaults::MAX_FACES, detect_every = defaults::DETECT_EVERY, detect_tiles = None,
@@ -243,6 +243,14 @@ impl Default for PyTrackerOptions {
             None,
             None,
         )
+    }
+}
+
+/// This module's name of a running mode (a live stream is tracked as a video).
+fn mode_name(mode: RunningMode) -> &'static str {
+    match mode {
+        RunningMode::Image => "image",
+        RunningMode::Video | RunningMode::LiveStream => "video",
     }
 }
 
@@ -848,6 +856,20 @@ fn _holoface(m: &Bound<'_, PyModule>) -> PyResult<()> {
     d.set_item("max_faces", defaults::MAX_FACES)?;
     d.set_item("detect_every", defaults::DETECT_EVERY)?;
     d.set_item("steady", defaults::STEADY)?;
+    d.set_item("mode", mode_name(tracker::TrackerOptions::default().mode))?;
+    let s = SteadySettings::default();
+    for (name, value) in [
+        ("steady_shape_cutoff_hz", s.shape_cutoff_hz),
+        ("steady_shape_beta", s.shape_beta),
+        ("steady_rigid_cutoff_hz", s.rigid_cutoff_hz),
+        ("steady_rigid_beta", s.rigid_beta),
+        ("steady_precise_shape_cutoff_hz", s.precise_shape_cutoff_hz),
+        ("steady_precise_shape_beta", s.precise_shape_beta),
+        ("steady_precise_rigid_cutoff_hz", s.precise_rigid_cutoff_hz),
+        ("steady_precise_rigid_beta", s.precise_rigid_beta),
+    ] {
+        d.set_item(name, value)?;
+    }
     m.add("DEFAULTS", d)?;
     m.add("HoloFaceError", py.get_type::<HoloFaceError>())?;
     m.add("AssetError", py.get_type::<AssetError>())?;

@@ -231,11 +231,9 @@ def test_the_detector_and_steadying_options_match_the_cli(clip):
     assert defaults.detect_tiles is None
     stub = stub_defaults()
     assert {k: stub[k] for k in runtime} == runtime, "python/holoface/_holoface.pyi shows other defaults"
-    # The stub shows the runtime's defaults (SteadySettings::default()).
-    steady = {k: getattr(defaults, k) for k in dir(defaults) if k.startswith("steady_")}
-    assert steady == dict(steady_shape_cutoff_hz=1.0, steady_shape_beta=10.0, steady_rigid_cutoff_hz=3.0,
-                          steady_rigid_beta=2.0, steady_precise_shape_cutoff_hz=3.0, steady_precise_shape_beta=10.0,
-                          steady_precise_rigid_cutoff_hz=20.0, steady_precise_rigid_beta=5.0)
+    # Every option with a default is among them (the steadying ones from SteadySettings::default()).
+    assert {k for k in dir(defaults) if k.startswith("steady_")} <= set(runtime)
+    assert "mode" in runtime
     for bad, words in [(dict(detect_tiles=0), "detect_tiles"), (dict(detect_every=0), "detect_every"),
                        (dict(steady_shape_cutoff_hz=0.0), "steady")]:
         with pytest.raises(ValueError, match=words):
