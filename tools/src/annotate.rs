@@ -16,9 +16,9 @@ const AXIS_M: f64 = 0.05;
 /// Colour and label of the aligner that answered (`None`: no face).
 pub fn aligner_style(by: Option<AnsweredBy>) -> ([u8; 3], &'static str) {
     match by {
-        Some(AnsweredBy::RemoteDan) => ([44, 160, 44], "remote dan"),
-        Some(AnsweredBy::Krfws) => ([255, 127, 14], "local krfws"),
-        Some(AnsweredBy::LocalDan) => ([31, 119, 180], "local dan"),
+        Some(AnsweredBy::RemoteDan) => ([44, 160, 44], "remote DAN"),
+        Some(AnsweredBy::Krfws) => ([255, 127, 14], "local KRFWS"),
+        Some(AnsweredBy::LocalDan) => ([31, 119, 180], "local DAN"),
         None => ([214, 39, 40], "no face"),
     }
 }
