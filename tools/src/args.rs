@@ -224,3 +224,33 @@ impl SteadyArgs {
         }
     }
 }
+
+/// Where the frames come from (`track`, `record`): every source `holoface_sources::source::open_source` reads.
+#[derive(Debug, Clone, Args)]
+pub struct SourceArgs {
+    /// A folder of PNG/JPEG frames (name order), a video file (MP4, MOV, WebM, MKV: H.264, HEVC, VP8/VP9,
+    /// through the system's FFmpeg libraries; MP4/H.264 only in a build without them), a YUV4MPEG2 stream
+    /// (`.y4m`, or `-` for standard input: a live camera through ffmpeg, taken as fixed without `--poses`), or a
+    /// recorded stream (`.hfrec`).
+    #[arg(long)]
+    pub source: PathBuf,
+    /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per frame for
+    /// a video or image folder.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// Frame rate of an image folder and of a `.y4m` without one in its header.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+}
+
+impl SourceArgs {
+    /// Opens the source.
+    pub fn open(&self) -> anyhow::Result<Box<dyn holoface_sources::FrameSource>> {
+        holoface_sources::source::open_source(&self.source, self.fps, self.poses.as_deref())
+    }
+
+    /// Whether the frames come from standard input (a live stream).
+    pub fn is_stdin(&self) -> bool {
+        self.source == std::path::Path::new("-")
+    }
+}

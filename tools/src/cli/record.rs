@@ -11,7 +11,6 @@ use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
 
-use holoface_sources::source::open_source;
 use holoface_sources::stop;
 use holoface_sources::{FrameSource, OwnedFrame};
 
@@ -27,16 +26,9 @@ pub enum FrameEncoding {
 /// Arguments of `holoface record`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// A folder of PNG/JPEG frames or an existing recording.
-    #[arg(long)]
-    pub source: PathBuf,
-    /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per
-    /// frame for a video or image folder.
-    #[arg(long)]
-    pub poses: Option<PathBuf>,
-    /// Frame rate of an image folder.
-    #[arg(long, default_value_t = 30.0)]
-    pub fps: f64,
+    /// The frames.
+    #[command(flatten)]
+    pub input: crate::args::SourceArgs,
     /// Output `.hfrec` file.
     #[arg(long)]
     pub out: PathBuf,
@@ -136,7 +128,7 @@ fn header(args: &Args, first: &OwnedFrame) -> RecordingHeader {
             width: first.image.width() as u32,
             height: first.image.height() as u32,
         },
-        source: format!("holoface record {}", args.source.display())
+        source: format!("holoface record {}", args.input.source.display())
             .chars()
             .take(1000)
             .collect(),
@@ -148,9 +140,9 @@ fn header(args: &Args, first: &OwnedFrame) -> RecordingHeader {
 
 /// Runs `holoface record`.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
+    let mut source = args.input.open()?;
     let Some(first) = source.next_frame()? else {
-        bail!("{} holds no frames", args.source.display())
+        bail!("{} holds no frames", args.input.source.display())
     };
     let header = header(&args, &first);
     record(&args, source, first, &header)
@@ -167,7 +159,7 @@ fn record(
     // and flushed record by record, and a signal ends the run as the stream's end would. From a file it appears
     // at --out only when it is complete: a failed run leaves no file.
     let stdout = args.out == std::path::Path::new("-");
-    let live = args.source == std::path::Path::new("-") || stdout;
+    let live = args.input.is_stdin() || stdout;
     let out = if live {
         crate::cli::stop_gracefully();
         Output::live(&args.out)?
@@ -192,7 +184,7 @@ fn record(
         if let Some(cutter) = cutter.as_mut() {
             if let Some(payload) = cutter
                 .cut(&f)
-                .with_context(|| format!("frame {} of {}", f.index, args.source.display()))?
+                .with_context(|| format!("frame {} of {}", f.index, args.input.source.display()))?
             {
                 writer
                     .write_record(&FrameRecord {

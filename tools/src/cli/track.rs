@@ -12,25 +12,14 @@ use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_runtime::{
     AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackerOptions,
 };
-use holoface_sources::source::open_source;
 use holoface_sources::stop;
 
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
 pub struct Args {
-    /// A folder of PNG/JPEG frames (name order), a video file (MP4, MOV, WebM, MKV: H.264, HEVC, VP8/VP9,
-    /// through the system's FFmpeg libraries; MP4/H.264 only in a build without them), a YUV4MPEG2 stream (`.y4m`, or `-`
-    /// for standard input: a live camera through ffmpeg, taken as fixed without `--poses`), or a recorded
-    /// stream (`.hfrec`).
-    #[arg(long)]
-    pub source: PathBuf,
-    /// Pose sidecar (JSON lines: frame, camera_to_world, optional intrinsics): the headset's pose per
-    /// frame for a video or image folder.
-    #[arg(long)]
-    pub poses: Option<PathBuf>,
-    /// Frame rate of an image folder, of a `.y4m` without one in its header, and of `--annotate out.mp4`.
-    #[arg(long, default_value_t = 30.0)]
-    pub fps: f64,
+    /// The frames (also the frame rate of `--annotate out.mp4`).
+    #[command(flatten)]
+    pub input: crate::args::SourceArgs,
     /// Aligner.
     #[arg(long, value_enum, default_value = "krfws")]
     pub aligner: AlignerKind,
@@ -189,12 +178,12 @@ fn start_tracker(args: &Args) -> anyhow::Result<(FaceTracker, Option<crate::link
 /// Runs `holoface track`.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut tracker, mut relay) = start_tracker(&args)?;
-    let mut source = open_source(&args.source, args.fps, args.poses.as_deref())?;
+    let mut source = args.input.open()?;
     // A live source has no end but the user's: its lines are a journal (written per frame under the real name, or
     // to standard output), and a signal ends the run as the source's end would. From a file, the lines appear at
     // --out only when every frame was tracked: a failed run leaves no file.
     let stdout = args.out == std::path::Path::new("-");
-    let live = args.source == std::path::Path::new("-") || stdout;
+    let live = args.input.is_stdin() || stdout;
     let mut out = if live {
         crate::cli::stop_gracefully();
         Output::live(&args.out)?
@@ -204,7 +193,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut annotated = args
         .annotate
         .as_deref()
-        .map(|p| Annotated::open(p, args.fps))
+        .map(|p| Annotated::open(p, args.input.fps))
         .transpose()?;
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     let mut reader_gone = false;
@@ -221,7 +210,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let frame = sf.view();
         let step = tracker
             .process_step(&frame)
-            .with_context(|| format!("frame {} of {}", sf.index, args.source.display()))?;
+            .with_context(|| format!("frame {} of {}", sf.index, args.input.source.display()))?;
         let link_state = tracker.link_status().map(|s| s.state());
         remote_frames += step
             .faces
