@@ -32,7 +32,7 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
+PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher train-dan-teacher-long stability
 .PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer venv-mediapipe compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
@@ -463,6 +463,17 @@ train-dan-teacher: venv-train
 	  --threads $(DAN_THREADS) --eval-every 100 --phase-start 7000 --steps 9000 --lr 1e-4 --loss nme \
 	  --neg-frac 0.3 --hard-neg 0.5 --teacher-labels $(TEACHER_LABEL_FILES) --teacher-frac 0.5 \
 	  --init-from models/dan/checkpoints/dan-w0.5-last.pt --resume-from models/dan/checkpoints/dan-w0.5-teacher.pt
+
+# A DAN trained longer on the teacher labels (issue 52's lever): the student above again, a second cosine of
+# 1e-4 over steps 9,000-11,000 from the end of its phase. Same data and bf16 rule. It resumes from
+# runs/dan-teacher-long/last.pt, else from models/dan/checkpoints/dan-w0.5-teacher-long.pt (copy
+# runs/dan-teacher-long/slim.pt there before a session ends), else starts from dan-w0.5-teacher.pt.
+train-dan-teacher-long: venv-train
+	@grep -qE 'avx512_bf16|amx_bf16' /proc/cpuinfo || { echo "train-dan-teacher-long needs a CPU with native bf16" >&2; exit 1; }
+	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-teacher-long --width 0.5 \
+	  --threads $(DAN_THREADS) --eval-every 100 --phase-start 9000 --steps 11000 --lr 1e-4 --loss nme \
+	  --neg-frac 0.3 --hard-neg 0.5 --teacher-labels $(TEACHER_LABEL_FILES) --teacher-frac 0.5 \
+	  --init-from models/dan/checkpoints/dan-w0.5-teacher.pt --resume-from models/dan/checkpoints/dan-w0.5-teacher-long.pt
 
 DAN_RUN ?= runs/dan-w0.5
 export-dan: venv-train
