@@ -19,8 +19,10 @@
 //! the raw landmarks jump. [`LandmarkFilter::filter`] is told which source answered; on a change it moves the
 //! new source's answers back onto the path the filters were on (their shape, and their placement where its
 //! speed would have taken it), then lets that offset fade out over [`SteadyParams::switch_fade_s`]: the
-//! output keeps its position and its speed across the switch (a face moving when the link drops does not
-//! stop for a frame).
+//! placement keeps its position and its speed across the switch (a face moving when the link drops does
+//! not stop for a frame); the shape in the face's frame keeps its position but not its speed, so an
+//! expression in motion holds for the switch's frame (on the development clips that is up to 0.7 % of the
+//! eye distance at a switch, BENCHMARKS.md "A fallback that learned from the server").
 
 use crate::geometry::{Point2, Similarity2};
 
@@ -180,7 +182,8 @@ struct State<const N: usize> {
     last_angle: f64,
     /// After a switch, how far the new source's answers sit from where the filter was going (its shape in
     /// the face's frame, its placement's predicted parameters): taken off the filters' inputs, fading out,
-    /// so that the output keeps its position and its speed across the switch. The time the fade has left.
+    /// so that the output keeps its position (and the placement its speed) across the switch. The time the
+    /// fade has left.
     bias_shape: [Point2; N],
     bias_rigid: [f64; RIGID],
     fade_left_s: f64,
@@ -340,7 +343,7 @@ impl<const N: usize> LandmarkFilter<N> {
         if source != st.source {
             st.source = source;
             // The new source's offset from where the filters were going: its answers are moved back onto
-            // that path, then let go over the fade, so nothing jumps and nothing stops.
+            // that path, then let go over the fade, so nothing jumps and the placement does not stop.
             if self.params.switch_fade_s > 0.0 {
                 for ((b, f), now) in st.bias_rigid.iter_mut().zip(&st.rigid).zip(r) {
                     *b = now - (f.x + f.dx * dt);
