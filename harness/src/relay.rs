@@ -167,12 +167,17 @@ mod tests {
         let relay = UdpRelay::start(echo_addr).await.unwrap();
         let client = UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let mut b = [0u8; 64];
-        client.send_to(b"ping", relay.addr()).await.unwrap();
-        let n = tokio::time::timeout(Duration::from_secs(2), client.recv(&mut b))
-            .await
-            .unwrap()
-            .unwrap();
-        assert_eq!(&b[..n], b"ping");
+        // Sends `msg` through the relay and waits (at most 2 s) for the echo.
+        async fn round_trip(client: &UdpSocket, relay: SocketAddr, msg: &[u8]) -> Vec<u8> {
+            client.send_to(msg, relay).await.unwrap();
+            let mut b = [0u8; 64];
+            let n = tokio::time::timeout(Duration::from_secs(2), client.recv(&mut b))
+                .await
+                .unwrap()
+                .unwrap();
+            b[..n].to_vec()
+        }
+        assert_eq!(round_trip(&client, relay.addr(), b"ping").await, b"ping");
 
         relay.faults().set_cut(true);
         client.send_to(b"lost", relay.addr()).await.unwrap();
@@ -186,12 +191,7 @@ mod tests {
         relay.faults().set_cut(false);
         relay.faults().set_delay(Duration::from_millis(50));
         let t = std::time::Instant::now();
-        client.send_to(b"slow", relay.addr()).await.unwrap();
-        let n = tokio::time::timeout(Duration::from_secs(2), client.recv(&mut b))
-            .await
-            .unwrap()
-            .unwrap();
-        assert_eq!(&b[..n], b"slow");
+        assert_eq!(round_trip(&client, relay.addr(), b"slow").await, b"slow");
         assert!(t.elapsed() >= Duration::from_millis(100), "{:?}", t.elapsed());
     }
 
