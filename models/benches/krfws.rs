@@ -101,6 +101,11 @@ fn bench_align(c: &mut Criterion) {
     g.bench_function("part/sample_51_windows+hog", |b| {
         b.iter(|| fast::features(&view, black_box(&init), stage, &mut patch, &mut norm, &mut hog))
     });
+    // What the per-person adaptation asks for at an answer (`Krfws::hog_at`, the portable kernels).
+    let mut scratch_at = KrfwsScratch::new();
+    g.bench_function("hog_at", |b| {
+        b.iter(|| black_box(model.hog_at(&view, black_box(&init), &mut scratch_at)))
+    });
     let mut row = [0f32; HOG_DIM];
     g.bench_function("part/hog_51_windows", |b| {
         b.iter(|| {

@@ -10,14 +10,22 @@
 //! position, in-plane rotation and scale do not leak into the correction, and every length is in eye
 //! distances. A correction is a shift per point in that frame, mapped back with the same similarity.
 //!
-//! **What it learns.** By default the person's mean offset per point (exponentially weighted). With a
-//! finite [`AdaptParams::ridge`], a ridge regression of the 102 offsets on a few shape features of the
-//! local answer in that frame ([`FEATURES`]: the nose's offset from the eyes across and along the face,
-//! which follow the head's turn and tilt; the mouth's opening and width; the eyes' opening; the brows'
-//! height), so the correction follows expressions and out-of-plane turns; its intercept is not penalised,
-//! so as the ridge grows it becomes the mean offset. On real video with real link cuts the mean offset
-//! corrected the local answers best (BENCHMARKS.md, "A fallback that learned from the server"): the
-//! regression, and the mean offset of the pairs nearest in those features, followed KRFWS's own errors.
+//! **What it learns.** The person's mean offset per point (exponentially weighted), and by default, per
+//! point, how that point's offset follows what the local aligner sees around it in the same frame
+//! ([`Appearance`]: KRFWS's 144-value HOG at the point, pooled over 2×2 cells to 36 values): a ridge regression
+//! per point ([`AdaptParams::appearance_ridge`]) whose intercept, not penalised, is the mean offset. KRFWS's
+//! errors that follow the image around a point (a brow raised, the lips parted, a shadow) are then corrected
+//! too. On the development clips' link cuts this closed 53-58 % of the gap between KRFWS and the server,
+//! against 37-38 % for the mean offset alone, and lowered the local answers' jitter (BENCHMARKS.md, "A
+//! fallback that learned from the server"). The 51 regressions are solved only when a corrected answer asks
+//! for them after new pairs (about a third of a millisecond, once per link cut), not at each pair.
+//!
+//! As an option, a finite [`AdaptParams::ridge`] adds a ridge regression of the 102 offsets on a few shape
+//! features of the local answer in that frame ([`FEATURES`]: the nose's offset from the eyes across and
+//! along the face, which follow the head's turn and tilt; the mouth's opening and width; the eyes' opening;
+//! the brows' height); its intercept is not penalised either, so as the ridge grows it becomes the mean
+//! offset. It followed KRFWS's own errors on the clips and is off by default. Each regression is fitted on
+//! its own; use one at a time.
 //!
 //! **Bounds against a bad stretch.** A pair whose answers differ by more than [`AdaptParams::gate`] is not
 //! learnt (one of the two failed); every pair's weight fades by `1 - 1/memory` per later pair, so a stretch
@@ -27,12 +35,37 @@
 //! No clock: memory is counted in learnt pairs, not time (the caller decides how often it learns).
 
 use crate::geometry::{Point2, Similarity2};
+use crate::hog::{BINS, CELLS, HOG_DIM};
 use crate::shape::{INNER51, OUTER_EYE_CORNERS, dan_mean_shape};
 
 const N: usize = 51;
 const D: usize = 2 * N;
 /// How many shape features the regression uses (see the module docs).
 pub const FEATURES: usize = 6;
+/// Values describing what the local aligner sees around one point ([`pool_hog`]).
+pub const APPEARANCE: usize = 4 * BINS;
+/// Packed lower triangle of an `APPEARANCE`-square symmetric matrix.
+const PACKED: usize = APPEARANCE * (APPEARANCE + 1) / 2;
+/// What the local aligner sees around each of the 51 inner points of one answer.
+pub type Appearance = [[f32; APPEARANCE]; N];
+
+/// KRFWS's 51×144 HOG (per point 4×4 cells of 9 bins, cell-major: [`crate::hog`]) pooled over 2×2 cells:
+/// 51×36 (four quadrants of the point's window, 9 bins each). `None` unless `hog` holds 51×144 values.
+pub fn pool_hog(hog: &[f32]) -> Option<Box<Appearance>> {
+    if hog.len() != N * HOG_DIM {
+        return None;
+    }
+    let mut out = Box::new([[0.0; APPEARANCE]; N]);
+    for (row, pooled) in hog.chunks_exact(HOG_DIM).zip(out.iter_mut()) {
+        for (cell, bins) in row.chunks_exact(BINS).enumerate() {
+            let quadrant = (cell / CELLS / 2) * 2 + (cell % CELLS) / 2;
+            for (b, v) in bins.iter().enumerate() {
+                pooled[quadrant * BINS + b] += v;
+            }
+        }
+    }
+    Some(out)
+}
 
 /// Settings of [`PersonCorrection`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,8 +81,12 @@ pub struct AdaptParams {
     /// The longest shift of one point (eye distances).
     pub max_shift: f64,
     /// Ridge on the regression's slopes, in units of the features' variance (eye distances squared);
-    /// `f64::INFINITY` (the default) learns the mean offset only.
+    /// `f64::INFINITY` (the default): off.
     pub ridge: f64,
+    /// Ridge of each point's regression on its [`Appearance`], in units of the mean variance of that point's
+    /// 36 values; `f64::INFINITY`: off (the answers' appearance is not used). The default, 3, closed the
+    /// most of the gap on the development clips' link cuts (BENCHMARKS.md).
+    pub appearance_ridge: f64,
 }
 
 impl Default for AdaptParams {
@@ -61,6 +98,7 @@ impl Default for AdaptParams {
             gate: 0.10,
             max_shift: 0.08,
             ridge: f64::INFINITY,
+            appearance_ridge: 3.0,
         }
     }
 }
@@ -85,6 +123,136 @@ struct Fitted {
     high: [f64; FEATURES],
 }
 
+/// The per-point regressions on the [`Appearance`] (see the module docs): exponentially weighted sums, and
+/// the fit they last gave.
+#[derive(Clone, Debug, PartialEq)]
+struct AppearanceFit {
+    ridge: f64,
+    sw: f64,
+    /// Per point: the features' sums, their products (packed lower triangle), the offsets' sums and the
+    /// feature-offset products.
+    sh: Vec<[f64; APPEARANCE]>,
+    shh: Vec<[f64; PACKED]>,
+    sd: Vec<[f64; 2]>,
+    shd: Vec<[[f64; 2]; APPEARANCE]>,
+    /// Whether pairs came since the last fit.
+    stale: bool,
+    fitted: Option<Box<FittedAppearance>>,
+}
+
+/// Per point: the features' mean and three standard deviations (the clamp), the slopes per coordinate.
+#[derive(Clone, Debug, PartialEq)]
+struct FittedAppearance {
+    mean: Vec<[f64; APPEARANCE]>,
+    spread: Vec<[f64; APPEARANCE]>,
+    slopes: Vec<[[f64; 2]; APPEARANCE]>,
+}
+
+/// Index of `(a, b)`, `b <= a`, in a packed lower triangle.
+const fn packed(a: usize, b: usize) -> usize {
+    a * (a + 1) / 2 + b
+}
+
+impl AppearanceFit {
+    fn new(ridge: f64) -> Self {
+        Self {
+            ridge,
+            sw: 0.0,
+            sh: vec![[0.0; APPEARANCE]; N],
+            shh: vec![[0.0; PACKED]; N],
+            sd: vec![[0.0; 2]; N],
+            shd: vec![[[0.0; 2]; APPEARANCE]; N],
+            stale: false,
+            fitted: None,
+        }
+    }
+
+    fn learn(&mut self, look: &Appearance, d: &[f64; D], keep: f64) {
+        self.sw = self.sw * keep + 1.0;
+        for i in 0..N {
+            let h = look[i].map(f64::from);
+            let (di, sh, shh, shd) = (
+                [d[2 * i], d[2 * i + 1]],
+                &mut self.sh[i],
+                &mut self.shh[i],
+                &mut self.shd[i],
+            );
+            for a in 0..APPEARANCE {
+                sh[a] = sh[a] * keep + h[a];
+                for (b, hb) in h.iter().enumerate().take(a + 1) {
+                    let s = &mut shh[packed(a, b)];
+                    *s = *s * keep + h[a] * hb;
+                }
+                for c in 0..2 {
+                    shd[a][c] = shd[a][c] * keep + h[a] * di[c];
+                }
+            }
+            for (s, v) in self.sd[i].iter_mut().zip(di) {
+                *s = *s * keep + v;
+            }
+        }
+        self.stale = true;
+    }
+
+    /// Solves each point's ridge regression of its centred offsets on its centred features.
+    fn fit(&self) -> Option<FittedAppearance> {
+        let w = self.sw;
+        if w <= 0.0 {
+            return None;
+        }
+        let mut out = FittedAppearance {
+            mean: Vec::with_capacity(N),
+            spread: Vec::with_capacity(N),
+            slopes: Vec::with_capacity(N),
+        };
+        let mut cov = vec![0.0; APPEARANCE * APPEARANCE];
+        for i in 0..N {
+            let mh: [f64; APPEARANCE] = self.sh[i].map(|v| v / w);
+            let md = self.sd[i].map(|v| v / w);
+            for a in 0..APPEARANCE {
+                for b in 0..=a {
+                    let c = self.shh[i][packed(a, b)] / w - mh[a] * mh[b];
+                    cov[a * APPEARANCE + b] = c;
+                    cov[b * APPEARANCE + a] = c;
+                }
+            }
+            let var: [f64; APPEARANCE] = std::array::from_fn(|a| cov[a * APPEARANCE + a].max(0.0));
+            let ridge = self.ridge * (var.iter().sum::<f64>() / APPEARANCE as f64).max(1e-12);
+            for a in 0..APPEARANCE {
+                cov[a * APPEARANCE + a] += ridge;
+            }
+            if !crate::linalg::cholesky_factor(&mut cov, APPEARANCE) {
+                return None;
+            }
+            let mut slopes = [[0.0; 2]; APPEARANCE];
+            for c in 0..2 {
+                let mut b: [f64; APPEARANCE] = std::array::from_fn(|a| self.shd[i][a][c] / w - mh[a] * md[c]);
+                crate::linalg::solve_factored(&cov, APPEARANCE, &mut b);
+                for (s, v) in slopes.iter_mut().zip(b) {
+                    s[c] = v;
+                }
+            }
+            out.mean.push(mh);
+            out.spread.push(var.map(|v| 3.0 * v.sqrt()));
+            out.slopes.push(slopes);
+        }
+        let finite = out.slopes.iter().flatten().flatten().all(|v| v.is_finite());
+        finite.then_some(out)
+    }
+
+    /// Point `i`'s shift (reference frame, eye distances) for its features `h`, by the last fit.
+    fn shift(&self, i: usize, h: &[f32; APPEARANCE]) -> Option<[f64; 2]> {
+        let f = self.fitted.as_deref()?;
+        let mut c = [0.0; 2];
+        for (a, v) in h.iter().enumerate() {
+            let x = (f64::from(*v) - f.mean[i][a]).clamp(-f.spread[i][a], f.spread[i][a]);
+            c[0] += f.slopes[i][a][0] * x;
+            c[1] += f.slopes[i][a][1] * x;
+        }
+        Some(c)
+    }
+}
+
 /// One person's correction of the local aligner towards the remote one (see the module docs).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PersonCorrection {
@@ -99,6 +267,7 @@ pub struct PersonCorrection {
     pairs: u32,
     gated: u32,
     fitted: Option<Box<Fitted>>,
+    appearance: Option<Box<AppearanceFit>>,
 }
 
 /// The reference shape: DAN's mean shape's inner 51 points, centred, outer eye corners one unit apart and
@@ -152,7 +321,17 @@ impl PersonCorrection {
             pairs: 0,
             gated: 0,
             fitted: None,
+            appearance: params
+                .appearance_ridge
+                .is_finite()
+                .then(|| Box::new(AppearanceFit::new(params.appearance_ridge))),
         }
+    }
+
+    /// Whether the correction uses the answers' [`Appearance`] ([`AdaptParams::appearance_ridge`]): the
+    /// caller then passes it to [`Self::learn`] and [`Self::correct`].
+    pub fn wants_appearance(&self) -> bool {
+        self.appearance.is_some()
     }
 
     /// Pairs learnt so far.
@@ -176,8 +355,14 @@ impl PersonCorrection {
     }
 
     /// Learns one pair: the local aligner's answer and the remote one for the same frame (68 points in
-    /// image pixels; only the 51 inner points are used).
-    pub fn learn(&mut self, local: &[Point2; 68], remote: &[Point2; 68]) -> Learnt {
+    /// image pixels; only the 51 inner points are used), with what the local aligner saw at its answer when
+    /// the correction [wants it](Self::wants_appearance) (a pair without it teaches only the rest).
+    pub fn learn(
+        &mut self,
+        local: &[Point2; 68],
+        remote: &[Point2; 68],
+        look: Option<&Appearance>,
+    ) -> Learnt {
         let Some((s, k)) = self.to_reference(local) else {
             return Learnt::Degenerate;
         };
@@ -213,6 +398,11 @@ impl PersonCorrection {
         }
         for (s, v) in self.sd.iter_mut().zip(&d) {
             *s = *s * keep + v;
+        }
+        if let (Some(fit), Some(look)) = (self.appearance.as_deref_mut(), look)
+            && look.iter().flatten().all(|v| v.is_finite())
+        {
+            fit.learn(look, &d, keep);
         }
         self.pairs = self.pairs.saturating_add(1);
         self.fitted = self.fit().map(Box::new);
@@ -269,11 +459,24 @@ impl PersonCorrection {
 
     /// The local answer corrected (its 51 inner points; the jaw is returned as given) and the correction's
     /// mean length over those points (eye distances); `None` before [`AdaptParams::min_pairs`] pairs or for
-    /// a degenerate answer.
-    pub fn correct(&self, local: &[Point2; 68]) -> Option<([Point2; 68], f32)> {
+    /// a degenerate answer. With what the local aligner saw at this answer (`look`), the appearance's part
+    /// is added when the correction [wants it](Self::wants_appearance); its regressions are solved here
+    /// first when pairs came since they last were.
+    pub fn correct(
+        &mut self,
+        local: &[Point2; 68],
+        look: Option<&Appearance>,
+    ) -> Option<([Point2; 68], f32)> {
         if self.pairs < self.params.min_pairs {
             return None;
         }
+        if let (Some(fit), Some(_)) = (self.appearance.as_deref_mut(), look)
+            && fit.stale
+        {
+            fit.fitted = fit.fit().map(Box::new);
+            fit.stale = false;
+        }
+        let seen = look.zip(self.appearance.as_deref());
         let fitted = self.fitted.as_deref()?;
         let (s, k) = self.to_reference(local)?;
         let back = s.inverse()?;
@@ -286,6 +489,9 @@ impl PersonCorrection {
             for (j, v) in c.iter_mut().enumerate() {
                 let k = 2 * i + j;
                 *v = fitted.intercept[k] + (0..FEATURES).map(|a| fitted.slopes[a][k] * x[a]).sum::<f64>();
+            }
+            if let Some(shift) = seen.and_then(|(look, fit)| fit.shift(i, &look[i])) {
+                c = [c[0] + shift[0], c[1] + shift[1]];
             }
             let len = c[0].hypot(c[1]);
             if len > self.params.max_shift {
@@ -312,6 +518,7 @@ mod tests {
         gate: 0.10,
         max_shift: 0.08,
         ridge: 2e-4,
+        appearance_ridge: f64::INFINITY,
     };
 
     /// A face in the image: the mean shape placed by `sim`, its mouth opened by `open` (crop pixels).
@@ -363,18 +570,21 @@ mod tests {
         let mut rng = Rng::new(7);
         let mut c = PersonCorrection::new(REGRESSION);
         let probe = Similarity2::from_parts(3.0, 0.3, 120.0, 90.0);
-        assert_eq!(c.correct(&face(&probe, 4.0)), None, "nothing learnt yet");
+        assert_eq!(c.correct(&face(&probe, 4.0), None), None, "nothing learnt yet");
         for _ in 0..200 {
             let sim = placement(&mut rng);
             let open = between(&mut rng, 0.0, 8.0) as f32;
-            assert_eq!(c.learn(&face(&sim, open), &remote_of(&sim, open)), Learnt::Yes);
+            assert_eq!(
+                c.learn(&face(&sim, open), &remote_of(&sim, open), None),
+                Learnt::Yes
+            );
         }
         assert_eq!(c.pairs(), 200);
         // Any placement, any opening within those seen: the corrected answer is the remote one.
         for open in [0.5, 4.0, 7.5] {
             let local = face(&probe, open);
             let target = remote_of(&probe, open);
-            let (fixed, size) = c.correct(&local).unwrap();
+            let (fixed, size) = c.correct(&local, None).unwrap();
             let before = mean_error(&local, &target);
             let after = mean_error(&fixed, &target);
             assert!(before > 0.005, "{before}");
@@ -385,6 +595,92 @@ mod tests {
         }
     }
 
+    /// What the local aligner "sees" at each point: random values, and the remote answer's offset of each
+    /// point depends on its first two (a point whose look says "raised" is shifted up by the server).
+    fn looked(rng: &mut Rng) -> Box<Appearance> {
+        let mut look = Box::new([[0.0; APPEARANCE]; N]);
+        for v in look.iter_mut().flatten() {
+            *v = rng.uniform() as f32;
+        }
+        look
+    }
+
+    fn remote_seen(sim: &Similarity2, look: &Appearance) -> [Point2; 68] {
+        let mut p = dan_mean_shape();
+        for (i, l) in look.iter().enumerate() {
+            p[INNER51.start + i].x += 2.0 * (l[0] - 0.5);
+            p[INNER51.start + i].y += 0.5 - 3.0 * (l[1] - 0.5);
+        }
+        let mut out = [Point2::default(); 68];
+        sim.apply_all(&p, &mut out);
+        out
+    }
+
+    #[test]
+    fn it_follows_what_the_local_aligner_sees_at_each_point() {
+        let mut rng = Rng::new(5);
+        let params = AdaptParams {
+            appearance_ridge: 0.1,
+            ..AdaptParams::default()
+        };
+        let mut seeing = PersonCorrection::new(params);
+        let mut blind = PersonCorrection::new(AdaptParams {
+            appearance_ridge: f64::INFINITY,
+            ..params
+        });
+        assert!(seeing.wants_appearance() && !blind.wants_appearance());
+        for _ in 0..300 {
+            let sim = placement(&mut rng);
+            let look = looked(&mut rng);
+            let (local, remote) = (face(&sim, 0.0), remote_seen(&sim, &look));
+            assert_eq!(seeing.learn(&local, &remote, Some(&look)), Learnt::Yes);
+            assert_eq!(blind.learn(&local, &remote, Some(&look)), Learnt::Yes);
+        }
+        let probe = Similarity2::from_parts(3.0, 0.2, 140.0, 120.0);
+        let (mut seen_err, mut blind_err, mut before) = (0.0, 0.0, 0.0);
+        for _ in 0..20 {
+            let look = looked(&mut rng);
+            let (local, target) = (face(&probe, 0.0), remote_seen(&probe, &look));
+            seen_err += mean_error(&seeing.correct(&local, Some(&look)).unwrap().0, &target);
+            blind_err += mean_error(&blind.correct(&local, Some(&look)).unwrap().0, &target);
+            before += mean_error(&local, &target);
+        }
+        // The mean offset takes the common half-pixel shift only; the appearance follows each point.
+        assert!(blind_err > 0.6 * before, "{blind_err} of {before}");
+        assert!(seen_err < 0.15 * before, "{seen_err} of {before}");
+        // Without a look the appearance's part is left out: the mean offset again.
+        let look = looked(&mut rng);
+        let local = face(&probe, 0.0);
+        assert_eq!(seeing.correct(&local, None), blind.correct(&local, None));
+        assert_ne!(
+            seeing.correct(&local, Some(&look)),
+            blind.correct(&local, Some(&look))
+        );
+        // A look that is not finite is not learnt from; the rest of the pair is.
+        let mut bad = looked(&mut rng);
+        bad[3][7] = f32::NAN;
+        let sim = placement(&mut rng);
+        assert_eq!(
+            seeing.learn(&face(&sim, 0.0), &remote_seen(&sim, &bad), Some(&bad)),
+            Learnt::Yes
+        );
+        assert!(seeing.correct(&local, Some(&look)).is_some());
+    }
+
+    #[test]
+    fn hog_pools_to_four_quadrants_of_nine_bins() {
+        assert!(pool_hog(&[0.0; 10]).is_none());
+        let mut hog = vec![0.0; N * HOG_DIM];
+        // Point 2: cell (row 3, column 0) bin 4 and cell (row 0, column 3) bin 8.
+        hog[2 * HOG_DIM + (3 * CELLS) * BINS + 4] = 1.0;
+        hog[2 * HOG_DIM + 3 * BINS + 8] = 0.5;
+        hog[2 * HOG_DIM + (2 * CELLS) * BINS + 4] = 0.25;
+        let pooled = pool_hog(&hog).unwrap();
+        assert_eq!(pooled[2][2 * BINS + 4], 1.25, "lower-left quadrant");
+        assert_eq!(pooled[2][BINS + 8], 0.5, "upper-right quadrant");
+        assert_eq!(pooled.iter().flatten().sum::<f32>(), 1.75);
+    }
+
     #[test]
     fn the_default_mean_offset_ignores_the_features() {
         let mut rng = Rng::new(3);
@@ -393,11 +689,11 @@ mod tests {
         for _ in 0..100 {
             let sim = placement(&mut rng);
             let open = between(&mut rng, 0.0, 8.0) as f32;
-            c.learn(&face(&sim, open), &remote_of(&sim, open));
+            c.learn(&face(&sim, open), &remote_of(&sim, open), None);
         }
         let probe = Similarity2::from_parts(2.5, 0.0, 100.0, 100.0);
         // The brows' fixed shift is learnt; the mouth's part only on average.
-        let (fixed, _) = c.correct(&face(&probe, 0.0)).unwrap();
+        let (fixed, _) = c.correct(&face(&probe, 0.0), None).unwrap();
         let target = remote_of(&probe, 0.0);
         let brows = (17..27).map(|i| fixed[i].dist(target[i])).sum::<f32>() / 10.0;
         assert!(brows < 0.3, "{brows} px of a 3.75-px shift");
@@ -417,26 +713,26 @@ mod tests {
         let mut c = PersonCorrection::new(params);
         for _ in 0..100 {
             let sim = placement(&mut rng);
-            c.learn(&face(&sim, 2.0), &remote_of(&sim, 2.0));
+            c.learn(&face(&sim, 2.0), &remote_of(&sim, 2.0), None);
         }
         let probe = Similarity2::from_parts(3.0, 0.0, 150.0, 150.0);
-        let good = c.correct(&face(&probe, 2.0)).unwrap().0;
+        let good = c.correct(&face(&probe, 2.0), None).unwrap().0;
         // Answers far off (the server locked onto something else): gated, nothing changes.
         for _ in 0..50 {
             let sim = placement(&mut rng);
             let far = Similarity2::from_parts(sim.scale(), sim.angle(), sim.tx + 40.0, sim.ty);
-            assert_eq!(c.learn(&face(&sim, 2.0), &face(&far, 2.0)), Learnt::Gated);
+            assert_eq!(c.learn(&face(&sim, 2.0), &face(&far, 2.0), None), Learnt::Gated);
         }
         assert_eq!(c.gated(), 50);
-        assert_eq!(c.correct(&face(&probe, 2.0)).unwrap().0, good);
+        assert_eq!(c.correct(&face(&probe, 2.0), None).unwrap().0, good);
         // A stretch just inside the gate pulls it, but no point moves by more than the bound.
         for _ in 0..100 {
             let sim = placement(&mut rng);
             let off = Similarity2::from_parts(sim.scale(), sim.angle(), sim.tx + 2.0 * sim.scale(), sim.ty);
-            c.learn(&face(&sim, 2.0), &face(&off, 2.0));
+            c.learn(&face(&sim, 2.0), &face(&off, 2.0), None);
         }
         let local = face(&probe, 2.0);
-        let (pulled, size) = c.correct(&local).unwrap();
+        let (pulled, size) = c.correct(&local, None).unwrap();
         let eye = local[36].dist(local[45]);
         let bound = params.max_shift as f32 * eye * 1.001;
         assert!((17..68).all(|i| pulled[i].dist(local[i]) <= bound));
@@ -444,9 +740,9 @@ mod tests {
         // Good pairs again: the bad stretch fades.
         for _ in 0..1500 {
             let sim = placement(&mut rng);
-            c.learn(&face(&sim, 2.0), &remote_of(&sim, 2.0));
+            c.learn(&face(&sim, 2.0), &remote_of(&sim, 2.0), None);
         }
-        let back = c.correct(&local).unwrap().0;
+        let back = c.correct(&local, None).unwrap().0;
         let target = remote_of(&probe, 2.0);
         assert!(mean_error(&back, &target) < 0.2 * mean_error(&pulled, &target));
     }
@@ -457,15 +753,15 @@ mod tests {
         let sim = Similarity2::from_parts(2.0, 0.0, 100.0, 100.0);
         let mut nan = face(&sim, 0.0);
         nan[40].x = f32::NAN;
-        assert_eq!(c.learn(&nan, &remote_of(&sim, 0.0)), Learnt::Degenerate);
-        assert_eq!(c.learn(&face(&sim, 0.0), &nan), Learnt::Degenerate);
+        assert_eq!(c.learn(&nan, &remote_of(&sim, 0.0), None), Learnt::Degenerate);
+        assert_eq!(c.learn(&face(&sim, 0.0), &nan, None), Learnt::Degenerate);
         let point = [Point2::new(5.0, 5.0); 68];
-        assert_eq!(c.learn(&point, &point), Learnt::Degenerate);
+        assert_eq!(c.learn(&point, &point, None), Learnt::Degenerate);
         for _ in 0..20 {
-            c.learn(&face(&sim, 0.0), &remote_of(&sim, 0.0));
+            c.learn(&face(&sim, 0.0), &remote_of(&sim, 0.0), None);
         }
-        assert_eq!(c.correct(&point), None);
-        assert_eq!(c.correct(&nan), None);
-        assert!(c.correct(&face(&sim, 0.0)).is_some());
+        assert_eq!(c.correct(&point, None), None);
+        assert_eq!(c.correct(&nan, None), None);
+        assert!(c.correct(&face(&sim, 0.0), None).is_some());
     }
 }

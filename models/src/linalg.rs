@@ -5,7 +5,16 @@
 /// Solves `a · x = b` for the symmetric positive-definite `a` (n×n, row-major; the lower triangle is read and
 /// overwritten by the factor), `x` written over `b`. `false` when `a` is not positive definite (or not finite).
 pub fn cholesky_solve(a: &mut [f64], n: usize, b: &mut [f64]) -> bool {
-    debug_assert!(a.len() >= n * n && b.len() >= n);
+    cholesky_factor(a, n) && {
+        solve_factored(a, n, b);
+        true
+    }
+}
+
+/// The Cholesky factor of the symmetric positive-definite `a` (n×n, row-major), written over its lower
+/// triangle; `false` when `a` is not positive definite (or not finite). Solve with [`solve_factored`].
+pub fn cholesky_factor(a: &mut [f64], n: usize) -> bool {
+    debug_assert!(a.len() >= n * n);
     for j in 0..n {
         let mut d = a[j * n + j];
         for k in 0..j {
@@ -24,21 +33,26 @@ pub fn cholesky_solve(a: &mut [f64], n: usize, b: &mut [f64]) -> bool {
             a[i * n + j] = s / d;
         }
     }
+    true
+}
+
+/// Solves `a · x = b` with `a`'s factor from [`cholesky_factor`], `x` written over `b`.
+pub fn solve_factored(factor: &[f64], n: usize, b: &mut [f64]) {
+    debug_assert!(factor.len() >= n * n && b.len() >= n);
     for i in 0..n {
         let mut s = b[i];
         for k in 0..i {
-            s -= a[i * n + k] * b[k];
+            s -= factor[i * n + k] * b[k];
         }
-        b[i] = s / a[i * n + i];
+        b[i] = s / factor[i * n + i];
     }
     for i in (0..n).rev() {
         let mut s = b[i];
         for k in i + 1..n {
-            s -= a[k * n + i] * b[k];
+            s -= factor[k * n + i] * b[k];
         }
-        b[i] = s / a[i * n + i];
+        b[i] = s / factor[i * n + i];
     }
-    true
 }
 
 /// [`cholesky_solve`] of a small fixed-size system; `None` when `a` is not positive definite.

@@ -1,7 +1,8 @@
 //! A fallback that learned from the server (issue 55): while remote answers arrive, the local aligner also
 //! runs on some of those frames and each tracked face learns a correction of the local answer towards the
-//! remote one ([`holoface_models::adapt::PersonCorrection`]); when the link drops, the local answers of that
-//! face are corrected. A face that is lost takes its correction with it: a new face (a new id) starts
+//! remote one ([`holoface_models::adapt::PersonCorrection`]), from the mean offset and, per point, what the
+//! local aligner saw there ([`Aligner::appearance`]); when the link drops, the local answers of that face are
+//! corrected (each corrected answer also asks the local aligner what it sees at it: KRFWS, 0.07 ms). A face that is lost takes its correction with it: a new face (a new id) starts
 //! from nothing. Nothing runs on the server.
 //!
 //! [`LocalAdaptation::update`] is called by the remote aligner ([`crate::link::LinkedAligner`]) after every
@@ -19,10 +20,12 @@ use crate::align::{AdaptState, AlignError, Aligner, Alignment, AnsweredBy, Candi
 pub struct AdaptOptions {
     /// The local aligner runs beside every this many remote answers of a face (1: every one) to learn a
     /// pair; each run costs one tracked local alignment (KRFWS: 0.3 ms when it runs often, about 0.65 ms run
-    /// this rarely, its model out of the caches; BENCHMARKS.md).
+    /// this rarely, its model out of the caches), and, when the correction uses the answers' appearance, its
+    /// HOG at the answer (0.07 ms) and the pair's sums (0.014 ms; BENCHMARKS.md).
     pub learn_every: u32,
     /// A face's first this many remote answers each get a local run beside them (a link that drops early
-    /// still leaves a correction), then every `learn_every`-th.
+    /// still leaves a correction), then every `learn_every`-th. 60 (two seconds at 30 fps): the
+    /// appearance's 36 values per point need more pairs than a mean offset.
     pub warm_pairs: u32,
     /// The correction's settings.
     pub params: AdaptParams,
@@ -33,7 +36,7 @@ impl Default for AdaptOptions {
     fn default() -> Self {
         Self {
             learn_every: crate::defaults::ADAPT_LEARN_EVERY,
-            warm_pairs: 30,
+            warm_pairs: 60,
             params: AdaptParams::default(),
         }
     }
@@ -100,16 +103,32 @@ impl LocalAdaptation {
                     state.remote_answers = state.remote_answers.wrapping_add(1);
                     if due {
                         let mine = local.align(image, &face.init)?;
+                        let look = if mine.accepted && state.correction.wants_appearance() {
+                            local.appearance(image, &mine.landmarks)
+                        } else {
+                            None
+                        };
+                        // The size reported is the correction without the appearance's part: solving those
+                        // regressions at every pair would cost more than the pair.
                         if mine.accepted
-                            && state.correction.learn(&mine.landmarks, &answer.landmarks) == Learnt::Yes
-                            && let Some((_, size)) = state.correction.correct(&mine.landmarks)
+                            && state
+                                .correction
+                                .learn(&mine.landmarks, &answer.landmarks, look.as_deref())
+                                == Learnt::Yes
+                            && let Some((_, size)) = state.correction.correct(&mine.landmarks, None)
                         {
                             state.last_size = size;
                         }
                     }
                 }
                 AnsweredBy::Krfws => {
-                    if let Some((fixed, size)) = state.correction.correct(&answer.landmarks) {
+                    let look = if state.correction.wants_appearance() {
+                        local.appearance(image, &answer.landmarks)
+                    } else {
+                        None
+                    };
+                    if let Some((fixed, size)) = state.correction.correct(&answer.landmarks, look.as_deref())
+                    {
                         answer.landmarks = fixed;
                         state.last_size = size;
                         corrected = true;

@@ -5,6 +5,7 @@
 //!   and maps the answer back with [`landmarks_from_crop`]; the tools' in-process DAN does the same locally.
 
 use holoface_inference::EngineError;
+use holoface_models::adapt::Appearance;
 use holoface_models::crop::{Crop112, blank_outside};
 use holoface_models::geometry::{Point2, Rect, Similarity2};
 use holoface_models::image::GrayView;
@@ -108,6 +109,14 @@ pub trait Aligner {
         init: &[Point2; 68],
     ) -> Result<Alignment, AlignError> {
         self.align(image, init)
+    }
+
+    /// What the aligner sees around the 51 inner points of `landmarks` (image pixels), for the per-person
+    /// adaptation ([`crate::adapt`]: KRFWS's HOG there, pooled); `None` when it has no such description (the
+    /// default) or the shape is degenerate.
+    fn appearance(&mut self, image: &GrayView<'_>, landmarks: &[Point2; 68]) -> Option<Box<Appearance>> {
+        let _ = (image, landmarks);
+        None
     }
 
     /// Aligns every face of one frame: one answer per candidate, in order. Default: one after another
@@ -289,6 +298,17 @@ impl Aligner for KrfwsAligner {
 
     fn align(&mut self, image: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
         self.run(image, init, 1)
+    }
+
+    fn appearance(&mut self, image: &GrayView<'_>, landmarks: &[Point2; 68]) -> Option<Box<Appearance>> {
+        let inner: [Point2; 51] = std::array::from_fn(|i| landmarks[17 + i]);
+        if inner.iter().any(|p| !p.x.is_finite() || !p.y.is_finite()) {
+            return None;
+        }
+        self.model
+            .hog_at(image, &inner, &mut self.scratch)
+            .then(|| holoface_models::adapt::pool_hog(self.scratch.last_hog()))
+            .flatten()
     }
 
     fn align_detection(

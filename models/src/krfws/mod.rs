@@ -888,6 +888,72 @@ impl Krfws {
         }
     }
 
+    /// The 51×144 HOG around `shape` (full-frame pixels) as the last stage samples it (its normalised frame,
+    /// fitted to `shape`), written to [`KrfwsScratch::last_hog`]: what the aligner sees at a given answer,
+    /// for the per-person adaptation (`crate::adapt`). `false` (the HOG untouched) for a degenerate shape or a
+    /// model without stages.
+    pub fn hog_at(
+        &self,
+        image: &GrayView<'_>,
+        shape: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+    ) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if let Some(k) = Avx512::detect() {
+                #[target_feature(enable = "avx512f")]
+                fn avx512(
+                    m: &Krfws,
+                    k: Avx512,
+                    i: &GrayView<'_>,
+                    s: &[Point2; N_POINTS],
+                    x: &mut KrfwsScratch,
+                ) -> bool {
+                    m.hog_at_with(k, i, s, x)
+                }
+                #[allow(unsafe_code)]
+                // SAFETY: the token proves the CPU has AVX-512F.
+                return unsafe { avx512(self, k, image, shape, scratch) };
+            }
+            if let Some(k) = Avx2::detect() {
+                #[target_feature(enable = "avx2,f16c")]
+                fn avx2(
+                    m: &Krfws,
+                    k: Avx2,
+                    i: &GrayView<'_>,
+                    s: &[Point2; N_POINTS],
+                    x: &mut KrfwsScratch,
+                ) -> bool {
+                    m.hog_at_with(k, i, s, x)
+                }
+                #[allow(unsafe_code)]
+                // SAFETY: the token proves the CPU has AVX2 and F16C.
+                return unsafe { avx2(self, k, image, shape, scratch) };
+            }
+        }
+        self.hog_at_with(Portable, image, shape, scratch)
+    }
+
+    #[inline(always)]
+    fn hog_at_with<K: Kernels>(
+        &self,
+        kernels: K,
+        image: &GrayView<'_>,
+        shape: &[Point2; N_POINTS],
+        scratch: &mut KrfwsScratch,
+    ) -> bool {
+        let Some(stage) = self.stages.last() else {
+            return false;
+        };
+        let KrfwsScratch {
+            patch,
+            norm,
+            last_hog,
+            ..
+        } = scratch;
+        stage_features_with(kernels, image, shape, &stage.dest, patch, norm, last_hog).is_some()
+    }
+
     /// Aligns the 51 inner landmarks starting from `init` (full-frame pixels), writing the result to
     /// `out` (full-frame pixels) and returning the failure score (lower is better; compare with
     /// [`Krfws::threshold`]). A degenerate init or transform returns `f32::INFINITY` with `out` = the
@@ -1172,6 +1238,49 @@ mod tests {
             }
         }
         assert!(inside > 100, "the vector path ran on only {inside} windows");
+    }
+
+    #[test]
+    fn hog_at_is_the_last_stages_view_of_a_shape() {
+        let (w, h) = (160usize, 140usize);
+        let img: Vec<u8> = (0..w * h).map(|i| (i * 7919 % 251) as u8).collect();
+        let v = GrayView::new(&img, w, h, w).unwrap();
+        let mean = default_mean_shape();
+        let failure = FailureModel {
+            weights: vec![0.0; FAILURE_DIM],
+            intercept: 0.0,
+            threshold: 1.0,
+        };
+        let mut scratch = KrfwsScratch::new();
+        let shape: [Point2; N_POINTS] =
+            std::array::from_fn(|i| Point2::new(80.0 + mean[i].x * 0.6, 70.0 + mean[i].y * 0.6));
+        // No stage: nothing to see with.
+        assert!(!Krfws::new(mean, Vec::new(), failure.clone()).hog_at(&v, &shape, &mut scratch));
+        let stages = [0.5, 0.3]
+            .map(|s| Stage::new(&mean, s, 1, Vec::new(), Vec::new()))
+            .to_vec();
+        let model = Krfws::new(mean, stages, failure);
+        assert!(model.hog_at(&v, &shape, &mut scratch));
+        // The last stage's frame (scale 0.3), through the portable kernels: the same bits.
+        let (mut patch, mut norm, mut want) = (
+            [0u8; PATCH_PIXELS],
+            [Point2::default(); N_POINTS],
+            vec![0.0; FAILURE_DIM],
+        );
+        stage_features(
+            &v,
+            &shape,
+            &stage_dest(&mean, 0.3),
+            &mut patch,
+            &mut norm,
+            &mut want,
+        )
+        .unwrap();
+        assert_eq!(scratch.last_hog(), &want[..]);
+        assert!(want.iter().any(|&x| x != 0.0));
+        // A degenerate shape leaves the HOG as it was.
+        assert!(!model.hog_at(&v, &[Point2::new(5.0, 5.0); N_POINTS], &mut scratch));
+        assert_eq!(scratch.last_hog(), &want[..]);
     }
 
     #[test]

@@ -163,6 +163,10 @@ pub struct AdaptArgs {
     /// Ridge on the correction's slopes (features' variance units); `inf`: the mean offset only.
     #[arg(long, default_value_t = AdaptParams::default().ridge)]
     pub adapt_ridge: f64,
+    /// Ridge of each point's regression on what KRFWS sees there (its HOG, pooled), in units of those
+    /// values' mean variance; `inf`: off.
+    #[arg(long, default_value_t = AdaptParams::default().appearance_ridge)]
+    pub adapt_appearance_ridge: f64,
     /// The longest shift of one point, eye distances.
     #[arg(long, default_value_t = AdaptParams::default().max_shift)]
     pub adapt_max_shift: f64,
@@ -176,6 +180,7 @@ impl AdaptArgs {
             params: AdaptParams {
                 memory_pairs: self.adapt_memory,
                 ridge: self.adapt_ridge,
+                appearance_ridge: self.adapt_appearance_ridge,
                 max_shift: self.adapt_max_shift,
                 ..AdaptParams::default()
             },
