@@ -116,6 +116,12 @@ pub struct Args {
     /// At most this many faces from each teacher-label file (evenly spaced over it).
     #[arg(long)]
     pub teacher_limit: Option<usize>,
+    /// Give each teacher-labelled face `--teacher-crops` times (its pose's share among the annotated faces /
+    /// its share among the teacher faces) crops, rounded at random, at most 5 times `--teacher-crops`:
+    /// the teacher faces then spread over head turn and tilt as the annotated ones (`pose_bin`), not as
+    /// the mostly frontal photo collections.
+    #[arg(long)]
+    pub teacher_pose_match: bool,
     /// Skip training: validate the model already at `--out` with 1 and with `--starts` starts.
     #[arg(long)]
     pub evaluate: bool,
@@ -352,6 +358,7 @@ fn teacher_cache_key(args: &Args, teacher_faces: usize) -> anyhow::Result<Vec<u8
         u64::from(labels.finalize()),
         teacher_faces as u64,
         args.teacher_crops as u64,
+        u64::from(args.teacher_pose_match),
     ] {
         key.extend_from_slice(&v.to_le_bytes());
     }
@@ -433,17 +440,75 @@ fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec
 
 /// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each); the
 /// random streams are numbered from `first` (the teacher-labelled faces follow the annotated ones).
+/// A face's pose bin: its head turn (the nose tip's offset from the jaw's middle, in jaw widths, 10 bins of
+/// 0.05 up to 0.5, either side alike) times its tilt (the eyes' line: under 5, 5-15, over 15 degrees).
+fn pose_bin(lm: &[Point2; 68]) -> usize {
+    let width = (lm[16].x - lm[0].x).abs().max(1e-3);
+    let turn = ((lm[30].x - 0.5 * (lm[0].x + lm[16].x)).abs() / width).min(0.499);
+    let eye = |r: std::ops::Range<usize>| centroid(&lm[r]);
+    let (l, r) = (eye(36..42), eye(42..48));
+    let tilt = (r.y - l.y).atan2(r.x - l.x).abs().to_degrees();
+    let tilt = if tilt < 5.0 {
+        0
+    } else if tilt < 15.0 {
+        1
+    } else {
+        2
+    };
+    (turn / 0.05) as usize * 3 + tilt
+}
+
+/// Crops per teacher face (`--teacher-pose-match`, else `--teacher-crops` each).
+fn teacher_crops_per_face(args: &Args, train: &[Sample], teacher: &[Sample]) -> Vec<usize> {
+    if args.teacher_pose_match {
+        pose_matched_crops(args.teacher_crops, args.seed, train, teacher)
+    } else {
+        vec![args.teacher_crops; teacher.len()]
+    }
+}
+
+/// `per_face` crops per teacher face on average, each face's scaled by how much more common its pose bin is
+/// among the `train` faces than among the `teacher` ones (at most 5 times), rounded at random.
+fn pose_matched_crops(per_face: usize, seed: u64, train: &[Sample], teacher: &[Sample]) -> Vec<usize> {
+    let share = |faces: &[Sample]| {
+        let mut n = [1.0f64; 30];
+        for f in faces.iter().filter_map(|f| f.landmarks.as_ref()) {
+            n[pose_bin(f)] += 1.0;
+        }
+        let total: f64 = n.iter().sum();
+        n.map(|v| v / total)
+    };
+    let (want, have) = (share(train), share(teacher));
+    let cap = 5.0 * per_face as f64;
+    teacher
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let Some(lm) = f.landmarks.as_ref() else {
+                return 0;
+            };
+            let b = pose_bin(lm);
+            let r = (per_face as f64 * want[b] / have[b]).min(cap);
+            let mut rng = Rng::stream(seed, &[i as u64, 0x9053]);
+            r.floor() as usize + usize::from(rng.uniform() < r.fract())
+        })
+        .collect()
+}
+
 fn answer_training_crops(
     faces: &[Sample],
-    crops: usize,
+    crops_per_face: &[usize],
     first: usize,
     args: &Args,
     runner: &mut DanRunner,
     detector: &mut holoface_runtime::detect::BlazeFace,
 ) -> anyhow::Result<()> {
     let mean = dan_mean_shape();
-    for (fi, face) in faces.iter().enumerate() {
+    for (fi, (face, &crops)) in faces.iter().zip(crops_per_face).enumerate() {
         let fi = first + fi;
+        if crops == 0 {
+            continue;
+        }
         let gt0 = face.landmarks.context("annotation missing")?;
         let mirrored = face.image.mirrored();
         for (side, (img, gt)) in [
@@ -530,6 +595,7 @@ struct Report {
     teacher_labels: Vec<PathBuf>,
     teacher_faces: usize,
     teacher_crops_per_face: usize,
+    teacher_pose_match: bool,
     training_crops: usize,
     /// Starts per crop borrowed from other crops' errors (`--borrowed-starts`).
     borrowed_starts_per_crop: usize,
@@ -712,6 +778,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         teacher_labels: args.teacher_labels.clone(),
         teacher_faces: teacher_faces.len(),
         teacher_crops_per_face: 2 * args.teacher_crops,
+        teacher_pose_match: args.teacher_pose_match,
         training_crops: answered.len(),
         borrowed_starts_per_crop: args.borrowed_starts,
         training_samples: samples.len(),
@@ -830,7 +897,14 @@ fn training_answers(
             crops = args.crops,
             "running DAN on the training crops"
         );
-        answer_training_crops(train_faces, args.crops, 0, args, runner, detector)
+        answer_training_crops(
+            train_faces,
+            &vec![args.crops; train_faces.len()],
+            0,
+            args,
+            runner,
+            detector,
+        )
     })?;
     if !teacher_faces.is_empty() {
         let mut key = teacher_cache_key(args, teacher_faces.len())?;
@@ -843,7 +917,9 @@ fn training_answers(
                 "running DAN on the teacher-labelled crops"
             );
             let first = train_faces.len();
-            answer_training_crops(teacher_faces, args.teacher_crops, first, args, runner, detector)
+            let crops = teacher_crops_per_face(args, train_faces, teacher_faces);
+            tracing::info!(crops = crops.iter().sum::<usize>(), "teacher crops per side");
+            answer_training_crops(teacher_faces, &crops, first, args, runner, detector)
         })?);
     }
     Ok(answered)
@@ -952,4 +1028,69 @@ fn final_validation(
         val.refine_us_per_crop
     );
     Ok(val)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use holoface_models::image::GrayImage;
+
+    /// A face whose nose tip sits `turn` jaw widths off the jaw's middle, eyes level.
+    fn face(turn: f32) -> Sample {
+        let mut lm = dan_mean_shape();
+        let (l, r) = (lm[0].x, lm[16].x);
+        lm[30].x = 0.5 * (l + r) + turn * (r - l);
+        Sample {
+            name: format!("turn {turn}"),
+            image: GrayImage::zeros(1, 1),
+            landmarks: Some(lm),
+        }
+    }
+
+    #[test]
+    fn pose_bins_follow_the_turn_either_side_and_the_tilt() {
+        let frontal = face(0.0).landmarks.unwrap();
+        assert_eq!(pose_bin(&frontal), 0);
+        let turned = face(0.22).landmarks.unwrap();
+        assert_eq!(pose_bin(&turned), 4 * 3);
+        assert_eq!(
+            pose_bin(&face(-0.22).landmarks.unwrap()),
+            4 * 3,
+            "either side alike"
+        );
+        let tilted = Similarity2::from_parts(1.0, 10f64.to_radians(), 0.0, 0.0);
+        let mut t = frontal;
+        tilted.apply_all(&frontal, &mut t);
+        assert_eq!(pose_bin(&t), 1);
+    }
+
+    #[test]
+    fn teacher_crops_go_where_the_annotated_poses_are() {
+        // Annotated: half frontal, half turned; teachers: nine frontal to one turned.
+        let train: Vec<Sample> = (0..200)
+            .map(|i| face(if i % 2 == 0 { 0.0 } else { 0.22 }))
+            .collect();
+        let teacher: Vec<Sample> = (0..1000)
+            .map(|i| face(if i % 10 == 0 { 0.22 } else { 0.0 }))
+            .collect();
+        let crops = pose_matched_crops(2, 7, &train, &teacher);
+        let mean = |turned: bool| {
+            let v: Vec<f64> = (0..crops.len())
+                .filter(|i| (i % 10 == 0) == turned)
+                .map(|i| crops[i] as f64)
+                .collect();
+            v.iter().sum::<f64>() / v.len() as f64
+        };
+        // Turned: about 2 x 0.5 / 0.1 = 10 (each share counts one face more per bin); frontal: 2 x 0.5 / 0.9.
+        assert!((8.5..=10.0).contains(&mean(true)), "{}", mean(true));
+        assert!((0.95..1.2).contains(&mean(false)), "{}", mean(false));
+        assert_eq!(
+            crops,
+            pose_matched_crops(2, 7, &train, &teacher),
+            "the seed fixes the rounding"
+        );
+        // A pose the teachers almost never show gets at most 5 times the crops.
+        let rare: Vec<Sample> = (0..1000).map(|i| face(if i == 0 { 0.22 } else { 0.0 })).collect();
+        assert_eq!(pose_matched_crops(2, 7, &train, &rare)[0], 10);
+    }
 }
