@@ -78,6 +78,9 @@ pub enum StabilityAligner {
     Remote,
     /// `remote` with the local aligner's adaptation off: KRFWS's own answers when the server misses.
     RemoteNoAdapt,
+    /// `remote` whose link is never cut (`--link-cuts` spares it): the steadied landmarks' jump at each of the
+    /// other runs' switches, where this run did not switch, is what the head's own motion gives there.
+    RemoteUncut,
 }
 
 impl StabilityAligner {
@@ -86,6 +89,7 @@ impl StabilityAligner {
             Self::Krfws => "krfws",
             Self::Remote => "remote",
             Self::RemoteNoAdapt => "remote-no-adapt",
+            Self::RemoteUncut => "remote-uncut",
         }
     }
 }
@@ -232,6 +236,9 @@ struct Report {
     /// The largest jump at a remote/local switch (eye distances), raw and steadied.
     largest_switch_jump_raw: Option<f64>,
     largest_switch_jump_steadied: Option<f64>,
+    /// Each switch measured (not at a clip jump): its frame, the steadied jump, and with a `remote-uncut` run
+    /// beside it, that run's steadied jump at the same frame when it did not switch there itself.
+    switch_jumps: Vec<SwitchJump>,
     /// The blendshapes against the lips' gap and the eyes' opening measured on the peer's landmarks (ours,
     /// raw, without a peer), after calibration.
     expressions: VideoReport,
@@ -240,6 +247,14 @@ struct Report {
     cuts: Option<CutReport>,
     /// The tracker's time per frame on this thread, ms (for the local aligner: the whole local frame).
     ms_per_frame: Option<Summary>,
+}
+
+/// One switch's jump beside the motion of a run that did not switch (see [`Report::switch_jumps`]).
+#[derive(Debug, serde::Serialize)]
+struct SwitchJump {
+    frame: usize,
+    steadied: Option<f64>,
+    uncut_steadied: Option<f64>,
 }
 
 /// One aligner's answers split by who gave them while the link was cut on a schedule.
@@ -310,7 +325,29 @@ fn cut_report(r: &Run, peer: Option<&[Landmarks]>, in_cut: &[bool]) -> CutReport
 /// fast turns (up to 24 %), where every tracker jumps whoever answers.
 const CLIP_EDIT_JUMP: f64 = 0.05;
 
-fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>) -> Report {
+/// The steadied jump at each of `frames` (switches), beside the `uncut` run's (who answered it, its steadied
+/// landmarks) at the same frame where that run did not switch itself.
+fn switch_jumps(
+    frames: &[usize],
+    steady: &[Landmarks],
+    uncut: Option<(&[Option<AnsweredBy>], &[Landmarks])>,
+) -> Vec<SwitchJump> {
+    let switched = |by: &[Option<AnsweredBy>], t: usize| {
+        t > 0 && matches!((by.get(t - 1), by.get(t)), (Some(Some(a)), Some(Some(b))) if a != b)
+    };
+    frames
+        .iter()
+        .map(|&t| SwitchJump {
+            frame: t,
+            steadied: jump(steady, t),
+            uncut_steadied: uncut
+                .filter(|(by, _)| !switched(by, t))
+                .and_then(|(_, lm)| jump(lm, t)),
+        })
+        .collect()
+}
+
+fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>, uncut: Option<&Run>) -> Report {
     let frames = r.raw.len();
     // Calibration takes the first second (`BlendshapeParams::calibration_s`) of the first track: its frames
     // within that time of the first face, and the frame that completes it.
@@ -338,6 +375,10 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>) -> Repor
             .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))))
     };
     let vs_peer = |lm: &[Landmarks]| peer.and_then(|p| summarise(&agreement(lm, p)));
+    let uncut = uncut
+        .filter(|u| u.name != r.name)
+        .map(|u| (&u.by[..], &u.steady[..]));
+    let switch_jumps = switch_jumps(&switch_frames, &r.steady, uncut);
     Report {
         aligner: r.name,
         frames,
@@ -352,6 +393,7 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>) -> Repor
         switches_at_clip_jumps: all_switches - switch_frames.len(),
         largest_switch_jump_raw: largest(&r.raw),
         largest_switch_jump_steadied: largest(&r.steady),
+        switch_jumps,
         expressions: video_report(
             &r.shapes,
             peer.unwrap_or(&r.raw),
@@ -507,6 +549,25 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
                 r.largest_switch_jump_steadied
                     .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
             );
+            let beside: Vec<String> = r
+                .switch_jumps
+                .iter()
+                .filter_map(|j| {
+                    let (ours, theirs) = (j.steadied?, j.uncut_steadied?);
+                    Some(format!(
+                        "{}: {:.2} / {:.2} %",
+                        j.frame,
+                        100.0 * ours,
+                        100.0 * theirs
+                    ))
+                })
+                .collect();
+            if !beside.is_empty() {
+                crate::say!(
+                    "         steadied jump at each switch / remote-uncut's at that frame: {}",
+                    beside.join(", ")
+                );
+            }
         }
     }
     for r in reports {
@@ -608,18 +669,19 @@ fn write_plot(
 fn start_run(a: StabilityAligner, args: &Args, opts: &TrackerOptions) -> anyhow::Result<Run> {
     let mut server = None;
     let aligner = match a {
-        StabilityAligner::Remote | StabilityAligner::RemoteNoAdapt => {
+        StabilityAligner::Remote | StabilityAligner::RemoteNoAdapt | StabilityAligner::RemoteUncut => {
             let s = crate::loopback::LoopbackServer::start(&args.runtime, args.server_threads, |_| {})?;
             let relay = args
                 .link_cuts
                 .as_ref()
+                .filter(|_| a != StabilityAligner::RemoteUncut)
                 .map(|c| CutRelay::start(s.addr, c.clone()))
                 .transpose()?;
             let addr = relay.as_ref().map_or(s.addr, CutRelay::addr);
             let mut remote = RemoteOptions::new(addr, s.fingerprint, s.token.clone());
             remote.client_name = "holoface-stability".into();
             remote.deadline = Duration::from_millis(args.deadline_ms);
-            remote.adapt = (a == StabilityAligner::Remote).then(|| args.adapt.options());
+            remote.adapt = (a != StabilityAligner::RemoteNoAdapt).then(|| args.adapt.options());
             server = Some((s, relay));
             AlignerChoice::Remote(remote)
         }
@@ -714,7 +776,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let cut_mask = args.link_cuts.is_some().then_some(&in_cut[..]);
     let reports: Vec<Report> = runs
         .iter()
-        .map(|r| report(r, peer.as_deref(), cut_mask))
+        .map(|r| {
+            let uncut = runs
+                .iter()
+                .find(|u| u.name == StabilityAligner::RemoteUncut.name());
+            report(r, peer.as_deref(), cut_mask, uncut)
+        })
         .collect();
     let peer_jitter = peer.as_deref().and_then(|p| summarise(&jitter49(p)));
     let others = args
@@ -760,6 +827,46 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_switch_is_set_beside_the_uncut_runs_motion_unless_that_run_switched_too() {
+        use holoface_models::geometry::Point2;
+        // Points moving at a constant speed, then 2 px further from frame 3 on; eyes 90 px apart.
+        let track = |step_at: usize| -> Vec<Landmarks> {
+            (0..6)
+                .map(|t| {
+                    let x = t as f32 + if t >= step_at { 2.0 } else { 0.0 };
+                    let mut p = [Point2::new(x, 0.0); 68];
+                    p[36].x -= 45.0;
+                    p[45].x += 45.0;
+                    Some(p)
+                })
+                .collect()
+        };
+        let (ours, theirs) = (track(3), track(99));
+        let remote = Some(AnsweredBy::RemoteDan);
+        let local = Some(AnsweredBy::Krfws);
+        let steady_by = vec![remote; 6];
+        let jumps = switch_jumps(&[3], &ours, Some((&steady_by, &theirs)));
+        assert!((jumps[0].steadied.unwrap() - 2.0 / 90.0).abs() < 1e-4);
+        assert!(
+            jumps[0].uncut_steadied.unwrap() < 1e-6,
+            "the uncut run moved evenly"
+        );
+        // Where the uncut run switched too, its jump says nothing about the head: left out.
+        let mut switching = steady_by.clone();
+        switching[3] = local;
+        assert_eq!(
+            switch_jumps(&[3], &ours, Some((&switching, &theirs)))[0].uncut_steadied,
+            None
+        );
+        assert_eq!(switch_jumps(&[3], &ours, None)[0].uncut_steadied, None);
+        assert_eq!(
+            switch_jumps(&[1], &ours, None)[0].steadied,
+            None,
+            "no two frames before"
+        );
+    }
 
     #[test]
     fn other_peers_are_named() {
