@@ -476,7 +476,9 @@ impl PersonCorrection {
             fit.fitted = fit.fit().map(Box::new);
             fit.stale = false;
         }
-        let seen = look.zip(self.appearance.as_deref());
+        let seen = look
+            .filter(|l| l.iter().flatten().all(|v| v.is_finite()))
+            .zip(self.appearance.as_deref());
         let fitted = self.fitted.as_deref()?;
         let (s, k) = self.to_reference(local)?;
         let back = s.inverse()?;
@@ -665,6 +667,9 @@ mod tests {
             Learnt::Yes
         );
         assert!(seeing.correct(&local, Some(&look)).is_some());
+        // Nor is one used to correct: the answer gets the rest of the correction.
+        let (rest, _) = seeing.correct(&local, None).unwrap();
+        assert_eq!(seeing.correct(&local, Some(&bad)).unwrap().0, rest);
     }
 
     #[test]
