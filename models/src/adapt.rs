@@ -328,6 +328,12 @@ impl PersonCorrection {
         }
     }
 
+    /// Whether [`Self::correct`] can correct an answer yet ([`AdaptParams::min_pairs`] pairs learnt): before,
+    /// there is no need to find out what the local aligner saw.
+    pub fn ready(&self) -> bool {
+        self.pairs >= self.params.min_pairs && self.fitted.is_some()
+    }
+
     /// Whether the correction uses the answers' [`Appearance`] ([`AdaptParams::appearance_ridge`]): the
     /// caller then passes it to [`Self::learn`] and [`Self::correct`].
     pub fn wants_appearance(&self) -> bool {
@@ -467,7 +473,7 @@ impl PersonCorrection {
         local: &[Point2; 68],
         look: Option<&Appearance>,
     ) -> Option<([Point2; 68], f32)> {
-        if self.pairs < self.params.min_pairs {
+        if !self.ready() {
             return None;
         }
         if let (Some(fit), Some(_)) = (self.appearance.as_deref_mut(), look)

@@ -2,8 +2,9 @@
 //! runs on some of those frames and each tracked face learns a correction of the local answer towards the
 //! remote one ([`holoface_models::adapt::PersonCorrection`]), from the mean offset and, per point, what the
 //! local aligner saw there ([`Aligner::appearance`]); when the link drops, the local answers of that face are
-//! corrected (each corrected answer also asks the local aligner what it sees at it: KRFWS, 0.07 ms). A face that is lost takes its correction with it: a new face (a new id) starts
-//! from nothing. Nothing runs on the server.
+//! corrected (each corrected answer also asks the local aligner what it sees at it: KRFWS, 0.07 ms). A face
+//! that is lost takes its correction with it: a new face (a new id) starts from nothing. Nothing runs on
+//! the server.
 //!
 //! [`LocalAdaptation::update`] is called by the remote aligner ([`crate::link::LinkedAligner`]) after every
 //! frame; with the local aligner alone nothing is ever learnt, so nothing changes.
@@ -101,20 +102,16 @@ impl LocalAdaptation {
                     let due = state.remote_answers < self.opts.warm_pairs
                         || state.remote_answers.is_multiple_of(self.opts.learn_every.max(1));
                     state.remote_answers = state.remote_answers.wrapping_add(1);
-                    if due {
-                        let mine = local.align(image, &face.init)?;
-                        let look = if mine.accepted && state.correction.wants_appearance() {
-                            local.appearance(image, &mine.landmarks)
-                        } else {
-                            None
-                        };
+                    let mine = due.then(|| local.align(image, &face.init)).transpose()?;
+                    if let Some(mine) = mine.filter(|m| m.accepted) {
+                        let wanted = state.correction.wants_appearance();
+                        let look = wanted.then(|| local.appearance(image, &mine.landmarks)).flatten();
                         // The size reported is the correction without the appearance's part: solving those
                         // regressions at every pair would cost more than the pair.
-                        if mine.accepted
-                            && state
-                                .correction
-                                .learn(&mine.landmarks, &answer.landmarks, look.as_deref())
-                                == Learnt::Yes
+                        if state
+                            .correction
+                            .learn(&mine.landmarks, &answer.landmarks, look.as_deref())
+                            == Learnt::Yes
                             && let Some((_, size)) = state.correction.correct(&mine.landmarks, None)
                         {
                             state.last_size = size;
@@ -122,11 +119,12 @@ impl LocalAdaptation {
                     }
                 }
                 AnsweredBy::Krfws => {
-                    let look = if state.correction.wants_appearance() {
-                        local.appearance(image, &answer.landmarks)
-                    } else {
-                        None
-                    };
+                    // Only a correction that can correct asks what the local aligner saw (with no link ever
+                    // up, nothing is learnt and nothing more runs).
+                    let wanted = state.correction.ready() && state.correction.wants_appearance();
+                    let look = wanted
+                        .then(|| local.appearance(image, &answer.landmarks))
+                        .flatten();
                     if let Some((fixed, size)) = state.correction.correct(&answer.landmarks, look.as_deref())
                     {
                         answer.landmarks = fixed;
@@ -143,5 +141,79 @@ impl LocalAdaptation {
             });
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use holoface_models::adapt::{APPEARANCE, Appearance};
+    use holoface_models::geometry::Point2;
+    use holoface_models::shape::dan_mean_shape;
+
+    use super::*;
+    use crate::align::{Confidence, LandmarkSet};
+
+    /// A local aligner that answers its start and counts how often it is asked what it sees.
+    #[derive(Default)]
+    struct Seeing {
+        looks: usize,
+    }
+
+    impl Aligner for Seeing {
+        fn name(&self) -> &'static str {
+            "seeing"
+        }
+        fn align(&mut self, _: &GrayView<'_>, init: &[Point2; 68]) -> Result<Alignment, AlignError> {
+            Ok(answer(init, AnsweredBy::Krfws))
+        }
+        fn appearance(&mut self, _: &GrayView<'_>, _: &[Point2; 68]) -> Option<Box<Appearance>> {
+            self.looks += 1;
+            Some(Box::new([[0.5; APPEARANCE]; 51]))
+        }
+    }
+
+    fn answer(landmarks: &[Point2; 68], answered_by: AnsweredBy) -> Alignment {
+        Alignment {
+            landmarks: *landmarks,
+            set: LandmarkSet::Ibug68,
+            confidence: Confidence::FaceProbability(1.0),
+            accepted: true,
+            answered_by,
+            adaptation: None,
+        }
+    }
+
+    #[test]
+    fn what_the_local_aligner_sees_is_asked_only_when_it_is_learnt_or_can_correct() {
+        let pixels = vec![0u8; 64 * 64];
+        let image = GrayView::new(&pixels, 64, 64, 64).unwrap();
+        let init = dan_mean_shape();
+        let face = [Candidate {
+            track: Some(1),
+            init,
+            source: InitSource::Tracking,
+        }];
+        let mut local = Seeing::default();
+        let mut adapt = LocalAdaptation::new(AdaptOptions::default());
+        // No link yet: local answers, nothing learnt, nothing asked.
+        for _ in 0..5 {
+            let mut out = vec![answer(&init, AnsweredBy::Krfws)];
+            adapt.update(&mut local, &image, &face, &mut out).unwrap();
+            assert!(!out[0].adaptation.unwrap().corrected);
+        }
+        assert_eq!(local.looks, 0);
+        // The server answers (a shifted shape): each warm pair's local answer is looked at.
+        let remote = init.map(|p| Point2::new(p.x + 0.5, p.y));
+        for _ in 0..12 {
+            let mut out = vec![answer(&remote, AnsweredBy::RemoteDan)];
+            adapt.update(&mut local, &image, &face, &mut out).unwrap();
+        }
+        assert_eq!(local.looks, 12);
+        // The link drops: each corrected answer is looked at once.
+        let mut out = vec![answer(&init, AnsweredBy::Krfws)];
+        adapt.update(&mut local, &image, &face, &mut out).unwrap();
+        assert!(out[0].adaptation.unwrap().corrected);
+        assert_eq!(local.looks, 13);
     }
 }
