@@ -325,6 +325,11 @@ fn cut_report(r: &Run, peer: Option<&[Landmarks]>, in_cut: &[bool]) -> CutReport
 /// fast turns (up to 24 %), where every tracker jumps whoever answers.
 const CLIP_EDIT_JUMP: f64 = 0.05;
 
+/// Whether a different aligner answered frame `t` than frame `t - 1` (both answered).
+fn switched(by: &[Option<AnsweredBy>], t: usize) -> bool {
+    t > 0 && matches!((by.get(t - 1), by.get(t)), (Some(Some(a)), Some(Some(b))) if a != b)
+}
+
 /// The steadied jump at each of `frames` (switches), beside the `uncut` run's (who answered it, its steadied
 /// landmarks) at the same frame where that run did not switch itself.
 fn switch_jumps(
@@ -332,9 +337,6 @@ fn switch_jumps(
     steady: &[Landmarks],
     uncut: Option<(&[Option<AnsweredBy>], &[Landmarks])>,
 ) -> Vec<SwitchJump> {
-    let switched = |by: &[Option<AnsweredBy>], t: usize| {
-        t > 0 && matches!((by.get(t - 1), by.get(t)), (Some(Some(a)), Some(Some(b))) if a != b)
-    };
     frames
         .iter()
         .map(|&t| SwitchJump {
@@ -359,13 +361,11 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>, uncut: O
             .iter()
             .take_while(|&&t| t - t0 < calibration_s - 1e-9)
             .count();
-    let all_switches = (1..frames)
-        .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
-        .count();
+    let all_switches = (1..frames).filter(|&t| switched(&r.by, t)).count();
     // A switch is judged by the jump it adds: where the clip itself jumps (the peer's landmarks too), the
     // jump says nothing about the switch.
     let switch_frames: Vec<usize> = (1..frames)
-        .filter(|&t| matches!((r.by[t - 1], r.by[t]), (Some(a), Some(b)) if a != b))
+        .filter(|&t| switched(&r.by, t))
         .filter(|&t| peer.and_then(|p| jump(p, t)).is_none_or(|j| j <= CLIP_EDIT_JUMP))
         .collect();
     let largest = |lm: &[Landmarks]| {
