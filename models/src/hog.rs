@@ -78,10 +78,10 @@ const fn tent_table() -> [[f32; PATCH]; CELLS] {
 }
 
 /// Adding and subtracting 1.5·2²³ rounds an f32 of magnitude < 2²² to the nearest integer.
-const ROUND_MAGIC: f32 = 12_582_912.0;
+pub(crate) const ROUND_MAGIC: f32 = 12_582_912.0;
 
 /// `TENT[c][u]`: share of a vote at window coordinate `u` (x or y) for cell `c`.
-static TENT: [[f32; PATCH]; CELLS] = tent_table();
+pub(crate) static TENT: [[f32; PATCH]; CELLS] = tent_table();
 
 /// Unsigned gradient orientation in radians, `[0, π]`, without `atan2`.
 #[inline(always)]
@@ -464,7 +464,8 @@ unsafe fn l2_normalise_avx2(pooled: &[f32; HOG_DIM], out: &mut [f32; HOG_DIM]) {
     }
 }
 
-/// The fastest HOG this CPU runs: [`hog_patch_avx512`], else [`hog_patch_avx2`], else the baseline build (the same bits on every path); for callers outside [`crate::krfws::Krfws::align`],
+/// The fastest HOG this CPU runs: [`hog_patch_avx512`], else [`hog_patch_avx2`] (x86-64), the NEON kernel
+/// (aarch64), else the baseline build (the same bits on every path); for callers outside [`crate::krfws::Krfws::align`],
 /// which dispatches once per face.
 pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) {
     #[cfg(target_arch = "x86_64")]
@@ -478,6 +479,12 @@ pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) 
         #[allow(unsafe_code)]
         // SAFETY: the CPU has AVX2 (checked just above).
         return unsafe { hog_patch_avx2(patch, out) };
+    }
+    #[cfg(target_arch = "aarch64")]
+    if std::arch::is_aarch64_feature_detected!("neon") {
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has NEON (checked just above).
+        return unsafe { crate::krfws::neon::hog_patch_neon(patch, out) };
     }
     hog_patch(patch, out)
 }

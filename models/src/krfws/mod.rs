@@ -16,8 +16,8 @@
 //!    (HoloFace's ranking); it regresses the expected NME49 of the result (see [`FailureModel`]).
 //!
 //! **Speed** (ARCHITECTURE.md, "KRFWS inference cost"): sampling, HOG and routing of a stage run
-//! software-pipelined ([`Stage::features_and_leaves`]) through the [`Kernels`] of the CPU ([`Portable`]
-//! or the AVX-512 ones, bit-identical), with the nodes and `W` streamed as the stored f16 values.
+//! software-pipelined ([`Stage::features_and_leaves`]) through the [`Kernels`] of the CPU ([`Portable`],
+//! the AVX-512 or AVX2 ones on x86-64, the NEON ones on aarch64; all bit-identical), with the nodes and `W` streamed as the stored f16 values.
 //!
 //! All per-call buffers live in [`KrfwsScratch`]; `align` does not allocate.
 
@@ -26,6 +26,8 @@ mod avx2;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 pub mod format;
+#[cfg(target_arch = "aarch64")]
+pub(crate) mod neon;
 #[cfg(feature = "train")]
 pub mod train;
 
@@ -33,6 +35,8 @@ pub mod train;
 pub use avx2::Avx2;
 #[cfg(target_arch = "x86_64")]
 pub use avx512::Avx512;
+#[cfg(target_arch = "aarch64")]
+pub use neon::Neon;
 
 use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH, PATCH_PIXELS, hog_patch, round_coord};
@@ -458,7 +462,20 @@ fn prefetch<T>(data: Option<&[T]>) {
             };
         }
     }
-    #[cfg(not(target_arch = "x86_64"))]
+    #[cfg(target_arch = "aarch64")]
+    if let Some(d) = data {
+        let p = d.as_ptr().cast::<u8>();
+        let skew = p as usize % 64;
+        let first = p.wrapping_sub(skew);
+        for o in (0..size_of_val(d) + skew).step_by(64) {
+            #[allow(unsafe_code)]
+            // SAFETY: PRFM is a hint: it reads nothing, writes nothing and never faults, whatever the address.
+            unsafe {
+                std::arch::asm!("prfm pldl2keep, [{0}]", in(reg) first.wrapping_add(o), options(nostack, preserves_flags, readonly))
+            };
+        }
+    }
+    #[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
     let _ = data;
 }
 
@@ -931,6 +948,10 @@ impl Krfws {
                 return unsafe { avx2(self, k, image, shape, scratch) };
             }
         }
+        #[cfg(target_arch = "aarch64")]
+        if let Some(k) = Neon::detect() {
+            return self.hog_at_with(k, image, shape, scratch);
+        }
         self.hog_at_with(Portable, image, shape, scratch)
     }
 
@@ -994,7 +1015,13 @@ impl Krfws {
                     return unsafe { self.align_avx2(k, image, init, scratch, out) };
                 }
             }
-            Isa::Baseline => {}
+            Isa::Neon | Isa::Baseline => {}
+        }
+        #[cfg(target_arch = "aarch64")]
+        if isa == Isa::Neon
+            && let Some(k) = Neon::detect()
+        {
+            return self.align_with(k, image, init, scratch, out);
         }
         self.align_with(Portable, image, init, scratch, out)
     }
