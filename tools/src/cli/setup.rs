@@ -35,6 +35,11 @@ pub struct Args {
     /// SHA-256 again) instead of downloading them.
     #[arg(long, env = "HOLOFACE_DOWNLOADS")]
     pub downloads: Option<PathBuf>,
+    /// The CPU architecture whose ONNX Runtime library is installed: this machine's by default; `aarch64`
+    /// fills a data folder for an ARM64 Linux device (or a cross-built client run under qemu) from an
+    /// x86-64 machine. Every other file in the data folder is the same on both.
+    #[arg(long, value_parser = ["x86_64", "aarch64"])]
+    pub arch: Option<String>,
 }
 
 /// A registry file, pinned by its SHA-256 and size.
@@ -52,8 +57,8 @@ impl Archive {
     }
 }
 
-/// ONNX Runtime 1.31.1's CPU library, from the PyPI wheel for this machine.
-fn onnxruntime() -> anyhow::Result<Archive> {
+/// ONNX Runtime 1.31.1's CPU library for Linux on `arch`, from its PyPI wheel.
+fn onnxruntime(arch: &str) -> anyhow::Result<Archive> {
     const NOTICES: [(&str, &str, &str); 2] = [
         (
             "onnxruntime/LICENSE",
@@ -67,7 +72,7 @@ fn onnxruntime() -> anyhow::Result<Archive> {
         ),
     ];
     const LIB: &str = "onnxruntime/capi/libonnxruntime.so.1.31.1";
-    Ok(match (std::env::consts::OS, std::env::consts::ARCH) {
+    Ok(match (std::env::consts::OS, arch) {
         ("linux", "x86_64") => Archive {
             url: "https://files.pythonhosted.org/packages/eb/27/c6a823bac55b2977bea2027c3ec9393a2c1002cb9a09eb40354563e02730/onnxruntime-1.31.1-cp312-cp312-manylinux_2_28_x86_64.whl",
             sha256: "1f3dea47f2f0e5117c2404cea7d21fd253ae7836a3bf167a501cdfbb2600d536",
@@ -166,7 +171,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         agent: None,
         downloads: args.downloads,
     };
-    match onnxruntime() {
+    let arch = args.arch.as_deref().unwrap_or(std::env::consts::ARCH);
+    if arch != std::env::consts::ARCH {
+        crate::say!(
+            "  ONNX Runtime for {arch} (this machine is {})",
+            std::env::consts::ARCH
+        );
+    }
+    match onnxruntime(arch) {
         Ok(ort) => install_from(&mut fetcher, &ort, &dir)?,
         // The rest is still useful with a library the user installs (and names) themselves.
         Err(e) => crate::say!("  {:<36} skipped: {e}", home::ORT_LIBRARY.file),
