@@ -288,6 +288,90 @@ csharp-example: setup-test mono $(SAMPLE_PGM)
 	mcs -warnaserror -out:target/dotnet/track.exe ffi/unity/HoloFace.cs ffi/dotnet/TrackSample.cs
 	LD_LIBRARY_PATH=$(abspath target/debug) mono target/dotnet/track.exe $(SAMPLE_PGM)
 
+## ---- a headset's CPU: aarch64 ------------------------------------------------------------------
+# Every current headset runs an ARM64 CPU. The client is cross-built here for aarch64-unknown-linux-gnu and its
+# tests run under qemu-aarch64 (README, "Building for a headset"). The toolchain is Debian's, pinned:
+#   rustc-web / cargo-web   Rust 1.96, Debian's own build: the only Rust whose aarch64 standard library comes
+#                           as a package (libstd-rust-web-dev:arm64); rustup cannot fetch one here;
+#   gcc-aarch64-linux-gnu   the linker and ring's C compiler, with the aarch64 libc to link against;
+#   qemu-user 10 (bookworm-backports) runs the aarch64 binaries. bookworm's own 7.2 has no aarch64 /proc/cpuinfo,
+#                           and ONNX Runtime's CPU probe dies on a NULL there (SIGSEGV). Never run it with -L: with
+#                           the cross package's loader, every thread creation spins for ever.
+# The build has its own folder (target/arm64/), so it never replaces the x86-64 artifacts.
+ARM64_TARGET := aarch64-unknown-linux-gnu
+RUST_WEB_VERSION := 1.96.0+dfsg1-1~deb12u2
+QEMU_USER_VERSION := 1:10.0.2+ds-2+deb13u1~bpo12+1
+ARM64_DEBS := rustc-web=$(RUST_WEB_VERSION) cargo-web=$(RUST_WEB_VERSION) libstd-rust-web-dev:arm64=$(RUST_WEB_VERSION) \
+  gcc-aarch64-linux-gnu=4:12.2.0-3 libc6-dev-arm64-cross=2.36-8cross1 qemu-user=$(QEMU_USER_VERSION)
+BACKPORTS_LIST := /etc/apt/sources.list.d/bookworm-backports.list
+.PHONY: arm64-toolchain arm64 arm64-test
+arm64-toolchain:
+	@if for p in $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p)))); do \
+	    dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || exit 1; done && \
+	  qemu-aarch64 --version | grep -q 'version 10\.'; then \
+	  echo "arm64-toolchain: $$(/usr/bin/rustc --version), $$(qemu-aarch64 --version | head -1)"; else \
+	  echo "arm64-toolchain missing: installing Debian's aarch64 cross toolchain (pinned)"; \
+	  export DEBIAN_FRONTEND=noninteractive; \
+	  dpkg --print-foreign-architectures | grep -qx arm64 || $(SUDO) dpkg --add-architecture arm64; \
+	  test -f $(BACKPORTS_LIST) || echo 'deb http://deb.debian.org/debian bookworm-backports main' | $(SUDO) tee $(BACKPORTS_LIST) >/dev/null; \
+	  $(SUDO) apt-get install -y -qq --no-install-recommends $(ARM64_DEBS) >/dev/null 2>&1 || \
+	    { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq --no-install-recommends $(ARM64_DEBS) >/dev/null; }; fi
+
+# Debian's cargo and rustc (by path: rustup's come first on PATH), the cross linker and C compiler, qemu as the
+# runner of test binaries; warnings are errors here as in `check` (clippy runs on the x86-64 build only),
+# `holoface_emulated` leaves the benchmarks' dev-dependencies out (protocol/Cargo.toml), and no incremental
+# compilation (this folder is built from scratch in CI; incremental state only costs there).
+ARM64_DIR := target/arm64
+ARM64_OUT := $(ARM64_DIR)/$(ARM64_TARGET)
+ARM64_CARGO := env CARGO_TARGET_DIR=$(ARM64_DIR) RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc CARGO_INCREMENTAL=0 \
+  RUSTFLAGS='-Dwarnings --cfg holoface_emulated' \
+  CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc \
+  CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=qemu-aarch64 /usr/bin/cargo
+ARM64_CC := aarch64-linux-gnu-gcc -std=c11 -O2 -Wall -Wextra -Werror -I ffi/include ffi/examples/track.c
+# The headset-side crates: what a headset app compiles (deps-check keeps the server, the tools, video and the
+# trainers out of them).
+ARM64_PKGS := -p holoface-protocol -p holoface-models -p holoface-inference -p holoface-quic -p holoface-runtime \
+  -p holoface-headset-client -p holoface-ffi
+
+# What a headset app embeds, as shipped (release): the C ABI (libholoface.so; its header is ffi/include/holoface.h),
+# the facade and the runtime, the Rust embedding example and the C example. The `holoface` CLI is not built: its
+# trainers, plots and video tools are desktop work.
+arm64: arm64-toolchain
+	$(ARM64_CARGO) build --locked --release --target $(ARM64_TARGET) -p holoface-ffi -p holoface-headset-client --lib --examples
+	$(ARM64_CC) -L $(ARM64_OUT)/release -lholoface -Wl,-rpath,'$$ORIGIN' -o $(ARM64_OUT)/release/track
+	@file -b $(ARM64_OUT)/release/libholoface.so | grep -q 'ARM aarch64' && \
+	  echo "arm64: $(ARM64_OUT)/release/libholoface.so ($$(stat -c %s $(ARM64_OUT)/release/libholoface.so) bytes)," \
+	    "examples/embed, track; header ffi/include/holoface.h"
+
+# The aarch64 build tested under emulation: the data folder for an aarch64 device (`holoface setup --arch aarch64`:
+# ONNX Runtime's aarch64 library from its pinned wheel); the headset-side crates' tests with qemu as the runner
+# (HOLOFACE_EMULATED makes the one test that aligns 168 faces from 13 starts use every 6th face); what `file` and
+# nm say of the C ABI; the Rust embedding example; the C example against the x86-64 server on loopback, link up,
+# cut and back (tools/arm64-link.sh); the detector and KRFWS on the validation faces on both architectures,
+# compared face by face (tools/arm64-accuracy.py: the means within 0.05 points of NME49).
+ARM64_HOME := $(abspath .cache/holoface-arm64)
+ARM64_ENV := HOLOFACE_HOME=$(ARM64_HOME) ORT_DYLIB_PATH=$(ARM64_HOME)/libonnxruntime.so.$(ORT_VERSION) \
+  HOLOFACE_DETECTOR_MODEL=$(ARM64_HOME)/face_detection_front_128x128.onnx HOLOFACE_SAMPLE=$(ARM64_HOME)/astronaut.png \
+  HOLOFACE_EMULATED=qemu-aarch64
+# The whole validation split (168 faces): about 1.2 s a face under qemu, in two processes; smaller fixed subsets
+# were too noisy for the bound (every 6th face: -0.10 to +0.07 points between the six subsets).
+ARM64_FACES = $(HOLOFACE_DATA)/faces68/train models/splits/val.txt
+arm64-test: arm64-toolchain setup-test golden $(SAMPLE_PGM)
+	HOLOFACE_HOME=$(ARM64_HOME) target/debug/holoface setup --arch aarch64 >/dev/null
+	$(ARM64_CARGO) build --locked --profile test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests --examples
+	$(ARM64_CC) -L $(ARM64_OUT)/debug -lholoface -Wl,-rpath,$(abspath $(ARM64_OUT)/debug) -o $(ARM64_OUT)/debug/track
+	tools/arm64-abi.sh target/debug/libholoface.so $(ARM64_OUT)/debug/libholoface.so $(ARM64_OUT)/debug/track \
+	  $(ARM64_OUT)/debug/examples/embed
+	$(ARM64_ENV) $(ARM64_CARGO) test --locked --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests -q
+	$(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/embed
+	$(ARM64_ENV) tools/arm64-link.sh $(ARM64_OUT)/debug/track $(SAMPLE_PGM) target/debug/holoface-server $(ORT_DYLIB_PATH)
+	rm -rf runs/arm64 && mkdir -p runs/arm64
+	target/debug/examples/detector_krfws $(ARM64_FACES) 1 runs/arm64/gray >runs/arm64/x86_64.tsv
+	pids=; for i in 0 1; do $(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/detector_krfws $(ARM64_FACES) 2 \
+	  runs/arm64/gray $$i >runs/arm64/aarch64.$$i.tsv & pids="$$pids $$!"; done; for p in $$pids; do wait $$p; done
+	cat runs/arm64/aarch64.0.tsv runs/arm64/aarch64.1.tsv >runs/arm64/aarch64.tsv
+	python3 tools/arm64-accuracy.py runs/arm64/x86_64.tsv runs/arm64/aarch64.tsv --bound 0.05 --json runs/arm64/accuracy.json
+
 # Mono from the Debian packages, pinned; installed only when mcs or mono is missing.
 MONO_VERSION := 6.8.0.105+dfsg-3.3+deb12u1
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
@@ -312,7 +396,8 @@ VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) 
   libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
 # Every package make test's set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare
 # again). The container tools (CONTAINER_TOOLS) are not among them: only `make image` installs them.
-APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime
+APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime \
+  $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p))))
 .PHONY: video-deps
 video-deps:
 	@if pkg-config --exists libavcodec libavformat libavutil 2>/dev/null && \
@@ -366,7 +451,7 @@ python-test: setup-test $(VENV)/.python-dev-installed
 # The phases in order (tools/test-timings.sh times the same list). Each phase names every set-up step it needs as
 # a prerequisite, so any phase, run first or alone on a bare machine, installs what it uses; `setup-order`
 # (tools/setup-order.py) checks that on the dry run of every target, first.
-TEST_PHASES := setup-order deploy-check check deps-check unit c-example csharp-example python-test fuzz-build
+TEST_PHASES := setup-order deploy-check check deps-check unit c-example csharp-example python-test arm64-test fuzz-build
 test: $(TEST_PHASES)
 # A bare machine's order, checked without running anything (tools/setup-order.py: `make -n -B` of each target).
 setup-order:

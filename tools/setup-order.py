@@ -40,6 +40,8 @@ PROVIDERS = [
     (r"golden_crops\.py", {"golden"}),
     (r"rustface-\S*\.crate", {"group-photo"}),
     (r"apt-get install .*\bpodman=", {"container-tools"}),
+    (r"apt-get install .*\bcargo-web=.*\bqemu-user=", {"arm64-toolchain"}),
+    (r"\bholoface setup --arch aarch64\b", {"home-arm64"}),
 ]
 
 # Commands that compile the `holoface` CLI (holoface-tools) with its default features, which bind the system's
@@ -78,6 +80,12 @@ CONSUMERS = [
     (lambda l: re.search(r"(^|[|;&]\s*)ffmpeg -", l) is not None, {"ffmpeg-cli"}, "runs ffmpeg"),
     (lambda l: "deploy/image.sh build" in l, {"container-tools", "home"}, "builds the container image"),
     (lambda l: "deploy/image.sh test" in l, {"container-tools", "home", "venv", "py-eval"}, "smoke-tests the image"),
+    # The aarch64 build (make arm64, arm64-test): Debian's cargo, the cross gcc, qemu.
+    (lambda l: re.search(r"(^|\s)(/usr/bin/cargo|aarch64-linux-gnu-gcc|qemu-aarch64) ", l) is not None,
+     {"arm64-toolchain"}, "uses the aarch64 cross toolchain"),
+    (lambda l: re.search(r"(^|\s)qemu-aarch64 [^-\s]|--target aarch64\S* .*\btest\b|\btest\b.*--target aarch64|arm64-link\.sh", l)
+     is not None, {"home-arm64", "home"}, "runs aarch64 binaries"),
+    (lambda l: "examples/detector_krfws " in l, {"home"}, "runs the accuracy example"),
 ]
 
 

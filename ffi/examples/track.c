@@ -6,11 +6,18 @@
  * Asset paths left NULL in HfOptions come from the environment (ORT_DYLIB_PATH, HOLOFACE_DETECTOR_MODEL,
  * HOLOFACE_KRFWS_MODEL, HOLOFACE_CANDIDE), else the holoface data folder that `holoface setup` fills (the
  * Makefile points HOLOFACE_HOME at .cache/holoface). An app that ships its assets passes their paths in
- * HfOptions. Exit status 0 = tracked. */
+ * HfOptions. Exit status 0 = tracked.
+ *
+ * With HOLOFACE_SERVER (ip:port) and HOLOFACE_SERVER_FINGERPRINT (and HOLOFACE_TOKEN) set, it then tracks the
+ * face through that alignment server too, frames paced at 15 fps on the wall clock, printing each change of
+ * the aligner that answers, until the answers went remote, local (the link cut) and remote again (within
+ * 150 s). tools/arm64-link.sh runs it so on aarch64 against an x86-64 server, stopping the server for the cut. */
+#define _POSIX_C_SOURCE 200809L
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 
 #include "holoface.h"
 
@@ -31,6 +38,73 @@ static uint8_t *read_pgm(const char *path, uint32_t *w, uint32_t *h) {
     *w = width;
     *h = height;
     return px;
+}
+
+static uint64_t now_us(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+}
+
+static const char *aligner_name(HfAnsweredBy by) {
+    switch (by) {
+        case HF_ANSWERED_BY_REMOTE_DAN: return "remote DAN (the server)";
+        case HF_ANSWERED_BY_KRFWS: return "local KRFWS";
+        case HF_ANSWERED_BY_LOCAL_DAN: return "local DAN";
+        default: return "nobody (no face)";
+    }
+}
+
+/* The face tracked through the alignment server named by HOLOFACE_SERVER: 0 when the answers went remote,
+ * local and remote again, 1 otherwise. */
+static int track_linked(const char *server, const uint8_t *px, uint32_t w, uint32_t h, const HfCamera *cam,
+                        const float *pose) {
+    HfOptions opts;
+    hf_options_default(&opts);
+    opts.server = server;
+    opts.server_fingerprint = getenv("HOLOFACE_SERVER_FINGERPRINT");
+    opts.token = getenv("HOLOFACE_TOKEN");
+    HfTracker *t = NULL;
+    if (hf_tracker_new(&opts, &t) != HF_STATUS_OK) {
+        fprintf(stderr, "hf_tracker_new with server %s failed: %s\n", server, hf_last_error());
+        return 1;
+    }
+    /* 0: waiting for the server's first answer; 1: for a local one (the cut); 2: for the server's again. */
+    int phase = 0, frames = 0, counts[4] = {0, 0, 0, 0};
+    HfAnsweredBy last = HF_ANSWERED_BY_NONE;
+    const uint64_t start = now_us(), period = 66667u, limit = 150u * 1000000u;
+    uint64_t next = start;
+    HfResult r;
+    while (phase < 3 && now_us() - start < limit) {
+        uint64_t now = now_us();
+        if (now < next) {
+            struct timespec pause = {0, (long)(next - now) * 1000L};
+            nanosleep(&pause, NULL);
+        }
+        next += period;
+        uint64_t ts = now_us() - start + 1u;
+        if (hf_tracker_process(t, px, w, h, w, ts, cam, pose, &r) != HF_STATUS_OK) {
+            fprintf(stderr, "linked frame %d failed: %s\n", frames, hf_last_error());
+            break;
+        }
+        if ((unsigned)r.answered_by < 4u) counts[r.answered_by]++;
+        if (r.answered_by != last || frames == 0) {
+            printf("linked frame %d at %.1f s: answered by %s\n", frames, (double)ts / 1e6, aligner_name(r.answered_by));
+            fflush(stdout);
+        }
+        last = r.answered_by;
+        int remote = r.answered_by == HF_ANSWERED_BY_REMOTE_DAN, local = r.answered_by == HF_ANSWERED_BY_KRFWS;
+        if ((phase == 0 && remote) || (phase == 1 && local) || (phase == 2 && remote)) phase++;
+        frames++;
+    }
+    HfLinkStatus link;
+    hf_tracker_link_status(t, &link);
+    printf("linked: %d frames, %d answered by the server, %d by local KRFWS, %d without a face; link state %d\n",
+           frames, counts[HF_ANSWERED_BY_REMOTE_DAN], counts[HF_ANSWERED_BY_KRFWS], counts[HF_ANSWERED_BY_NONE],
+           (int)link.state);
+    hf_tracker_free(t);
+    if (phase < 3) fprintf(stderr, "the answers did not go remote, local and remote again (reached step %d of 3)\n", phase);
+    return phase == 3 ? 0 : 1;
 }
 
 int main(int argc, char **argv) {
@@ -142,7 +216,9 @@ int main(int argc, char **argv) {
     set.detect_tiles = 99;
     if (hf_tracker_new_with(&opts, &set, &raw) != HF_STATUS_INVALID_ARGUMENT) return 3;
     printf("detect_tiles 99 rejected: %s\n", hf_last_error());
-    free(px);
     printf("%d of 30 frames with a face\n", faces);
-    return (s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25 && with_id0 >= 25 && unfiltered >= 8) ? 0 : 1;
+    const char *server = getenv("HOLOFACE_SERVER");
+    int linked = server ? track_linked(server, px, w, h, &cam, pose) : 0;
+    free(px);
+    return (linked == 0 && s == HF_STATUS_OK && back == HF_STATUS_INVALID_ARGUMENT && faces >= 25 && with_id0 >= 25 && unfiltered >= 8) ? 0 : 1;
 }
