@@ -306,8 +306,8 @@ ARM64_DEBS := rustc-web=$(RUST_WEB_VERSION) cargo-web=$(RUST_WEB_VERSION) libstd
 BACKPORTS_LIST := /etc/apt/sources.list.d/bookworm-backports.list
 .PHONY: arm64-toolchain arm64 arm64-test
 arm64-toolchain:
-	@if for p in $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p)))); do \
-	    dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || exit 1; done && \
+	@if ( for p in $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p)))); do \
+	    dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || exit 1; done ) && \
 	  qemu-aarch64 --version | grep -q 'version 10\.'; then \
 	  echo "arm64-toolchain: $$(/usr/bin/rustc --version), $$(qemu-aarch64 --version | head -1)"; else \
 	  echo "arm64-toolchain missing: installing Debian's aarch64 cross toolchain (pinned)"; \

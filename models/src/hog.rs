@@ -20,6 +20,11 @@
 
 use thiserror::Error;
 
+#[cfg(target_arch = "aarch64")]
+pub(crate) mod neon;
+#[cfg(target_arch = "aarch64")]
+pub(crate) use neon::hog_patch_neon;
+
 use crate::geometry::Point2;
 use crate::image::GrayView;
 
@@ -484,7 +489,7 @@ pub fn hog_patch_dispatch(patch: &[u8; PATCH_PIXELS], out: &mut [f32; HOG_DIM]) 
     if std::arch::is_aarch64_feature_detected!("neon") {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has NEON (checked just above).
-        return unsafe { crate::krfws::neon::hog_patch_neon(patch, out) };
+        return unsafe { hog_patch_neon(patch, out) };
     }
     hog_patch(patch, out)
 }
