@@ -215,8 +215,20 @@ pub fn self_test<E: InferenceEngine + ?Sized>(
             .enumerate()
             .any(|(i, (g, e))| (g - e).abs() > if i == 0 { 0.05 } else { SELF_TEST_TOLERANCE_PX });
         if bad {
+            // ONNX Runtime's int8 kernels for CPUs without VNNI (AVX2's and AVX-512BW's u8 x s8 products)
+            // saturate in 16 bits: there the int8 model is refused for its answers, not for its file.
+            let cpu = crate::precision::CpuInt8::detect();
+            let why = if engine.info().precision == "int8" && !cpu.has_vnni() {
+                format!(
+                    "this CPU ({}) has no VNNI, where ONNX Runtime's int8 kernels saturate: serve fp32 here \
+                     (engine.precision = \"fp32\", or \"auto\", which picks int8 only with VNNI); ",
+                    cpu.label()
+                )
+            } else {
+                String::new()
+            };
             return Err(fail(format!(
-                "answered {got:?} on the test crop, {} {} answers {:?}",
+                "{why}answered {got:?} on the test crop, {} {} answers {:?}",
                 k.name, k.version, k.self_test
             )));
         }
