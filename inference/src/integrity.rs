@@ -217,8 +217,9 @@ pub fn self_test<E: InferenceEngine + ?Sized>(
         if bad {
             // ONNX Runtime's int8 kernels for CPUs without VNNI (AVX2's and AVX-512BW's u8 x s8 products)
             // saturate in 16 bits: there the int8 model is refused for its answers, not for its file.
-            let cpu = crate::precision::CpuInt8::detect();
-            let why = if engine.info().precision == "int8" && !cpu.has_vnni() {
+            let cpu = crate::cpu::CpuInt8::detect();
+            let why = if cfg!(target_arch = "x86_64") && engine.info().precision == "int8" && !cpu.has_vnni()
+            {
                 format!(
                     "this CPU ({}) has no VNNI, where ONNX Runtime's int8 kernels saturate: serve fp32 here \
                      (engine.precision = \"fp32\", or \"auto\", which picks int8 only with VNNI); ",

@@ -21,6 +21,7 @@
 
 pub mod cascade;
 pub mod contract;
+pub mod cpu;
 pub mod crop_decode;
 pub mod error;
 #[cfg(any(test, feature = "test-util"))]
@@ -37,10 +38,11 @@ pub use contract::{
     BatchTensor, CPU_PROVIDER, CUDA_PROVIDER, CascadeStats, Execution, InferenceEngine, LandmarkOut,
     ModelInfo,
 };
+pub use cpu::CpuInt8;
 pub use crop_decode::{CropDecodeError, decode_crop};
 pub use error::EngineError;
 #[cfg(any(test, feature = "test-util"))]
 pub use fake::FakeEngine;
 pub use onnx::{OnnxEngine, OnnxOptions, Provider};
-pub use precision::{CpuInt8, Decision, PrecisionChoice};
+pub use precision::{Decision, PrecisionChoice};
 pub use runtime::{ORT_DYLIB_ENV, default_ort_dylib, load_runtime};

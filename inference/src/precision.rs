@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 
 use crate::EngineError;
 use crate::contract::ModelInfo;
+pub use crate::cpu::CpuInt8;
 use crate::onnx::Provider;
 
 /// What the operator asked for (`engine.precision`).
@@ -27,48 +28,6 @@ pub enum PrecisionChoice {
     Fp16,
     /// `engine.int8_model`, even on a CPU without VNNI (where it is no faster: said in the log).
     Int8,
-}
-
-/// The CPU's 8-bit dot-product instructions, as ONNX Runtime's int8 kernels use them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct CpuInt8 {
-    /// AVX-512 VNNI (`vpdpbusd` on 512-bit registers).
-    pub avx512_vnni: bool,
-    /// AVX-VNNI (the same on 256-bit registers, VEX-encoded).
-    pub avx_vnni: bool,
-}
-
-impl CpuInt8 {
-    /// This machine's flags.
-    pub fn detect() -> Self {
-        #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-        {
-            Self {
-                avx512_vnni: std::arch::is_x86_feature_detected!("avx512vnni"),
-                avx_vnni: std::arch::is_x86_feature_detected!("avxvnni"),
-            }
-        }
-        #[cfg(not(any(target_arch = "x86", target_arch = "x86_64")))]
-        {
-            Self::default()
-        }
-    }
-
-    /// Whether int8 convolutions are one instruction per dot product here.
-    pub fn has_vnni(self) -> bool {
-        self.avx512_vnni || self.avx_vnni
-    }
-
-    /// The best of the flags, as the log and metrics name it (`none` without either).
-    pub fn label(self) -> &'static str {
-        if self.avx512_vnni {
-            "avx512_vnni"
-        } else if self.avx_vnni {
-            "avx_vnni"
-        } else {
-            "none"
-        }
-    }
 }
 
 /// What [`decide`] chose: the file to load, the precision it must have, and why.
