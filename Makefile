@@ -350,8 +350,6 @@ arm64: arm64-toolchain
 # cut and back (tools/arm64-link.sh); the detector and KRFWS on the validation faces on both architectures,
 # compared face by face (tools/arm64-accuracy.py: the means within 0.05 points of NME49).
 ARM64_HOME := $(abspath .cache/holoface-arm64)
-# The tests' own profile (Cargo.toml, [profile.arm64-test]: our crates optimised, most dependencies not).
-ARM64_BUILD := $(ARM64_OUT)/arm64-test
 ARM64_ENV := HOLOFACE_HOME=$(ARM64_HOME) ORT_DYLIB_PATH=$(ARM64_HOME)/libonnxruntime.so.$(ORT_VERSION) \
   HOLOFACE_DETECTOR_MODEL=$(ARM64_HOME)/face_detection_front_128x128.onnx HOLOFACE_SAMPLE=$(ARM64_HOME)/astronaut.png \
   HOLOFACE_EMULATED=qemu-aarch64
@@ -360,16 +358,16 @@ ARM64_ENV := HOLOFACE_HOME=$(ARM64_HOME) ORT_DYLIB_PATH=$(ARM64_HOME)/libonnxrun
 ARM64_FACES = $(HOLOFACE_DATA)/faces68/train models/splits/val.txt
 arm64-test: arm64-toolchain setup-test golden $(SAMPLE_PGM)
 	HOLOFACE_HOME=$(ARM64_HOME) target/debug/holoface setup --arch aarch64 >/dev/null
-	$(ARM64_CARGO) build --locked --profile arm64-test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests --examples
-	$(ARM64_CC) -L $(ARM64_BUILD) -lholoface -Wl,-rpath,$(abspath $(ARM64_BUILD)) -o $(ARM64_BUILD)/track
-	tools/arm64-abi.sh target/debug/libholoface.so $(ARM64_BUILD)/libholoface.so $(ARM64_BUILD)/track \
-	  $(ARM64_BUILD)/examples/embed
-	$(ARM64_ENV) $(ARM64_CARGO) test --locked --profile arm64-test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests -q
-	$(ARM64_ENV) qemu-aarch64 $(ARM64_BUILD)/examples/embed
-	$(ARM64_ENV) tools/arm64-link.sh $(ARM64_BUILD)/track $(SAMPLE_PGM) target/debug/holoface-server $(ORT_DYLIB_PATH)
+	$(ARM64_CARGO) build --locked --profile test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests --examples
+	$(ARM64_CC) -L $(ARM64_OUT)/debug -lholoface -Wl,-rpath,$(abspath $(ARM64_OUT)/debug) -o $(ARM64_OUT)/debug/track
+	tools/arm64-abi.sh target/debug/libholoface.so $(ARM64_OUT)/debug/libholoface.so $(ARM64_OUT)/debug/track \
+	  $(ARM64_OUT)/debug/examples/embed
+	$(ARM64_ENV) $(ARM64_CARGO) test --locked --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests -q
+	$(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/embed
+	$(ARM64_ENV) tools/arm64-link.sh $(ARM64_OUT)/debug/track $(SAMPLE_PGM) target/debug/holoface-server $(ORT_DYLIB_PATH)
 	rm -rf runs/arm64 && mkdir -p runs/arm64
 	target/debug/examples/detector_krfws $(ARM64_FACES) 1 runs/arm64/gray >runs/arm64/x86_64.tsv
-	pids=; for i in 0 1; do $(ARM64_ENV) qemu-aarch64 $(ARM64_BUILD)/examples/detector_krfws $(ARM64_FACES) 2 \
+	pids=; for i in 0 1; do $(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/detector_krfws $(ARM64_FACES) 2 \
 	  runs/arm64/gray $$i >runs/arm64/aarch64.$$i.tsv & pids="$$pids $$!"; done; for p in $$pids; do wait $$p; done
 	cat runs/arm64/aarch64.0.tsv runs/arm64/aarch64.1.tsv >runs/arm64/aarch64.tsv
 	python3 tools/arm64-accuracy.py runs/arm64/x86_64.tsv runs/arm64/aarch64.tsv --bound 0.05 --json runs/arm64/accuracy.json
