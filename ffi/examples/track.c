@@ -64,6 +64,10 @@ static int track_linked(const char *server, const uint8_t *px, uint32_t w, uint3
     opts.server = server;
     opts.server_fingerprint = getenv("HOLOFACE_SERVER_FINGERPRINT");
     opts.token = getenv("HOLOFACE_TOKEN");
+    /* Under emulation (qemu) the client's own work is tens of times slower than on a device: its runner may
+     * give the server's answers longer than the default deadline. */
+    const char *deadline = getenv("HOLOFACE_DEADLINE_MS");
+    if (deadline) opts.deadline_ms = (uint32_t)strtoul(deadline, NULL, 10);
     HfTracker *t = NULL;
     if (hf_tracker_new(&opts, &t) != HF_STATUS_OK) {
         fprintf(stderr, "hf_tracker_new with server %s failed: %s\n", server, hf_last_error());
