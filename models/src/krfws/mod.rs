@@ -448,35 +448,30 @@ fn hog_row(hog: &[f32], l: usize) -> Option<&[f32; HOG_DIM]> {
 /// measured faster.
 #[inline(always)]
 fn prefetch<T>(data: Option<&[T]>) {
+    let Some(d) = data else { return };
+    let p = d.as_ptr().cast::<u8>();
+    let skew = p as usize % 64;
+    let first = p.wrapping_sub(skew);
+    for o in (0..size_of_val(d) + skew).step_by(64) {
+        prefetch_line(first.wrapping_add(o));
+    }
+}
+
+/// One cache line towards L2: `prefetcht1` on x86-64, `prfm pldl2keep` on aarch64, nothing elsewhere.
+#[inline(always)]
+#[allow(unsafe_code)]
+fn prefetch_line(line: *const u8) {
+    // SAFETY (both): a prefetch is a hint; it reads nothing, writes nothing and never faults, whatever the address.
     #[cfg(target_arch = "x86_64")]
-    if let Some(d) = data {
-        use std::arch::x86_64::{_MM_HINT_T1, _mm_prefetch};
-        let p = d.as_ptr().cast::<i8>();
-        let skew = p as usize % 64;
-        let first = p.wrapping_sub(skew);
-        for o in (0..size_of_val(d) + skew).step_by(64) {
-            #[allow(unsafe_code)]
-            // SAFETY: a prefetch reads nothing and never faults, whatever the address.
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T1>(first.wrapping_add(o))
-            };
-        }
-    }
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>(line.cast::<i8>())
+    };
     #[cfg(target_arch = "aarch64")]
-    if let Some(d) = data {
-        let p = d.as_ptr().cast::<u8>();
-        let skew = p as usize % 64;
-        let first = p.wrapping_sub(skew);
-        for o in (0..size_of_val(d) + skew).step_by(64) {
-            #[allow(unsafe_code)]
-            // SAFETY: PRFM is a hint: it reads nothing, writes nothing and never faults, whatever the address.
-            unsafe {
-                std::arch::asm!("prfm pldl2keep, [{0}]", in(reg) first.wrapping_add(o), options(nostack, preserves_flags, readonly))
-            };
-        }
-    }
+    unsafe {
+        std::arch::asm!("prfm pldl2keep, [{0}]", in(reg) line, options(nostack, preserves_flags, readonly))
+    };
     #[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
-    let _ = data;
+    let _ = line;
 }
 
 /// The failure detector: `score = weights·hog + intercept`, a ridge regression of the fit's NME49
