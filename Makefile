@@ -210,15 +210,15 @@ deps-check:
 	$(CARGO) doc --locked -q $(FACADE_SEL) --no-deps --lib
 	@if grep -rqi quinn target/doc/holoface_headset_client; then \
 	  echo "the runtime's app-facing API mentions quinn" >&2; exit 1; fi
-	python3 tools/doc-links.py target/doc/holoface_headset_client
+	python3 scripts/doc-links.py target/doc/holoface_headset_client
 	@echo "holoface-headset-client: the facade alone serves the C ABI, Python and the embedding example; no quinn in it"
 	@# The leaf: nothing in the workspace depends on the command line's crate (the load tester and the tests
 	@# share holoface-harness with it instead).
 	@users=$$($(CARGO) tree --locked --workspace -i holoface-tools -e normal,dev,build --prefix none | { grep -v '^holoface-tools ' || true; } | sort -u | tr '\n' ' '); \
 	  if [ -n "$$users" ]; then echo "holoface-tools is a leaf, but these depend on it: $$users" >&2; exit 1; fi
 	@echo "holoface-tools: a leaf (nothing depends on it)"
-	python3 tools/module-cycles.py $$(sed -n '/^members = \[/,/^\]/s/^ *"\(.*\)",$$/\1/p' Cargo.toml)
-	tools/feature-parity.sh
+	python3 scripts/module-cycles.py $$(sed -n '/^members = \[/,/^\]/s/^ *"\(.*\)",$$/\1/p' Cargo.toml)
+	scripts/feature-parity.sh
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the
 # `holoface` binary, the examples), with the same package selection and features as the test run, so that
@@ -347,8 +347,8 @@ arm64: arm64-toolchain
 # ONNX Runtime's aarch64 library from its pinned wheel); the headset-side crates' tests with qemu as the runner
 # (HOLOFACE_EMULATED makes the one test that aligns 168 faces from 13 starts use every 6th face); what `file` and
 # nm say of the C ABI; the Rust embedding example; the C example against the x86-64 server on loopback, link up,
-# cut and back (tools/arm64-link.sh); the detector and KRFWS on the validation faces on both architectures,
-# compared face by face (tools/arm64-accuracy.py: the means within 0.05 points of NME49).
+# cut and back (scripts/arm64-link.sh); the detector and KRFWS on the validation faces on both architectures,
+# compared face by face (scripts/arm64-accuracy.py: the means within 0.05 points of NME49).
 ARM64_HOME := $(abspath .cache/holoface-arm64)
 ARM64_ENV := HOLOFACE_HOME=$(ARM64_HOME) ORT_DYLIB_PATH=$(ARM64_HOME)/libonnxruntime.so.$(ORT_VERSION) \
   HOLOFACE_DETECTOR_MODEL=$(ARM64_HOME)/face_detection_front_128x128.onnx HOLOFACE_SAMPLE=$(ARM64_HOME)/astronaut.png \
@@ -360,17 +360,17 @@ arm64-test: arm64-toolchain setup-test golden $(SAMPLE_PGM)
 	HOLOFACE_HOME=$(ARM64_HOME) target/debug/holoface setup --arch aarch64 >/dev/null
 	$(ARM64_CARGO) build --locked --profile test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests --examples
 	$(ARM64_CC) -L $(ARM64_OUT)/debug -lholoface -Wl,-rpath,$(abspath $(ARM64_OUT)/debug) -o $(ARM64_OUT)/debug/track
-	tools/arm64-abi.sh target/debug/libholoface.so $(ARM64_OUT)/debug/libholoface.so $(ARM64_OUT)/debug/track \
+	scripts/arm64-abi.sh target/debug/libholoface.so $(ARM64_OUT)/debug/libholoface.so $(ARM64_OUT)/debug/track \
 	  $(ARM64_OUT)/debug/examples/embed
 	$(ARM64_ENV) $(ARM64_CARGO) test --locked --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests -q
 	$(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/embed
-	$(ARM64_ENV) tools/arm64-link.sh $(ARM64_OUT)/debug/track $(SAMPLE_PGM) target/debug/holoface-server $(ORT_DYLIB_PATH)
+	$(ARM64_ENV) scripts/arm64-link.sh $(ARM64_OUT)/debug/track $(SAMPLE_PGM) target/debug/holoface-server $(ORT_DYLIB_PATH)
 	rm -rf runs/arm64 && mkdir -p runs/arm64
 	target/debug/examples/detector_krfws $(ARM64_FACES) 1 runs/arm64/gray >runs/arm64/x86_64.tsv
 	pids=; for i in 0 1; do $(ARM64_ENV) qemu-aarch64 $(ARM64_OUT)/debug/examples/detector_krfws $(ARM64_FACES) 2 \
 	  runs/arm64/gray $$i >runs/arm64/aarch64.$$i.tsv & pids="$$pids $$!"; done; for p in $$pids; do wait $$p; done
 	cat runs/arm64/aarch64.0.tsv runs/arm64/aarch64.1.tsv >runs/arm64/aarch64.tsv
-	python3 tools/arm64-accuracy.py runs/arm64/x86_64.tsv runs/arm64/aarch64.tsv --bound 0.05 --json runs/arm64/accuracy.json
+	python3 scripts/arm64-accuracy.py runs/arm64/x86_64.tsv runs/arm64/aarch64.tsv --bound 0.05 --json runs/arm64/accuracy.json
 
 # Mono from the Debian packages, pinned; installed only when mcs or mono is missing.
 MONO_VERSION := 6.8.0.105+dfsg-3.3+deb12u1
@@ -394,7 +394,7 @@ LIBCLANG_VERSION := 1:14.0-55.7~deb12u1
 PKG_CONFIG_VERSION := 1.8.1-1
 VIDEO_DEV := libavcodec-dev=$(FFMPEG_VERSION) libavformat-dev=$(FFMPEG_VERSION) libavutil-dev=$(FFMPEG_VERSION) \
   libswresample-dev=$(FFMPEG_VERSION) libclang-dev=$(LIBCLANG_VERSION) pkg-config=$(PKG_CONFIG_VERSION)
-# Every package make test's set-up installs with apt (tools/bare-machine.sh removes them to make a machine bare
+# Every package make test's set-up installs with apt (scripts/bare-machine.sh removes them to make a machine bare
 # again). The container tools (CONTAINER_TOOLS) are not among them: only `make image` installs them.
 APT_PACKAGES := $(foreach p,$(VIDEO_DEV),$(firstword $(subst =, ,$(p)))) ffmpeg mono-mcs mono-runtime \
   $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p))))
@@ -417,7 +417,7 @@ ffmpeg:
 
 # The Python package (python/): build the abi3 wheel with maturin, install it into the venv, run pytest (which
 # compares it with the Rust CLI on the bundled sample). The dev profile, with the ci-unify feature, reuses the
-# test build's dependencies (tools/feature-parity.sh keeps it so); users build with `maturin build --release`.
+# test build's dependencies (scripts/feature-parity.sh keeps it so); users build with `maturin build --release`.
 $(VENV)/.python-dev-installed: python/requirements-dev.txt $(VENV)/.eval-installed
 	$(PY) -m pip install --disable-pip-version-check -q -r python/requirements-dev.txt
 	touch $@
@@ -448,21 +448,21 @@ python-test: setup-test $(VENV)/.python-dev-installed
 	HOLOFACE_CLI=$(abspath target/debug/holoface) HOLOFACE_WHEEL=$$(ls $(abspath target/wheels)/holoface-*.whl) \
 	  $(PY) -m pytest -q -p no:cacheprovider python/tests
 
-# The phases in order (tools/test-timings.sh times the same list). Each phase names every set-up step it needs as
+# The phases in order (scripts/test-timings.sh times the same list). Each phase names every set-up step it needs as
 # a prerequisite, so any phase, run first or alone on a bare machine, installs what it uses; `setup-order`
-# (tools/setup-order.py) checks that on the dry run of every target, first.
+# (scripts/setup-order.py) checks that on the dry run of every target, first.
 TEST_PHASES := setup-order deploy-check check deps-check unit c-example csharp-example python-test arm64-test fuzz-build
 test: $(TEST_PHASES)
-# A bare machine's order, checked without running anything (tools/setup-order.py: `make -n -B` of each target).
+# A bare machine's order, checked without running anything (scripts/setup-order.py: `make -n -B` of each target).
 setup-order:
-	python3 tools/setup-order.py
+	python3 scripts/setup-order.py
 
 print-%:
 	@echo $($*)
 
-# The same checks phase by phase, with each phase's wall time (tools/test-timings.sh; BENCHMARKS.md, "Build time").
+# The same checks phase by phase, with each phase's wall time (scripts/test-timings.sh; BENCHMARKS.md, "Build time").
 test-timings:
-	tools/test-timings.sh
+	scripts/test-timings.sh
 
 ## ---- fuzzing, benchmarks, training --------------------------------------------------------------
 FUZZ_SECONDS ?= 60

@@ -11,7 +11,7 @@
  * With HOLOFACE_SERVER (ip:port) and HOLOFACE_SERVER_FINGERPRINT (and HOLOFACE_TOKEN) set, it then tracks the
  * face through that alignment server too, frames paced at 15 fps on the wall clock, printing each change of
  * the aligner that answers, until the answers went remote, local (the link cut) and remote again (within
- * 150 s). tools/arm64-link.sh runs it so on aarch64 against an x86-64 server, stopping the server for the cut. */
+ * 150 s). scripts/arm64-link.sh runs it so on aarch64 against an x86-64 server, stopping the server for the cut. */
 #define _POSIX_C_SOURCE 200809L
 #include <stdint.h>
 #include <stdio.h>

@@ -4,7 +4,7 @@
 //! when missed), the detection's box `x0 y0 x1 y1`, then the 51 landmarks as `x y` pairs.
 //!
 //! `make arm64-test` runs it twice on the same faces, natively on x86-64 and cross-built for aarch64 under
-//! qemu-aarch64, and `tools/arm64-accuracy.py` compares the two (the architectures' accuracy must agree).
+//! qemu-aarch64, and `scripts/arm64-accuracy.py` compares the two (the architectures' accuracy must agree).
 //!
 //! ```sh
 //! cargo run --release -p holoface-runtime --example detector_krfws -- DATA/faces68/train models/splits/val.txt 4

@@ -3,7 +3,7 @@
 # `file` names ARM aarch64 for the C ABI's library and each binary given, and the C symbols libholoface.so
 # exports (hf_*) are the same on both architectures.
 #
-#   tools/arm64-abi.sh X86_64_LIBHOLOFACE AARCH64_LIBHOLOFACE [AARCH64_BINARY ...]
+#   scripts/arm64-abi.sh X86_64_LIBHOLOFACE AARCH64_LIBHOLOFACE [AARCH64_BINARY ...]
 set -euo pipefail
 x86=$1 arm=$2
 shift 2

@@ -5,7 +5,7 @@
 # the server goes on (SIGCONT) and the example reconnects. The example exits 0 only when its answers went
 # remote, local and remote again (ffi/examples/track.c, track_linked).
 #
-#   tools/arm64-link.sh TRACK_AARCH64 SAMPLE.pgm SERVER_BIN SERVER_ORT_DYLIB
+#   scripts/arm64-link.sh TRACK_AARCH64 SAMPLE.pgm SERVER_BIN SERVER_ORT_DYLIB
 #
 # The example's own assets (ORT_DYLIB_PATH for aarch64, the detector, KRFWS, CANDIDE-3) come from the
 # environment, as for any app; the server's ONNX Runtime is named on its command line.

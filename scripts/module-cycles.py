@@ -4,7 +4,7 @@
 An edge A -> B is a `use crate::...` or an inline `crate::...` path in file A that names module B (a file of
 the same crate: `b.rs` or `b/mod.rs`, the longest match). Re-exports (`pub use`) and tests (`#[cfg(test)]`
 modules) are not edges: a parent that re-exports its children, or a test that reaches anything, is no circle.
-Usage: tools/module-cycles.py CRATE_DIR...
+Usage: scripts/module-cycles.py CRATE_DIR...
 """
 import re
 import sys

@@ -11,7 +11,7 @@ nextest reading the data folder, ...) must come after its provider. This is how 
 machine until 2026-12-05: `check` ran clippy over the workspace (FFmpeg's bindings) before `unit` reached
 `video-deps`, and every CI machine had the packages already.
 
-    tools/setup-order.py [TARGET ...]    # default: every phase of `make test` alone, `test`, and the README's targets
+    scripts/setup-order.py [TARGET ...]    # default: every phase of `make test` alone, `test`, and the README's targets
 
 Each phase of `make test` is also checked alone (`make test-timings` runs them one by one, and a developer runs
 one phase by hand). No compilation, no network: `make -n` only.
@@ -133,7 +133,7 @@ def main() -> int:
     for p in problems:
         print(p, file=sys.stderr)
     if problems:
-        print(f"{len(problems)} step(s) run before the set-up they need (tools/setup-order.py)", file=sys.stderr)
+        print(f"{len(problems)} step(s) run before the set-up they need (scripts/setup-order.py)", file=sys.stderr)
         return 1
     print(f"setup-order: {len(targets)} targets dry-run as on a bare machine; every step after its set-up")
     return 0

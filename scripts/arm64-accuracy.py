@@ -2,7 +2,7 @@
 """ARM accuracy against x86-64's: the same faces through the detector and KRFWS on both architectures
 (runtime/examples/detector_krfws.rs, x86-64 natively and aarch64 under qemu-aarch64), compared face by face.
 
-    tools/arm64-accuracy.py X86_64.tsv AARCH64.tsv [--bound 0.05] [--json OUT]
+    scripts/arm64-accuracy.py X86_64.tsv AARCH64.tsv [--bound 0.05] [--json OUT]
 
 The aarch64 file may hold its faces in another order (the emulated run is split over several processes).
 

@@ -4,11 +4,11 @@
 # saturated throughput against raw ORT, and latency at 30 fps per headset. Needs the release binaries
 # (`cargo build --release -p holoface-tests -p holoface-alignment-server`) and the data folder (`make setup-demo`).
 #
-#   deploy/bench-precision.sh [OUT.jsonl]      # default target/bench/precision.jsonl
+#   scripts/bench/bench-precision.sh [OUT.jsonl]      # default target/bench/precision.jsonl
 #
 # Run it with nothing else on the machine; the JSON lines carry each measurement, the summary goes to stdout.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:-target/bench/precision.jsonl}
 B=target/release/holoface-server-bench
 FP32=${FP32:-models/assets/dan.onnx}

@@ -2,15 +2,15 @@
 # The GPU benchmark of the alignment server (issue 17, item 3), prepared to run as one command on a machine
 # with an NVIDIA GPU, CUDA 13 and cuDNN 9:
 #
-#   deploy/gpu-bench.sh                 # raw ONNX Runtime CUDA at batch 1/8/32/64, the server saturated, latency
-#   deploy/gpu-bench.sh --cpu-rehearsal # the same commands, short, on the CPU (checks the script, not a GPU)
+#   scripts/bench/gpu-bench.sh                 # raw ONNX Runtime CUDA at batch 1/8/32/64, the server saturated, latency
+#   scripts/bench/gpu-bench.sh --cpu-rehearsal # the same commands, short, on the CPU (checks the script, not a GPU)
 #
 # Needs target/release/holoface-server and holoface-server-bench (cargo build --release -p holoface-alignment-server
 # -p holoface-tests), `make ort-gpu` and `make dan-fp16`. Both models (fp32, fp16) are measured. Results: one
 # JSON line each in $OUT/gpu.jsonl (default target/bench), the commands' output on stdout. Where the system
 # has no CUDA libraries on its path, the nvidia-* Python wheels' (PyTorch's) are used.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${OUT:-target/bench}
 B=${BENCH_BIN:-target/release/holoface-server-bench}
 SERVER=${SERVER_BIN:-target/release/holoface-server}
