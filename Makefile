@@ -32,8 +32,8 @@ ORT_GPU_LIB := $(ORT_GPU_DIR)/libonnxruntime.so.$(ORT_VERSION)
 export HOLOFACE_ORT_GPU_DYLIB := $(abspath $(ORT_GPU_LIB))
 CARGO ?= cargo
 
-PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher train-dan-teacher-long stability
-.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer venv-mediapipe compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-dan-spread train-blendshapes train-krfws train-refiner export-dan clean-venv
+PHONY_TEACHER := ffmpeg unlabeled teacher-eval teacher-labels train-dan-teacher stability
+.PHONY: $(PHONY_TEACHER) all py-assets wheel ort-gpu dan-fp16 dan-int8 c-example csharp-example python-test mono group-photo setup setup-demo setup-test demo-build release-tools setup-order venv venv-train venv-peer venv-mediapipe compare speed-vs-dlib golden demo test test-timings test-build check unit deps-check fuzz-build fuzz bench train-dan train-blendshapes train-krfws train-refiner export-dan clean-venv
 
 all: test
 
@@ -526,15 +526,6 @@ train-dan: venv-train
 	  --threads $(DAN_THREADS) --eval-every 100 $(DAN_PHASE) \
 	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-last.pt
 
-# The lever being measured (BENCHMARKS.md, "Levers"): narrower training perturbations (--spread 0.6) from 0.3.0,
-# cosine over steps 7,000-8,100. It resumes from runs/dan-spread0.6/last.pt, else from the committed slim
-# checkpoint of this phase (step 7,500 or later); `make export-dan DAN_RUN=runs/dan-spread0.6` exports it.
-train-dan-spread: venv-train
-	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-spread0.6 --width 0.5 \
-	  --threads $(DAN_THREADS) --eval-every 100 \
-	  --phase-start 7000 --steps 8100 --lr 1e-4 --loss nme --neg-frac 0.3 --hard-neg 0.5 --spread 0.6 \
-	  --init-from models/dan/checkpoints/dan-w0.5-0.2.0.pt --resume-from models/dan/checkpoints/dan-w0.5-spread0.6.pt
-
 # The teacher-label student (issue 36): from 0.3.0 (step 7,000), cosine 1e-4 over steps 7,000-9,000, half the
 # samples from the teacher-labelled faces (make teacher-labels). Only on a CPU with native bf16 (`lscpu | grep
 # avx512_bf16`) or a GPU. It resumes from runs/dan-teacher/last.pt, else from the committed slim checkpoint of this
@@ -549,29 +540,16 @@ train-dan-teacher: venv-train
 	  --neg-frac 0.3 --hard-neg 0.5 --teacher-labels $(TEACHER_LABEL_FILES) --teacher-frac 0.5 \
 	  --init-from models/dan/checkpoints/dan-w0.5-last.pt --resume-from models/dan/checkpoints/dan-w0.5-teacher.pt
 
-# A DAN trained longer on the teacher labels (issue 52's lever): the student above again, a second cosine of
-# 1e-4 over steps 9,000-11,000 from the end of its phase. Same data and bf16 rule. It resumes from
-# runs/dan-teacher-long/last.pt, else from models/dan/checkpoints/dan-w0.5-teacher-long.pt (copy
-# runs/dan-teacher-long/slim.pt there before a session ends), else starts from dan-w0.5-teacher.pt.
-train-dan-teacher-long: venv-train
-	@grep -qE 'avx512_bf16|amx_bf16' /proc/cpuinfo || { echo "train-dan-teacher-long needs a CPU with native bf16" >&2; exit 1; }
-	$(PY) models/dan/train.py --data $(HOLOFACE_DATA)/faces68/train --out runs/dan-teacher-long --width 0.5 \
-	  --threads $(DAN_THREADS) --eval-every 100 --phase-start 9000 --steps 11000 --lr 1e-4 --loss nme \
-	  --neg-frac 0.3 --hard-neg 0.5 --teacher-labels $(TEACHER_LABEL_FILES) --teacher-frac 0.5 \
-	  --init-from models/dan/checkpoints/dan-w0.5-teacher.pt --resume-from models/dan/checkpoints/dan-w0.5-teacher-long.pt
-
 DAN_RUN ?= runs/dan-w0.5
 export-dan: venv-train
 	$(PY) models/dan/export_onnx.py --ckpt $(DAN_RUN)/best.pt --out models/assets/dan.onnx --version $(DAN_VERSION)
 
 # The server's refinement cascade (models/REFINER_MODEL_CARD.md): DAN's answers on augmented training crops,
-# then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining.
-# 0.4.0: the annotated faces (20 crops per face and mirror) plus the teacher-labelled ones (make teacher-labels; 1 crop
-# per face and mirror), features read bilinearly (format v2), 12 stages. Without `--stages 12` it is 0.3.0's recipe,
-# without `--bilinear` too 0.2.0's; `REFINER_ARGS='--crops 20 --local-radius 4,1.5 --mirror'` is the annotated-only
-# ablation (0.1.0).
-REFINER_ARGS ?= --crops 20 --local-radius 4,1.5 --mirror --bilinear --stages 12 --teacher-labels $(TEACHER_LABEL_FILES) \
-  --teacher-crops 1 --version 0.4.0
+# then the tree cascade; DAN's answers are cached in runs/refiner/ for retraining. `holoface train-refiner`'s
+# defaults are the shipped recipe (0.4.0: 20 crops per annotated face and mirror, 1 per teacher-labelled face from
+# make teacher-labels, bilinear features, 12 stages); REFINER_ARGS='--teacher-crops 0' is the annotated-only
+# ablation.
+REFINER_ARGS ?=
 train-refiner: setup
 	$(TOOLS_BIN) train-refiner --threads 2 $(REFINER_ARGS) --out models/assets/refiner.bin \
 	  --cache runs/refiner/dan-answers.bin
@@ -582,12 +560,13 @@ train-blendshapes: release-tools
 	$(CARGO) run --locked --release -p holoface-tools -- train-blendshapes --data $(HOLOFACE_DATA)/faces68/train \
 	  --out models/assets/blendshape_pose.txt
 
-# The local aligner (models/KRFWS_MODEL_CARD.md): the annotated faces plus the teacher-labelled natural-pose ones
-# (LFW and the face-mask set's unmasked faces; make teacher-labels), 3 starts per teacher face.
-# `KRFWS_ARGS=` is the annotated-only ablation (the model shipped before 2026-12-03).
-KRFWS_ARGS ?= --teacher-labels .data/labels/lfw.hflabels,.data/labels/nomask.hflabels --teacher-starts 3
+# The local aligner (models/KRFWS_MODEL_CARD.md): `holoface train-krfws`'s defaults are the shipped recipe, the
+# annotated faces plus the teacher-labelled natural-pose ones (LFW and the face-mask set's unmasked faces; make
+# teacher-labels), 3 starts per teacher face. KRFWS_ARGS='--teacher-starts 0' is the annotated-only ablation (the
+# model shipped before 2026-12-03).
+KRFWS_ARGS ?=
 train-krfws: release-tools
-	$(CARGO) run --locked --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin --seed 1 $(KRFWS_ARGS)
+	$(CARGO) run --locked --release -p holoface-tools -- train-krfws --data $(HOLOFACE_DATA)/faces68/train --out models/assets/krfws.bin $(KRFWS_ARGS)
 
 ## ---- teacher labels (issue 36) ------------------------------------------------------------------
 # About 45,000 unannotated real face photographs from four public repositories (../shared/docs/data.md), fetched

@@ -36,63 +36,6 @@ pub struct RefineSample<'a> {
     pub target: [Point2; REFINE_LANDMARKS],
 }
 
-/// `extra` more samples per sample, each with a start borrowed from another sample's error (issue 52): the
-/// start of sample j minus its target, turned and scaled from j's face frame into this one's, added to this
-/// sample's target. The same crop is then met from several starts whose errors are DAN's own kind, so the
-/// cascade cannot learn one correction per training crop; no extra DAN run is needed. Returns the borrowed
-/// samples only (round by round, in the samples' order), to be appended to the originals; `j` is drawn from
-/// another crop (a random one; seeded).
-pub fn borrowed_error_starts<'a>(
-    samples: &[RefineSample<'a>],
-    mean: &[Point2; REFINE_LANDMARKS],
-    extra: usize,
-    seed: u64,
-) -> Vec<RefineSample<'a>> {
-    let n = samples.len();
-    if n < 2 || extra == 0 {
-        return Vec::new();
-    }
-    // Every sample's face frame, and its error in that frame (the mean shape's frame), computed once.
-    let frames: Vec<Option<(f32, f32)>> = samples.iter().map(|s| frame_of(mean, &s.target)).collect();
-    let errors: Vec<Option<[Point2; REFINE_LANDMARKS]>> = samples
-        .iter()
-        .zip(&frames)
-        .map(|(s, f)| {
-            let (a, b) = (*f)?;
-            let inv = 1.0 / (a * a + b * b);
-            Some(std::array::from_fn(|k| {
-                let (dx, dy) = (s.start[k].x - s.target[k].x, s.start[k].y - s.target[k].y);
-                Point2::new((a * dx + b * dy) * inv, (-b * dx + a * dy) * inv)
-            }))
-        })
-        .collect();
-    let mut rng = Rng::stream(seed, &[u64::MAX - 1]);
-    let mut out = Vec::with_capacity(n * extra);
-    for _ in 0..extra {
-        for (i, (s, f)) in samples.iter().zip(&frames).enumerate() {
-            let Some((a, b)) = *f else {
-                continue;
-            };
-            // Another sample, never this one; a few tries past degenerate ones.
-            let borrowed = (0..4).find_map(|_| {
-                let j = (i + 1 + rng.below(n - 1)) % n;
-                errors[j].as_ref()
-            });
-            let Some(e) = borrowed else {
-                continue;
-            };
-            let start = std::array::from_fn(|k| {
-                Point2::new(
-                    s.target[k].x + a * e[k].x - b * e[k].y,
-                    s.target[k].y + b * e[k].x + a * e[k].y,
-                )
-            });
-            out.push(RefineSample { start, ..*s });
-        }
-    }
-    out
-}
-
 /// Training settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RefineConfig {
@@ -658,53 +601,5 @@ mod tests {
             train(&[s], &mean, 112, &bad, &mut |_, _| {}),
             Err(RefineTrainError::Config(_))
         ));
-    }
-
-    /// A borrowed error keeps its shape in the face's own frame: turned and scaled with the face it is
-    /// borrowed into, so a face twice as large and turned a quarter turn gets it twice as large and turned.
-    #[test]
-    fn a_borrowed_error_follows_the_face_it_is_borrowed_into() {
-        let mean = dan_mean_shape();
-        let crop = vec![0u8; 4];
-        let shifted: [Point2; REFINE_LANDMARKS] =
-            std::array::from_fn(|k| Point2::new(mean[k].x + 1.0, mean[k].y));
-        // Face B: the mean shape scaled by 2 and turned by 90 degrees about the origin, started exactly.
-        let b_target: [Point2; REFINE_LANDMARKS] =
-            std::array::from_fn(|k| Point2::new(-2.0 * mean[k].y, 2.0 * mean[k].x));
-        let samples = [
-            RefineSample {
-                crop: &crop,
-                start: shifted,
-                target: mean,
-            },
-            RefineSample {
-                crop: &crop,
-                start: b_target,
-                target: b_target,
-            },
-        ];
-        let out = borrowed_error_starts(&samples, &mean, 2, 7);
-        assert_eq!(out.len(), 4, "two rounds of one borrowed start per sample");
-        for round in 0..2 {
-            // A borrows B's zero error; B borrows A's (+1, 0), which becomes (0, +2) on B.
-            let (a, b) = (&out[2 * round], &out[1 + 2 * round]);
-            for k in 0..REFINE_LANDMARKS {
-                assert!((a.start[k].x - mean[k].x).abs() < 1e-3 && (a.start[k].y - mean[k].y).abs() < 1e-3);
-                assert!(
-                    (b.start[k].x - b_target[k].x).abs() < 1e-3,
-                    "{:?} {:?}",
-                    b.start[k],
-                    b_target[k]
-                );
-                assert!(
-                    (b.start[k].y - b_target[k].y - 2.0).abs() < 1e-3,
-                    "{:?} {:?}",
-                    b.start[k],
-                    b_target[k]
-                );
-            }
-            assert_eq!(b.target, b_target);
-        }
-        assert!(borrowed_error_starts(&samples, &mean, 0, 7).is_empty());
     }
 }

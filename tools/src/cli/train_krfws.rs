@@ -8,7 +8,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use holoface_models::accuracy::{FAILURE_THRESHOLD, summarise, yaw_proxy};
+use holoface_models::accuracy::{FAILURE_THRESHOLD, summarise};
 use holoface_models::accuracy::{roc_auc, youden_threshold};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::krfws::train::{self, FitKind, Progress, TrainConfig, TrainFace, gt_box};
@@ -18,7 +18,8 @@ use serde::Serialize;
 
 use crate::data::{Split, faces68_or, load_folder};
 
-/// Arguments of `holoface train-krfws`.
+/// Arguments of `holoface train-krfws`. The defaults are the shipped model's recipe (`models/assets/krfws.json`
+/// records it; a test keeps the two equal).
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Annotated face folder (`NAME.jpg` + `NAME.pts`); default `$HOLOFACE_DATA/faces68/train`.
@@ -80,35 +81,22 @@ pub struct Args {
     /// Train on the first N training faces only (smoke runs).
     #[arg(long)]
     pub limit: Option<usize>,
-    /// Teacher-label files (`holoface teacher-labels`) whose faces are trained on beside the annotated ones.
-    #[arg(long, value_delimiter = ',')]
+    /// Teacher-label files (`make teacher-labels` writes them) whose faces are trained on beside the
+    /// annotated ones.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_values = [".data/labels/lfw.hflabels", ".data/labels/nomask.hflabels"]
+    )]
     pub teacher_labels: Vec<PathBuf>,
     /// Stage-1 start shapes per teacher-labelled face and mirror image (the annotated faces get
-    /// `--perturbations`: this ratio weighs the two kinds of label).
-    #[arg(long, default_value_t = 2)]
+    /// `--perturbations`: this ratio weighs the two kinds of label); 0 trains on the annotated faces only and
+    /// reads no teacher labels.
+    #[arg(long, default_value_t = 3)]
     pub teacher_starts: usize,
     /// At most this many faces from each teacher-label file (evenly spaced over it).
     #[arg(long)]
     pub teacher_limit: Option<usize>,
-    /// Teacher-label files of which only the turned faces are trained on (yaw proxy at least
-    /// `--turned-min-yaw`): turned faces from mostly frontal, aligned collections, without tilting the set
-    /// towards frontal faces. Same starts as `--teacher-labels`.
-    #[arg(long, value_delimiter = ',')]
-    pub teacher_turned: Vec<PathBuf>,
-    /// Smallest yaw proxy (`holoface_models::accuracy::yaw_proxy`: 0 frontal, towards 1 turned) of a face
-    /// kept from `--teacher-turned`.
-    #[arg(long, default_value_t = 0.2)]
-    pub turned_min_yaw: f64,
-    /// Weight of the teacher-labelled faces' eyelid points in each stage's regression (1: as much as
-    /// their other points; 0: the lids' regression learns from the annotated faces only).
-    #[arg(long, default_value_t = 1.0)]
-    pub teacher_lid_weight: f32,
-    /// The same for the faces of `--teacher-turned`.
-    #[arg(long, default_value_t = 1.0)]
-    pub turned_lid_weight: f32,
-    /// Start shapes per `--teacher-turned` face and mirror image (default: `--teacher-starts`).
-    #[arg(long)]
-    pub turned_starts: Option<usize>,
 }
 
 /// A plain stderr progress bar (redrawn at most 5 times a second).
@@ -243,13 +231,8 @@ struct ConfigJson {
     failure_fits: usize,
     failure_ridge: f64,
     teacher_labels: Vec<PathBuf>,
-    teacher_turned: Vec<PathBuf>,
-    turned_min_yaw: f64,
     teacher_faces: usize,
     teacher_starts: usize,
-    teacher_lid_weight: f32,
-    turned_lid_weight: f32,
-    turned_starts: Option<usize>,
 }
 
 fn to_train_faces(root: &Path, split: Split) -> anyhow::Result<Vec<TrainFace>> {
@@ -407,38 +390,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The teacher-labelled faces of `--teacher-labels` (all) and `--teacher-turned` (only the turned ones), each
-/// with its starts and lid weight.
+/// The teacher-labelled faces of `--teacher-labels`, each with `--teacher-starts` starts.
 fn add_teacher_faces(args: &Args, train_faces: &mut Vec<TrainFace>) -> anyhow::Result<()> {
-    let turned = |l: &[Point2; 68]| yaw_proxy(l).is_some_and(|y| y >= args.turned_min_yaw);
-    let teacher_files = args
-        .teacher_labels
-        .iter()
-        .map(|p| (p, false))
-        .chain(args.teacher_turned.iter().map(|p| (p, true)));
-    for (path, turned_only) in teacher_files {
-        let faces =
-            crate::labels::load_samples_where(path, args.teacher_limit, |l| !turned_only || turned(l))?;
-        let kind = if turned_only { "turned " } else { "" };
-        crate::say!(
-            "{} {kind}teacher-labelled faces from {}",
-            faces.len(),
-            path.display()
-        );
+    for path in args.teacher_labels.iter().filter(|_| args.teacher_starts > 0) {
+        let faces = crate::labels::load_samples(path, args.teacher_limit)?;
+        crate::say!("{} teacher-labelled faces from {}", faces.len(), path.display());
         train_faces.extend(faces.into_iter().filter_map(|s| {
             s.landmarks.map(|landmarks| TrainFace {
                 image: s.image,
                 landmarks,
-                starts: Some(if turned_only {
-                    args.turned_starts.unwrap_or(args.teacher_starts)
-                } else {
-                    args.teacher_starts
-                }),
-                lid_weight: if turned_only {
-                    args.turned_lid_weight
-                } else {
-                    args.teacher_lid_weight
-                },
+                starts: Some(args.teacher_starts),
+                lid_weight: 1.0,
             })
         }));
     }
@@ -533,14 +495,13 @@ fn config_json(args: &Args, cfg: &TrainConfig, train_faces: &[TrainFace]) -> Con
         scales: cfg.scales.clone(),
         failure_fits: cfg.failure_fits,
         failure_ridge: cfg.failure_ridge,
-        teacher_labels: args.teacher_labels.clone(),
-        teacher_turned: args.teacher_turned.clone(),
-        turned_min_yaw: args.turned_min_yaw,
+        teacher_labels: if args.teacher_starts > 0 {
+            args.teacher_labels.clone()
+        } else {
+            Vec::new()
+        },
         teacher_faces: train_faces.iter().filter(|f| f.starts.is_some()).count(),
         teacher_starts: args.teacher_starts,
-        teacher_lid_weight: args.teacher_lid_weight,
-        turned_lid_weight: args.turned_lid_weight,
-        turned_starts: args.turned_starts,
     }
 }
 
@@ -593,4 +554,57 @@ fn say_report(rep: &Report, report: &train::TrainReport, (out, bytes, json_path)
         bytes,
         json_path.display()
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    /// `holoface train-krfws` with no options trains the shipped model's recipe: every setting its training
+    /// report (`models/assets/krfws.json`, written by this command) records.
+    #[test]
+    fn the_defaults_are_the_shipped_models_recipe() {
+        let args = Cli::try_parse_from(["train-krfws"]).unwrap().args;
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/assets/krfws.json");
+        let shipped: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let cfg = train_config(&args);
+        let mut ours = serde_json::to_value(config_json(&args, &cfg, &[])).unwrap();
+        // Counted from the faces it loads, not a setting.
+        ours.as_object_mut().unwrap().remove("teacher_faces");
+        for (key, want) in ours.as_object().unwrap() {
+            let have = &shipped["config"][key];
+            if let (Some(a), Some(b)) = (have.as_array(), want.as_array()) {
+                // f32 lists (the scales) are written as f32: compare them so.
+                let f = |v: &Vec<serde_json::Value>| -> Vec<String> {
+                    v.iter()
+                        .map(|x| x.as_f64().map_or(x.to_string(), |f| (f as f32).to_string()))
+                        .collect()
+                };
+                assert_eq!(f(a), f(b), "{key}: the default differs from the shipped model's");
+            } else {
+                assert_eq!(have, want, "{key}: the default differs from the shipped model's");
+            }
+        }
+    }
+
+    #[test]
+    fn the_rejected_levers_are_not_options() {
+        for gone in [
+            "--teacher-turned",
+            "--turned-min-yaw",
+            "--turned-starts",
+            "--teacher-lid-weight",
+            "--turned-lid-weight",
+        ] {
+            assert!(Cli::try_parse_from(["train-krfws", gone, "1"]).is_err(), "{gone}");
+        }
+    }
 }

@@ -24,7 +24,7 @@ use holoface_models::GrayView;
 use holoface_models::accuracy::{nme49, nme68, summarise};
 use holoface_models::crop::{CROP_SIZE, warp_bilinear};
 use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
-use holoface_models::refine::train::{RefineConfig, RefineSample, borrowed_error_starts, train};
+use holoface_models::refine::train::{RefineConfig, RefineSample, train};
 use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
 use holoface_models::rng::Rng;
 use holoface_models::shape::{dan_mean_shape, fit_to_box, mirror68};
@@ -36,7 +36,8 @@ use crate::args::RuntimeArgs;
 use crate::cli::eval::initial_shape;
 use crate::data::{Sample, Split, faces68_or, load_folder};
 
-/// Arguments of `holoface train-refiner`.
+/// Arguments of `holoface train-refiner`. The defaults are the shipped model's recipe
+/// (`models/assets/refiner.json` records it; a test keeps the two equal).
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Annotated face folder; default `$HOLOFACE_DATA/faces68/train`.
@@ -49,14 +50,10 @@ pub struct Args {
     #[arg(long, default_value = "runs/refiner/dan-answers.bin")]
     pub cache: PathBuf,
     /// Crops per face and per mirror image.
-    #[arg(long, default_value_t = 6)]
+    #[arg(long, default_value_t = 20)]
     pub crops: usize,
-    /// Side of the refiner's crop as a multiple of the 112-px crop DAN sees (1 or 2): with 2 the refiner
-    /// works on a 224-px crop built with the same similarity scaled by 2.
-    #[arg(long, default_value_t = 1)]
-    pub crop_scale: usize,
     /// Cascade stages.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 12)]
     pub stages: usize,
     /// Trees per stage.
     #[arg(long, default_value_t = 500)]
@@ -73,18 +70,17 @@ pub struct Args {
     /// Learning rate (shrinkage of every leaf).
     #[arg(long, default_value_t = 0.1)]
     pub learning_rate: f32,
-    /// Draw each stage's feature points around the landmarks, in a disc whose radius (crop pixels of the
-    /// mean shape) shrinks from the first value to the second over the stages (`--local-radius 8,2`);
-    /// default: dlib's pool over the whole face box.
-    #[arg(long, value_delimiter = ',')]
-    pub local_radius: Option<Vec<f32>>,
+    /// Each stage draws its feature points around the landmarks, in a disc whose radius (crop pixels of
+    /// the mean shape) shrinks from the first value to the second over the stages.
+    #[arg(long, value_delimiter = ',', default_values_t = [4.0, 1.5])]
+    pub local_radius: Vec<f32>,
     /// The model also refines the mirror image and answers the mean of the two (validation is reported
-    /// without and with it).
-    #[arg(long)]
+    /// without and with it); `--mirror false` trains a model that does not.
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub mirror: bool,
-    /// Bilinear feature reads (sub-pixel: a format v2 model) instead of the nearest pixel.
-    #[arg(long)]
-    pub bilinear: bool,
+    /// How features read the crop: bilinear (sub-pixel, a format v2 model) or the nearest pixel (v1).
+    #[arg(long, value_enum, default_value_t = SamplingArg::Bilinear)]
+    pub sampling: SamplingArg,
     /// Locality prior of the node tests' point pairs (fraction of the mean shape's extent).
     #[arg(long, default_value_t = 0.1)]
     pub lambda: f32,
@@ -101,36 +97,50 @@ pub struct Args {
     /// Train on the first N training faces only (smoke runs).
     #[arg(long)]
     pub limit: Option<usize>,
-    /// Teacher-label files (`holoface teacher-labels`) whose faces are trained on beside the annotated ones.
-    #[arg(long, value_delimiter = ',')]
+    /// Teacher-label files (`make teacher-labels` writes them) whose faces are trained on beside the
+    /// annotated ones.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_values = [
+            ".data/labels/utkface.hflabels",
+            ".data/labels/lfw.hflabels",
+            ".data/labels/celeba.hflabels",
+            ".data/labels/nomask.hflabels",
+        ]
+    )]
     pub teacher_labels: Vec<PathBuf>,
     /// Crops per teacher-labelled face and per mirror image (the annotated faces get `--crops`: this ratio
-    /// weighs the two kinds of label).
-    #[arg(long, default_value_t = 2)]
+    /// weighs the two kinds of label); 0 trains on the annotated faces only and reads no teacher labels.
+    #[arg(long, default_value_t = 1)]
     pub teacher_crops: usize,
-    /// More training starts per crop, each DAN's error on another crop carried over into this face's frame
-    /// (`borrowed_error_starts`): the same crops met from several DAN-like starts, against memorising one
-    /// correction per crop. 0 = DAN's own start only.
-    #[arg(long, default_value_t = 0)]
-    pub borrowed_starts: usize,
-    /// At most this many faces from each teacher-label file (evenly spaced over it).
-    #[arg(long)]
-    pub teacher_limit: Option<usize>,
-    /// Give each teacher-labelled face `--teacher-crops` times (its pose's share among the annotated faces /
-    /// its share among the teacher faces) crops, rounded at random, at most 5 times `--teacher-crops`:
-    /// the teacher faces then spread over head turn and tilt as the annotated ones (`pose_bin`), not as
-    /// the mostly frontal photo collections.
-    #[arg(long)]
-    pub teacher_pose_match: bool,
     /// Skip training: validate the model already at `--out` with 1 and with `--starts` starts.
     #[arg(long)]
     pub evaluate: bool,
     /// Version written into the model's name.
-    #[arg(long, default_value = "0.1.0")]
+    #[arg(long, default_value = "0.4.0")]
     pub version: String,
     #[command(flatten)]
     /// Runtime assets (DAN, detector, ONNX Runtime).
     pub runtime: RuntimeArgs,
+}
+
+/// `--sampling`: how the cascade's features read the crop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SamplingArg {
+    /// Sub-pixel reads (format v2).
+    Bilinear,
+    /// The nearest pixel (format v1).
+    Nearest,
+}
+
+impl From<SamplingArg> for Sampling {
+    fn from(s: SamplingArg) -> Self {
+        match s {
+            SamplingArg::Bilinear => Self::Bilinear,
+            SamplingArg::Nearest => Self::Nearest,
+        }
+    }
 }
 
 /// The wire encoding every crop goes through (the client's default).
@@ -140,7 +150,7 @@ const BATCH: usize = 16;
 
 /// One crop with DAN's answer on it.
 struct Answered {
-    /// The refiner's crop after the JPEG round trip (`(112·scale)²` bytes).
+    /// The crop after the JPEG round trip (112² bytes).
     crop: Vec<u8>,
     /// DAN's landmarks, in the refiner's crop pixels.
     start: [Point2; 68],
@@ -239,11 +249,9 @@ fn wire_round_trip(px: &[u8], size: usize) -> anyhow::Result<Vec<u8>> {
     Ok(holoface_inference::decode_crop(&crop)?.to_vec())
 }
 
-/// Builds a start's crops: DAN's 112-px crop and the refiner's (the same similarity scaled), both after
-/// the wire round trip, with the same appearance change applied to both.
+/// A start's crop, after the wire round trip, and the annotation mapped into it.
 struct CropJob {
-    dan_crop: Vec<u8>,
-    refiner_crop: Vec<u8>,
+    crop: Vec<u8>,
     target: [Point2; 68],
 }
 
@@ -252,44 +260,18 @@ fn make_crops(
     mean: &[Point2; 68],
     init: &[Point2; 68],
     gt: &[Point2; 68],
-    scale: usize,
     rng: Option<&mut Rng>,
 ) -> anyhow::Result<CropJob> {
     let sim = crop_from_image(init, mean)?;
-    let big = Similarity2 {
-        a: sim.a * scale as f64,
-        b: sim.b * scale as f64,
-        tx: sim.tx * scale as f64,
-        ty: sim.ty * scale as f64,
-    };
-    let size = CROP_SIZE * scale;
-    let mut px = vec![0u8; size * size];
-    warp_bilinear(image, &big, size, size, &mut px)?;
-    let mut dan = if scale == 1 {
-        Vec::new()
-    } else {
-        let mut d = vec![0u8; CROP_SIZE * CROP_SIZE];
-        warp_bilinear(image, &sim, CROP_SIZE, CROP_SIZE, &mut d)?;
-        d
-    };
+    let mut px = vec![0u8; CROP_SIZE * CROP_SIZE];
+    warp_bilinear(image, &sim, CROP_SIZE, CROP_SIZE, &mut px)?;
     if let Some(rng) = rng {
-        // The same change on both crops: one seed, replayed.
-        let seed = rng.next_u64();
-        augment(&mut px, size, &mut Rng::new(seed));
-        if scale != 1 {
-            augment(&mut dan, CROP_SIZE, &mut Rng::new(seed));
-        }
+        // Its own stream, seeded from the start's (the recipe the shipped model was trained with).
+        augment(&mut px, CROP_SIZE, &mut Rng::new(rng.next_u64()));
     }
-    let refiner_crop = wire_round_trip(&px, size)?;
-    let dan_crop = if scale == 1 {
-        refiner_crop.clone()
-    } else {
-        wire_round_trip(&dan, CROP_SIZE)?
-    };
     Ok(CropJob {
-        dan_crop,
-        refiner_crop,
-        target: std::array::from_fn(|i| big.apply(gt[i])),
+        crop: wire_round_trip(&px, CROP_SIZE)?,
+        target: std::array::from_fn(|i| sim.apply(gt[i])),
     })
 }
 
@@ -299,7 +281,6 @@ struct DanRunner {
     batch: BatchTensor,
     outs: Vec<LandmarkOut>,
     queued: Vec<CropJob>,
-    scale: f32,
     threshold: f32,
     answered: Vec<Answered>,
     rejected: usize,
@@ -317,7 +298,7 @@ impl DanRunner {
     fn flush(&mut self) -> anyhow::Result<()> {
         self.batch.clear();
         for j in &self.queued {
-            self.batch.push(&j.dan_crop)?;
+            self.batch.push(&j.crop)?;
         }
         self.engine.infer(&self.batch, &mut self.outs)?;
         for (j, o) in self.queued.drain(..).zip(&self.outs) {
@@ -325,10 +306,9 @@ impl DanRunner {
                 self.rejected += 1;
                 continue;
             }
-            let s = self.scale;
             self.answered.push(Answered {
-                crop: j.refiner_crop,
-                start: std::array::from_fn(|i| Point2::new(o.landmarks[i][0] * s, o.landmarks[i][1] * s)),
+                crop: j.crop,
+                start: std::array::from_fn(|i| Point2::new(o.landmarks[i][0], o.landmarks[i][1])),
                 target: j.target,
             });
         }
@@ -341,7 +321,7 @@ fn cache_key(dan_model: &Path, args: &Args, faces: usize) -> anyhow::Result<Vec<
     let model = std::fs::read(dan_model).with_context(|| format!("reading {}", dan_model.display()))?;
     let mut key = Vec::new();
     key.extend_from_slice(&crc32fast::hash(&model).to_le_bytes());
-    for v in [args.crops, args.crop_scale, faces, args.seed as usize] {
+    for v in [args.crops, faces, args.seed as usize] {
         key.extend_from_slice(&(v as u64).to_le_bytes());
     }
     Ok(key)
@@ -358,7 +338,6 @@ fn teacher_cache_key(args: &Args, teacher_faces: usize) -> anyhow::Result<Vec<u8
         u64::from(labels.finalize()),
         teacher_faces as u64,
         args.teacher_crops as u64,
-        u64::from(args.teacher_pose_match),
     ] {
         key.extend_from_slice(&v.to_le_bytes());
     }
@@ -438,63 +417,8 @@ fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec
     Ok(Some(out))
 }
 
-/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops` starts each); the
-/// random streams are numbered from `first` (the teacher-labelled faces follow the annotated ones).
-/// A face's pose bin: its head turn (the nose tip's offset from the jaw's middle, in jaw widths, 10 bins of
-/// 0.05 up to 0.5, either side alike) times its tilt (the eyes' line: under 5, 5-15, over 15 degrees).
-fn pose_bin(lm: &[Point2; 68]) -> usize {
-    let width = (lm[16].x - lm[0].x).abs().max(1e-3);
-    let turn = ((lm[30].x - 0.5 * (lm[0].x + lm[16].x)).abs() / width).min(0.499);
-    let eye = |r: std::ops::Range<usize>| centroid(&lm[r]);
-    let (l, r) = (eye(36..42), eye(42..48));
-    let tilt = (r.y - l.y).atan2(r.x - l.x).abs().to_degrees();
-    let tilt = if tilt < 5.0 {
-        0
-    } else if tilt < 15.0 {
-        1
-    } else {
-        2
-    };
-    (turn / 0.05) as usize * 3 + tilt
-}
-
-/// Crops per teacher face (`--teacher-pose-match`, else `--teacher-crops` each).
-fn teacher_crops_per_face(args: &Args, train: &[Sample], teacher: &[Sample]) -> Vec<usize> {
-    if args.teacher_pose_match {
-        pose_matched_crops(args.teacher_crops, args.seed, train, teacher)
-    } else {
-        vec![args.teacher_crops; teacher.len()]
-    }
-}
-
-/// `per_face` crops per teacher face on average, each face's scaled by how much more common its pose bin is
-/// among the `train` faces than among the `teacher` ones (at most 5 times), rounded at random.
-fn pose_matched_crops(per_face: usize, seed: u64, train: &[Sample], teacher: &[Sample]) -> Vec<usize> {
-    let share = |faces: &[Sample]| {
-        let mut n = [1.0f64; 30];
-        for f in faces.iter().filter_map(|f| f.landmarks.as_ref()) {
-            n[pose_bin(f)] += 1.0;
-        }
-        let total: f64 = n.iter().sum();
-        n.map(|v| v / total)
-    };
-    let (want, have) = (share(train), share(teacher));
-    let cap = 5.0 * per_face as f64;
-    teacher
-        .iter()
-        .enumerate()
-        .map(|(i, f)| {
-            let Some(lm) = f.landmarks.as_ref() else {
-                return 0;
-            };
-            let b = pose_bin(lm);
-            let r = (per_face as f64 * want[b] / have[b]).min(cap);
-            let mut rng = Rng::stream(seed, &[i as u64, 0x9053]);
-            r.floor() as usize + usize::from(rng.uniform() < r.fract())
-        })
-        .collect()
-}
-
+/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops_per_face` starts each);
+/// the random streams are numbered from `first` (the teacher-labelled faces follow the annotated ones).
 fn answer_training_crops(
     faces: &[Sample],
     crops_per_face: &[usize],
@@ -538,15 +462,8 @@ fn answer_training_crops(
                     _ => perturb(&boxed, &mut rng, 0.1, 10.0, 0.1),
                 };
                 let augmented = k > 0;
-                let job = make_crops(
-                    &view,
-                    &mean,
-                    &init,
-                    &gt,
-                    args.crop_scale,
-                    augmented.then_some(&mut rng),
-                )
-                .with_context(|| format!("cropping {}", face.name))?;
+                let job = make_crops(&view, &mean, &init, &gt, augmented.then_some(&mut rng))
+                    .with_context(|| format!("cropping {}", face.name))?;
                 runner.push(job)?;
             }
         }
@@ -595,12 +512,7 @@ struct Report {
     teacher_labels: Vec<PathBuf>,
     teacher_faces: usize,
     teacher_crops_per_face: usize,
-    teacher_pose_match: bool,
     training_crops: usize,
-    /// Starts per crop borrowed from other crops' errors (`--borrowed-starts`).
-    borrowed_starts_per_crop: usize,
-    /// Crops times starts: what the cascade is trained on.
-    training_samples: usize,
     rejected_crops: usize,
     crop_size: usize,
     crops_per_face: usize,
@@ -613,7 +525,7 @@ struct Report {
     lambda: f32,
     /// Bilinear feature reads (format v2) instead of the nearest pixel.
     bilinear: bool,
-    local_radius: Option<Vec<f32>>,
+    local_radius: Vec<f32>,
     seed: u64,
     dan_seconds: f64,
     train_seconds: f64,
@@ -633,7 +545,6 @@ struct ValAnswers {
 
 fn val_answers(
     faces: &[Sample],
-    args: &Args,
     runner: &mut DanRunner,
     detector: &mut holoface_runtime::detect::BlazeFace,
 ) -> anyhow::Result<ValAnswers> {
@@ -646,14 +557,7 @@ fn val_answers(
             continue;
         };
         detected += 1;
-        runner.push(make_crops(
-            &face.image.view(),
-            &mean,
-            &init,
-            &gt,
-            args.crop_scale,
-            None,
-        )?)?;
+        runner.push(make_crops(&face.image.view(), &mean, &init, &gt, None)?)?;
     }
     runner.flush()?;
     Ok(ValAnswers {
@@ -726,8 +630,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let val_faces = load_folder(&data, Split::Validation, true)?;
     let mut teacher_faces = Vec::new();
-    for path in &args.teacher_labels {
-        let faces = crate::labels::load_samples(path, args.teacher_limit)?;
+    for path in args.teacher_labels.iter().filter(|_| args.teacher_crops > 0) {
+        let faces = crate::labels::load_samples(path, None)?;
         tracing::info!(faces = faces.len(), labels = %path.display(), "teacher-labelled faces");
         teacher_faces.extend(faces);
     }
@@ -736,12 +640,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.evaluate {
         return evaluate(&args, &val_faces, &mut runner, &mut detector);
     }
-    let size = CROP_SIZE * args.crop_scale;
+    let size = CROP_SIZE;
     let t0 = Instant::now();
     let faces = (&train_faces[..], &teacher_faces[..]);
     let answered = training_answers(&args, faces, size, &mut runner, &mut detector)?;
     let dan_seconds = t0.elapsed().as_secs_f64();
-    let mut samples: Vec<RefineSample<'_>> = answered
+    let samples: Vec<RefineSample<'_>> = answered
         .iter()
         .map(|a| RefineSample {
             crop: &a.crop,
@@ -749,19 +653,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             target: a.target,
         })
         .collect();
-    let mean: [Point2; 68] = {
-        let m = dan_mean_shape();
-        std::array::from_fn(|i| {
-            Point2::new(
-                m[i].x * size as f32 / CROP_SIZE as f32,
-                m[i].y * size as f32 / CROP_SIZE as f32,
-            )
-        })
-    };
-    let borrowed = borrowed_error_starts(&samples, &mean, args.borrowed_starts, args.seed);
-    samples.extend(borrowed);
+    let mean = dan_mean_shape();
     let cfg = refine_config(&args);
-    let val_set = val_answers(&val_faces, &args, &mut runner, &mut detector)?;
+    let val_set = val_answers(&val_faces, &mut runner, &mut detector)?;
     let t1 = Instant::now();
     let (mut refiner, stage_nme) = train_watched(&samples, &mean, size, &cfg, &val_set)?;
     let train_seconds = t1.elapsed().as_secs_f64();
@@ -775,13 +669,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dan_model: dan_name,
         data: data.display().to_string(),
         training_faces: train_faces.len(),
-        teacher_labels: args.teacher_labels.clone(),
+        teacher_labels: if teacher_faces.is_empty() {
+            Vec::new()
+        } else {
+            args.teacher_labels.clone()
+        },
         teacher_faces: teacher_faces.len(),
         teacher_crops_per_face: 2 * args.teacher_crops,
-        teacher_pose_match: args.teacher_pose_match,
         training_crops: answered.len(),
-        borrowed_starts_per_crop: args.borrowed_starts,
-        training_samples: samples.len(),
         rejected_crops: runner.rejected,
         crop_size: size,
         crops_per_face: 2 * args.crops,
@@ -792,7 +687,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         split_tests: args.split_tests,
         learning_rate: args.learning_rate,
         lambda: args.lambda,
-        bilinear: args.bilinear,
+        bilinear: args.sampling == SamplingArg::Bilinear,
         local_radius: args.local_radius.clone(),
         seed: args.seed,
         dan_seconds,
@@ -821,14 +716,7 @@ fn check(args: &Args) -> anyhow::Result<()> {
             holoface_models::refine::START_OFFSETS.len()
         );
     }
-    if !(1..=2).contains(&args.crop_scale) {
-        bail!("--crop-scale must be 1 or 2");
-    }
-    if args
-        .local_radius
-        .as_ref()
-        .is_some_and(|v| v.len() != 2 || v.iter().any(|r| !r.is_finite() || *r <= 0.0))
-    {
+    if args.local_radius.len() != 2 || args.local_radius.iter().any(|r| !r.is_finite() || *r <= 0.0) {
         bail!("--local-radius takes two positive radii: FIRST,LAST");
     }
     Ok(())
@@ -852,7 +740,6 @@ fn dan_runner(args: &Args) -> anyhow::Result<(DanRunner, String)> {
         batch: BatchTensor::new(BATCH, CROP_SIZE * CROP_SIZE),
         outs: vec![LandmarkOut::default(); BATCH],
         queued: Vec::new(),
-        scale: args.crop_scale as f32,
         threshold,
         answered: Vec::new(),
         rejected: 0,
@@ -868,7 +755,7 @@ fn evaluate(
     runner: &mut DanRunner,
     detector: &mut holoface_runtime::detect::BlazeFace,
 ) -> anyhow::Result<()> {
-    let val = val_answers(val_faces, args, runner, detector)?;
+    let val = val_answers(val_faces, runner, detector)?;
     let bytes = std::fs::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
     let mut refiner = RefineCascade::from_bytes(&bytes)?;
     for (starts, mirror) in [(1, false), (args.starts, false), (1, true), (args.starts, true)] {
@@ -917,8 +804,7 @@ fn training_answers(
                 "running DAN on the teacher-labelled crops"
             );
             let first = train_faces.len();
-            let crops = teacher_crops_per_face(args, train_faces, teacher_faces);
-            tracing::info!(crops = crops.iter().sum::<usize>(), "teacher crops per side");
+            let crops = vec![args.teacher_crops; teacher_faces.len()];
             answer_training_crops(teacher_faces, &crops, first, args, runner, detector)
         })?);
     }
@@ -937,15 +823,8 @@ fn refine_config(args: &Args) -> RefineConfig {
         seed: args.seed,
         threads: args.train_threads,
         lambda: args.lambda,
-        sampling: if args.bilinear {
-            Sampling::Bilinear
-        } else {
-            Sampling::Nearest
-        },
-        local_radius: args
-            .local_radius
-            .as_ref()
-            .and_then(|v| Some((*v.first()?, *v.get(1)?))),
+        sampling: args.sampling.into(),
+        local_radius: Some((args.local_radius[0], args.local_radius[1])),
         name: format!("holoface-ert {}", args.version),
         ..RefineConfig::default()
     }
@@ -1033,64 +912,80 @@ fn final_validation(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use holoface_models::image::GrayImage;
+    use clap::Parser;
 
-    /// A face whose nose tip sits `turn` jaw widths off the jaw's middle, eyes level.
-    fn face(turn: f32) -> Sample {
-        let mut lm = dan_mean_shape();
-        let (l, r) = (lm[0].x, lm[16].x);
-        lm[30].x = 0.5 * (l + r) + turn * (r - l);
-        Sample {
-            name: format!("turn {turn}"),
-            image: GrayImage::zeros(1, 1),
-            landmarks: Some(lm),
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    /// `holoface train-refiner` with no options trains the shipped model's recipe: every setting its
+    /// training report (`models/assets/refiner.json`, written by this command) records.
+    #[test]
+    fn the_defaults_are_the_shipped_models_recipe() {
+        let args = Cli::try_parse_from(["train-refiner"]).unwrap().args;
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/assets/refiner.json");
+        let shipped: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let cfg = refine_config(&args);
+        let labels: Vec<String> = args
+            .teacher_labels
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect();
+        let ours = serde_json::json!({
+            "model": cfg.name,
+            "teacher_labels": labels,
+            "teacher_crops_per_face": 2 * args.teacher_crops,
+            "crops_per_face": 2 * args.crops,
+            "crop_size": CROP_SIZE,
+            "stages": cfg.stages,
+            "trees": cfg.trees,
+            "depth": cfg.depth,
+            "features": cfg.features,
+            "split_tests": cfg.split_tests,
+            "bilinear": cfg.sampling == Sampling::Bilinear,
+            "seed": cfg.seed,
+        });
+        for (key, want) in ours.as_object().unwrap() {
+            assert_eq!(
+                &shipped[key], want,
+                "{key}: the default differs from the shipped model's"
+            );
         }
-    }
-
-    #[test]
-    fn pose_bins_follow_the_turn_either_side_and_the_tilt() {
-        let frontal = face(0.0).landmarks.unwrap();
-        assert_eq!(pose_bin(&frontal), 0);
-        let turned = face(0.22).landmarks.unwrap();
-        assert_eq!(pose_bin(&turned), 4 * 3);
-        assert_eq!(
-            pose_bin(&face(-0.22).landmarks.unwrap()),
-            4 * 3,
-            "either side alike"
-        );
-        let tilted = Similarity2::from_parts(1.0, 10f64.to_radians(), 0.0, 0.0);
-        let mut t = frontal;
-        tilted.apply_all(&frontal, &mut t);
-        assert_eq!(pose_bin(&t), 1);
-    }
-
-    #[test]
-    fn teacher_crops_go_where_the_annotated_poses_are() {
-        // Annotated: half frontal, half turned; teachers: nine frontal to one turned.
-        let train: Vec<Sample> = (0..200)
-            .map(|i| face(if i % 2 == 0 { 0.0 } else { 0.22 }))
-            .collect();
-        let teacher: Vec<Sample> = (0..1000)
-            .map(|i| face(if i % 10 == 0 { 0.22 } else { 0.0 }))
-            .collect();
-        let crops = pose_matched_crops(2, 7, &train, &teacher);
-        let mean = |turned: bool| {
-            let v: Vec<f64> = (0..crops.len())
-                .filter(|i| (i % 10 == 0) == turned)
-                .map(|i| crops[i] as f64)
-                .collect();
-            v.iter().sum::<f64>() / v.len() as f64
+        // The report writes f32 settings as f32 (0.1, not 0.100000001).
+        let f32s = |key: &str| -> Vec<f32> {
+            let v = &shipped[key];
+            let all = v.as_array().cloned().unwrap_or_else(|| vec![v.clone()]);
+            all.iter().map(|x| x.as_f64().unwrap() as f32).collect()
         };
-        // Turned: about 2 x 0.5 / 0.1 = 10 (each share counts one face more per bin); frontal: 2 x 0.5 / 0.9.
-        assert!((8.5..=10.0).contains(&mean(true)), "{}", mean(true));
-        assert!((0.95..1.2).contains(&mean(false)), "{}", mean(false));
-        assert_eq!(
-            crops,
-            pose_matched_crops(2, 7, &train, &teacher),
-            "the seed fixes the rounding"
-        );
-        // A pose the teachers almost never show gets at most 5 times the crops.
-        let rare: Vec<Sample> = (0..1000).map(|i| face(if i == 0 { 0.22 } else { 0.0 })).collect();
-        assert_eq!(pose_matched_crops(2, 7, &train, &rare)[0], 10);
+        assert_eq!(f32s("learning_rate"), [cfg.learning_rate]);
+        assert_eq!(f32s("lambda"), [cfg.lambda]);
+        assert_eq!(f32s("local_radius"), args.local_radius);
+        let val = &shipped["validation_detector_init"];
+        assert_eq!(val["mirror"], args.mirror);
+        assert_eq!(val["starts"], args.starts);
+        assert!(check(&args).is_ok());
+    }
+
+    #[test]
+    fn the_rejected_levers_are_not_options() {
+        for gone in [
+            "--crop-scale",
+            "--borrowed-starts",
+            "--teacher-pose-match",
+            "--teacher-limit",
+        ] {
+            assert!(
+                Cli::try_parse_from(["train-refiner", gone, "1"]).is_err(),
+                "{gone}"
+            );
+        }
+        let args = Cli::try_parse_from(["train-refiner", "--mirror", "false", "--sampling", "nearest"])
+            .unwrap()
+            .args;
+        assert!(!args.mirror);
+        assert_eq!(Sampling::from(args.sampling), Sampling::Nearest);
     }
 }
