@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Fails when maturin's build of the Python wheel (holoface-python with extension-module + ci-unify) would give
+# Fails when maturin's build of the Python wheel (holoface-python with extension-module + ci-unify, which adds workspace-hack/) would give
 # a shared dependency other features than the workspace's test build does: then the wheel would compile those
-# dependencies (and everything above them) a second time (BENCHMARKS.md, "Build time"). No compilation:
+# dependencies (and everything above them) a second time (docs/experiments/build-time.md). No compilation:
 # `cargo tree` only.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -36,7 +36,7 @@ bad = [p for p in py if p in ws and not set(py[p]) <= set(ws[p])
        and not p.startswith("holoface-python") and not p.startswith("syn v2")]
 if bad:
     print("the wheel's build resolves these dependencies with other features than the test build:", *bad, sep="\n  ")
-    print("update the ci-unify feature in python/Cargo.toml")
+    print("update workspace-hack/Cargo.toml")
     sys.exit(1)
 print("holoface-python (ci-unify): the same dependency features as the test build")
 PY
