@@ -219,10 +219,14 @@ deps-check:
 	@echo "holoface-tools: a leaf (nothing depends on it)"
 	python3 scripts/module-cycles.py $$(sed -n '/^members = \[/,/^\]/s/^ *"\(.*\)",$$/\1/p' Cargo.toml)
 	scripts/feature-parity.sh
+	@# The documents a newcomer reads first name only paths that exist; ARCHITECTURE.md stays a map, not a manual.
+	python3 scripts/doc-paths.py ARCHITECTURE.md BENCHMARKS.md docs/experiments/README.md
+	@w=$$(wc -w <ARCHITECTURE.md); test $$w -le 4500 || { echo "ARCHITECTURE.md has $$w words (at most 4,500)" >&2; exit 1; }
+	@b=$$(wc -c <BENCHMARKS.md); test $$b -le 40960 || { echo "BENCHMARKS.md has $$b bytes (at most 40 KB)" >&2; exit 1; }
 
 # One test-profile build of every Rust artifact the later steps use (test binaries, the C ABI's library, the
 # `holoface` binary, the examples), with the same package selection and features as the test run, so that
-# nothing is compiled twice with different features (BENCHMARKS.md, "Build time").
+# nothing is compiled twice with different features (docs/experiments/build-time.md).
 test-build: video-deps
 	$(CARGO) build --locked $(TEST_SEL) --profile test --lib --bins --tests --examples
 

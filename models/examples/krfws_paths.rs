@@ -1,7 +1,7 @@
 //! Runs KRFWS's single-start alignment `N` times on one annotated face through one instruction-set path, so
 //! that an instruction counter can compare the paths where no clock can: under `qemu-aarch64`, which gives no
-//! timing, `-one-insn-per-tb -d exec,nochain` logs one line per executed instruction (BENCHMARKS.md,
-//! "ARM64": instructions per face, NEON against the portable kernels).
+//! timing, `-one-insn-per-tb -d exec,nochain` logs one line per executed instruction (instructions per face,
+//! NEON against the portable kernels; not measured: docs/experiments/arm64.md).
 //!
 //! ```sh
 //! cargo run --release -p holoface-models --example krfws_paths -- FACE.jpg FACE.pts neon|avx512|avx2|baseline N

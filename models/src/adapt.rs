@@ -85,12 +85,12 @@ pub struct AdaptParams {
     pub ridge: f64,
     /// Ridge of each point's regression on its [`Appearance`], in units of the mean variance of that point's
     /// 36 values; `f64::INFINITY`: off (the answers' appearance is not used). The default, 3, closed the
-    /// most of the gap on the development clips' link cuts (BENCHMARKS.md).
+    /// most of the gap on the development clips' link cuts (docs/experiments/fallback-adaptation.md).
     pub appearance_ridge: f64,
 }
 
 impl Default for AdaptParams {
-    /// Chosen on the development clips (BENCHMARKS.md, "A fallback that learned from the server").
+    /// Chosen on the development clips (docs/experiments/fallback-adaptation.md).
     fn default() -> Self {
         Self {
             memory_pairs: 2000.0,

@@ -68,8 +68,9 @@ pub fn crop_bilinear(
 /// Blanks the other faces out of one face's crop: every crop pixel whose image point lies in one of
 /// `others` and not in `keep` becomes 0, the value a crop reads outside the image, which is how DAN saw
 /// "nothing here" in training (crops running off the photo). With several faces close together, a
-/// neighbour's face inside a crop pulls DAN's landmarks toward it (measured in BENCHMARKS.md, "Several
-/// faces"); the face itself (`keep`) is never blanked, even where a neighbour's box overlaps it.
+/// neighbour's face inside a crop pulls DAN's landmarks toward it (measured in docs/experiments/tracking.md,
+/// "Several faces at once"); the face itself (`keep`) is never blanked, even where a neighbour's box
+/// overlaps it.
 pub fn blank_outside(crop: &mut Crop112, crop_from_image: &Similarity2, keep: &Rect, others: &[Rect]) {
     let Some(image_from_crop) = crop_from_image.inverse() else {
         return;

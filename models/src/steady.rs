@@ -22,7 +22,7 @@
 //! placement keeps its position and its speed across the switch (a face moving when the link drops does
 //! not stop for a frame); the shape in the face's frame keeps its position but not its speed, so an
 //! expression in motion holds for the switch's frame (on the development clips that is up to 0.7 % of the
-//! eye distance at a switch, BENCHMARKS.md "A fallback that learned from the server").
+//! eye distance at a switch, docs/experiments/fallback-adaptation.md, "Each switch, taken apart").
 
 use crate::geometry::{Point2, Similarity2};
 
@@ -65,7 +65,7 @@ pub struct SteadyParams {
 }
 
 impl Default for SteadyParams {
-    /// Measured on real video and rendered head turns (BENCHMARKS.md, "Steady landmarks").
+    /// Measured on real video and rendered head turns (docs/experiments/steady-landmarks.md).
     fn default() -> Self {
         let one_euro = |min_cutoff_hz, beta, d_cutoff_hz| OneEuroParams {
             min_cutoff_hz,

@@ -20,6 +20,8 @@
 //! | `0x04` | [`FrameReply`] | server → client, datagram or stream (see [`ReplyChannel`]) |
 //! | `0x05` | [`Goaway`] | server → client, graceful shutdown |
 //! | `0x06` | [`ErrorMsg`] | either way, just before closing |
+//! | `0x07` | [`FrameRequest`] with a non-zero `track_id` (version 3) | client → server |
+//! | `0x08` | [`FrameReply`] with a non-zero `track_id` (version 3) | server → client |
 //!
 //! Body layouts (offsets are relative to the start of the body, after the tag):
 //!
@@ -38,7 +40,11 @@
 //!                outcome 1 (Dropped):   reason u8
 //! Goaway         reason u32 (CloseCode) | text str(<=512)
 //! ErrorMsg       code u32 (CloseCode)   | text str(<=512)
+//! Tracked*       track_id u16 (non-zero) | the FrameRequest or FrameReply body above
 //! ```
+//!
+//! A request's `track_id` says which of the client's faces the crop is; the reply echoes it. Track 0 is sent
+//! under tags 0x03/0x04, byte for byte the version-1/2 layout, so a single-face client never pays for it.
 //!
 //! A raw 112x112 [`FrameRequest`] is therefore 1 + 8 + 8 + 2 + 1 + 2 + 2 + 4 +
 //! 12,544 = 12,572 bytes, and a 68-landmark [`FrameReply`] is 1 + 8 + 1 + 2 +

@@ -3,7 +3,7 @@
 //!
 //! Images are borrowed, not copied: a C-contiguous `uint8` array of shape `(height, width)` becomes the
 //! frame's pixels directly, and the GIL is released while the frame is processed (another Python thread can
-//! run meanwhile; the same tracker used from two threads at once raises instead of racing). Every error is a
+//! run meanwhile; calls on one tracker from two threads are serialised by its lock, never raced). Every error is a
 //! Python exception carrying the Rust message; nothing here panics on bad input.
 // PyO3's macros expand to unsafe code (the CPython ABI); this crate writes none of its own.
 #![allow(unsafe_code)]

@@ -33,7 +33,7 @@ pub struct AdaptOptions {
 }
 
 impl Default for AdaptOptions {
-    /// Measured on the development clips (BENCHMARKS.md, "A fallback that learned from the server").
+    /// Measured on the development clips (docs/experiments/fallback-adaptation.md).
     fn default() -> Self {
         Self {
             learn_every: crate::defaults::ADAPT_LEARN_EVERY,

@@ -62,7 +62,7 @@ pub struct Args {
     pub runtime: RuntimeArgs,
 }
 
-/// The measured defaults (BENCHMARKS.md, "Teacher labels").
+/// The measured defaults (docs/experiments/teacher-labels.md).
 pub const DLIB_WEIGHT: f32 = 0.8;
 /// See [`DLIB_WEIGHT`].
 pub const MAX_DISAGREEMENT: f64 = 0.04;

@@ -85,8 +85,8 @@ pub struct TrainFace {
     pub starts: Option<usize>,
     /// Weight of this face's eyelid targets (the 8 lid points of the 51, [`LID_POINTS`]) in the global
     /// regression, relative to its other points: 1 for annotated faces. Below 1, this face's labels shape
-    /// the lids less than the rest of the face (a lever for teacher labels, measured in BENCHMARKS.md,
-    /// "The teacher lids weighed down"); the trees are unchanged.
+    /// the lids less than the rest of the face (a lever for teacher labels, measured in
+    /// docs/experiments/krfws.md, "The teacher lids weighed down"); the trees are unchanged.
     pub lid_weight: f32,
 }
 
