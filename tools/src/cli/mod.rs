@@ -20,6 +20,29 @@ pub mod train_krfws;
 #[cfg(feature = "train")]
 pub mod train_refiner;
 
+/// What the trainers' tests share: a subcommand's arguments parsed from a command line alone, and the training
+/// report a shipped model was written with.
+#[cfg(all(test, feature = "train"))]
+mod trainer_tests {
+    #[derive(clap::Parser)]
+    struct Cli<T: clap::Args> {
+        #[command(flatten)]
+        args: T,
+    }
+
+    /// `argv` (its first word the subcommand's name) parsed as `T`.
+    pub(crate) fn parse<T: clap::Args>(argv: &[&str]) -> Result<T, clap::Error> {
+        <Cli<T> as clap::Parser>::try_parse_from(argv).map(|c| c.args)
+    }
+
+    /// `models/assets/<name>`, the JSON report the trainer wrote beside the shipped model.
+    pub(crate) fn shipped_report(name: &str) -> serde_json::Value {
+        let path = format!("{}/../models/assets/{name}", env!("CARGO_MANIFEST_DIR"));
+        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+        serde_json::from_str(&text).unwrap_or_else(|e| panic!("{path}: {e}"))
+    }
+}
+
 /// HoloFace: find, track and understand faces for AR headsets.
 #[derive(Debug, Parser)]
 #[command(name = "holoface", version, about)]

@@ -559,22 +559,14 @@ fn say_report(rep: &Report, report: &train::TrainReport, (out, bytes, json_path)
 #[cfg(test)]
 mod tests {
     use super::*;
-    use clap::Parser;
-
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: Args,
-    }
+    use crate::cli::trainer_tests::{parse, shipped_report};
 
     /// `holoface train-krfws` with no options trains the shipped model's recipe: every setting its training
     /// report (`models/assets/krfws.json`, written by this command) records.
     #[test]
     fn the_defaults_are_the_shipped_models_recipe() {
-        let args = Cli::try_parse_from(["train-krfws"]).unwrap().args;
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/assets/krfws.json");
-        let shipped: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let args = parse::<Args>(&["train-krfws"]).unwrap();
+        let shipped = shipped_report("krfws.json");
         let cfg = train_config(&args);
         let mut ours = serde_json::to_value(config_json(&args, &cfg, &[])).unwrap();
         // Counted from the faces it loads, not a setting.
@@ -604,7 +596,7 @@ mod tests {
             "--teacher-lid-weight",
             "--turned-lid-weight",
         ] {
-            assert!(Cli::try_parse_from(["train-krfws", gone, "1"]).is_err(), "{gone}");
+            assert!(parse::<Args>(&["train-krfws", gone, "1"]).is_err(), "{gone}");
         }
     }
 }

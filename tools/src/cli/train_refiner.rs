@@ -912,22 +912,14 @@ fn final_validation(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use clap::Parser;
-
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        args: Args,
-    }
+    use crate::cli::trainer_tests::{parse, shipped_report};
 
     /// `holoface train-refiner` with no options trains the shipped model's recipe: every setting its
     /// training report (`models/assets/refiner.json`, written by this command) records.
     #[test]
     fn the_defaults_are_the_shipped_models_recipe() {
-        let args = Cli::try_parse_from(["train-refiner"]).unwrap().args;
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/assets/refiner.json");
-        let shipped: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let args = parse::<Args>(&["train-refiner"]).unwrap();
+        let shipped = shipped_report("refiner.json");
         let cfg = refine_config(&args);
         let labels: Vec<String> = args
             .teacher_labels
@@ -977,14 +969,9 @@ mod tests {
             "--teacher-pose-match",
             "--teacher-limit",
         ] {
-            assert!(
-                Cli::try_parse_from(["train-refiner", gone, "1"]).is_err(),
-                "{gone}"
-            );
+            assert!(parse::<Args>(&["train-refiner", gone, "1"]).is_err(), "{gone}");
         }
-        let args = Cli::try_parse_from(["train-refiner", "--mirror", "false", "--sampling", "nearest"])
-            .unwrap()
-            .args;
+        let args = parse::<Args>(&["train-refiner", "--mirror", "false", "--sampling", "nearest"]).unwrap();
         assert!(!args.mirror);
         assert_eq!(Sampling::from(args.sampling), Sampling::Nearest);
     }
