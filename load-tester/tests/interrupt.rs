@@ -4,9 +4,7 @@
 
 use std::process::Command;
 
-mod common;
-
-use common::{recording, workspace};
+use crate::common::{recording, workspace};
 
 /// Ctrl-C (or a service stop) ends a load test early with its report for the time it ran (issue 57): the
 /// table, `--out` and `--plot`, `interrupted` and `measured_s` in the JSON, the shell's exit code.

@@ -4,14 +4,13 @@
 //! never reconnect, and exit 0.)
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use common::{recording, workspace};
+use crate::common;
+use crate::common::{recording, workspace};
 use holoface_alignment_server::config::{Settings, TlsSource};
 
 const TOKEN: &str = "outage-test";

@@ -6,9 +6,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-mod common;
-
-use common::{recording, workspace};
+use crate::common;
+use crate::common::{recording, workspace};
 
 fn load(dir: &Path, rec: &Path, tag: &str, extra: &[&str]) -> (Option<i32>, serde_json::Value) {
     let out = dir.join(format!("{tag}.json"));

@@ -48,18 +48,17 @@ fn data_root() -> PathBuf {
     root
 }
 
-/// The validation faces: grey image and ground truth.
-fn validation_faces(root: &std::path::Path) -> Vec<(GrayImage, [Point2; 68])> {
-    validation_faces_of(root, &["afw", "helen", "lfpw"])
-}
-
-/// The validation faces of some subsets only.
-fn validation_faces_of(root: &std::path::Path, subsets: &[&str]) -> Vec<(GrayImage, [Point2; 68])> {
+/// The validation faces (AFW, HELEN and LFPW) as grey image and ground truth, decoded as they are taken
+/// (under emulation a JPEG decode costs tens of milliseconds: the tests that need ten faces decode ten).
+fn validation_faces(root: &std::path::Path) -> impl Iterator<Item = (GrayImage, [Point2; 68])> + '_ {
     include_str!("../splits/val.txt")
         .lines()
         .map(str::trim)
         .filter(|l| !l.is_empty() && !l.starts_with('#'))
-        .filter(|l| l.split_once('/').is_some_and(|(sub, _)| subsets.contains(&sub)))
+        .filter(|l| {
+            l.split_once('/')
+                .is_some_and(|(sub, _)| ["afw", "helen", "lfpw"].contains(&sub))
+        })
         .map(|name| {
             let img = image::open(root.join(format!("{name}.jpg"))).unwrap().to_luma8();
             let (w, h) = (img.width() as usize, img.height() as usize);
@@ -68,7 +67,6 @@ fn validation_faces_of(root: &std::path::Path, subsets: &[&str]) -> Vec<(GrayIma
                 parse_pts68(&std::fs::read_to_string(root.join(format!("{name}.pts"))).unwrap()).unwrap();
             (img, gt)
         })
-        .collect()
 }
 
 #[test]
@@ -78,12 +76,14 @@ fn restarts_recover_from_shifted_boxes_better_than_one_start() {
     let mut scratch = KrfwsScratch::new();
     let mut out = [Point2::default(); N_POINTS];
     let (mut one, mut many) = (0.0, 0.0);
-    let mut faces = validation_faces(&root);
     // Under emulation (`make arm64-test` runs the aarch64 build under qemu, about 40x slower) every 6th
     // face: 28 faces, 13 starts each, instead of 168.
-    if std::env::var_os("HOLOFACE_EMULATED").is_some() {
-        faces = faces.into_iter().step_by(6).collect();
-    }
+    let every = if std::env::var_os("HOLOFACE_EMULATED").is_some() {
+        6
+    } else {
+        1
+    };
+    let faces: Vec<_> = validation_faces(&root).step_by(every).collect();
     for (k, (img, gt)) in faces.iter().enumerate() {
         // A box shifted by 15 % of its width, alternating directions: a poor detection.
         let r = Rect::bounding(gt).unwrap();
@@ -131,7 +131,7 @@ fn every_instruction_set_path_gives_exactly_the_portable_results() {
         m.stages().iter().all(|s| s.streams_f16()),
         "a stored model has exact f16 copies"
     );
-    for (img, gt) in validation_faces(&root).iter().take(20) {
+    for (img, gt) in &validation_faces(&root).take(20).collect::<Vec<_>>() {
         let b = Rect::bounding(gt).unwrap();
         // The box, and the box pushed half off the image (windows across the border, zero fill).
         for shift in [0.0, -0.5 * b.x1, 0.5 * (img.width() as f32 - b.x0)] {
@@ -174,7 +174,7 @@ fn paths_agree_on_a_model_without_exact_f16_copies() {
     let odd = Krfws::new(*m.mean_shape(), stages, m.failure().clone());
     let (mut s1, mut s2) = (KrfwsScratch::new(), KrfwsScratch::new());
     let (mut o1, mut o2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
-    for (img, gt) in validation_faces(&root).iter().take(10) {
+    for (img, gt) in &validation_faces(&root).take(10).collect::<Vec<_>>() {
         let init = odd.init_from_box(&Rect::bounding(gt).unwrap());
         let want = odd.align_on(Isa::Baseline, &img.view(), &init, &mut s2, &mut o2);
         for path in [Isa::Avx2, Isa::Avx512, Isa::Neon] {
@@ -191,7 +191,7 @@ fn pipelined_routing_reaches_the_same_leaves_as_features_then_routing() {
     let mut patch = [0u8; PATCH_PIXELS];
     let (mut norm1, mut norm2) = ([Point2::default(); N_POINTS], [Point2::default(); N_POINTS]);
     let (mut hog1, mut hog2) = (vec![0f32; FAILURE_DIM], vec![0f32; FAILURE_DIM]);
-    for (img, gt) in validation_faces(&root).iter().take(10) {
+    for (img, gt) in &validation_faces(&root).take(10).collect::<Vec<_>>() {
         let init = m.init_from_box(&Rect::bounding(gt).unwrap());
         for stage in m.stages() {
             let mut want = vec![0u32; stage.trees.len()];
@@ -231,7 +231,7 @@ fn committed_model_reproduces_its_validation_nme() {
     let mut out = [Point2::default(); N_POINTS];
     // The committed model (retrained 2026-12-02 on AFW + HELEN + LFPW) records its number on the whole
     // 168-face split.
-    let faces = validation_faces_of(&root, &["afw", "helen", "lfpw"]);
+    let faces: Vec<_> = validation_faces(&root).collect();
     let mut sum = 0.0;
     for (img, gt) in &faces {
         let init = m.init_from_box(&Rect::bounding(gt).unwrap());

@@ -2,7 +2,7 @@
 //! encodings of every message and a small recording), so the fuzzers start
 //! from deep inside the format instead of from random bytes.
 //!
-//! `cargo test -p holoface-protocol --test fuzz_seeds -- --ignored`
+//! `cargo test -p holoface-protocol --test integration fuzz_seeds:: -- --ignored`
 //! writes into `fuzz/corpus/<target>/` (git-ignored).
 #![allow(clippy::unwrap_used)] // test helpers; a panic is a test failure
 

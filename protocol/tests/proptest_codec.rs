@@ -266,10 +266,18 @@ fn record_offsets(header_len: usize, records: &[FrameRecord]) -> Vec<usize> {
     offsets
 }
 
+/// `n` cases natively; an eighth of them under emulation (`make arm64-test` runs the aarch64 build under
+/// qemu, where a bit-flip property takes about 0.15 s a case): there they check the ARM build of the same codec,
+/// and the native run covers the input space.
+fn cases(n: u32) -> ProptestConfig {
+    let emulated = std::env::var_os("HOLOFACE_EMULATED").is_some();
+    ProptestConfig::with_cases(if emulated { n / 8 } else { n })
+}
+
 // ---------------------------------------------------------------- messages
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(256))]
+    #![proptest_config(cases(256))]
 
     #[test]
     fn message_round_trips(msg in message()) {
@@ -354,7 +362,7 @@ proptest! {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(64))]
+    #![proptest_config(cases(64))]
 
     #[test]
     fn every_bit_flip_is_ok_or_typed_error(msg in message()) {
@@ -432,7 +440,7 @@ fn oversize_length_prefixes_are_rejected_up_front() {
 // ---------------------------------------------------------------- recordings
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(64))]
+    #![proptest_config(cases(64))]
 
     #[test]
     fn recording_round_trips(header in recording_header(), records in prop::collection::vec(frame_record(), 0..4)) {

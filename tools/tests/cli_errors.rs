@@ -1,11 +1,9 @@
 //! The `holoface` binary on bad input: clear errors, never a panic, never a silent success.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::path::Path;
 
-use common::{holoface, json_lines, tmp, workspace, write_png};
+use crate::common::{holoface, json_lines, tmp, workspace, write_png};
 
 /// A temporary folder with `n` small textured frames that hold no face: `(folder, frames folder)`.
 fn faceless_frames(tag: &str, n: usize) -> (std::path::PathBuf, std::path::PathBuf) {

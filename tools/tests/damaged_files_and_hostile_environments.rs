@@ -4,13 +4,11 @@
 //! fix).
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{finished, holoface, tmp, workspace, write_png};
+use crate::common::{finished, holoface, tmp, workspace, write_png};
 
 /// A folder with one annotated (meaningless) face for `eval --init gt-box`.
 fn one_face(tag: &str) -> PathBuf {

@@ -5,7 +5,7 @@
 //! does, and the installed server answers the installed CLI over QUIC.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

@@ -3,8 +3,6 @@
 //! (SIGINT), a service stop (SIGTERM), two signals, `kill -9`, and a reader of standard output.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
 use std::io::{BufRead as _, Write as _};
 use std::path::Path;
 use std::process::{Child, ChildStdin, Command, Stdio};
@@ -12,7 +10,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use common::{tmp, workspace};
+use crate::common;
+use crate::common::{tmp, workspace};
 
 const W: usize = 64;
 const H: usize = 48;

@@ -1,9 +1,8 @@
 //! `holoface multi-face` end to end: several validation faces in one rendered scene, tracked at once with
 //! KRFWS, against the same faces tracked alone; and `holoface track --max-faces` on such a scene's frames.
 
-mod common;
-
-use common::{holoface, json_lines, tmp};
+use crate::common;
+use crate::common::{holoface, json_lines, tmp};
 
 #[test]
 fn three_faces_keep_three_ids_and_their_accuracy() {

@@ -3,9 +3,8 @@
 //! explicit "no face" line for every frame; bad sources and sidecars fail with clear errors.
 #![allow(clippy::unwrap_used)]
 
-mod common;
-
-use common::{holoface, json_lines as lines, tmp};
+use crate::common;
+use crate::common::{holoface, json_lines as lines, tmp};
 
 use holoface_models::image::GrayImage;
 use holoface_sources::video::Mp4Writer;
