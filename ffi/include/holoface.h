@@ -156,7 +156,7 @@ typedef enum HfLinkFailure {
 } HfLinkFailure;
 
 /**
- * An opaque tracker.
+ * An opaque tracker. C code holds `HfTracker *` handles, which are ids (see [`Registry`]), never addresses.
  */
 typedef struct HfTracker HfTracker;
 
@@ -173,7 +173,8 @@ typedef struct HfOptions {
    */
   uint32_t mode;
   /**
-   * ONNX Runtime shared library.
+   * ONNX Runtime shared library. A process loads one: the first tracker's; a later tracker whose library
+   * is another file (NULL: the default one) is refused with `HF_STATUS_ASSET_ERROR` naming the loaded one.
    */
   const char *ort_dylib;
   /**
@@ -567,15 +568,20 @@ enum HfStatus hf_tracker_link_status(const struct HfTracker *tracker,
                                      struct HfLinkStatus *out);
 
 /**
- * Frees a tracker. NULL, unknown and already-freed handles are ignored (and reported by `hf_last_error`).
+ * Frees a tracker. NULL, unknown and already-freed handles free nothing and return
+ * `HF_STATUS_INVALID_HANDLE`. A handle is never issued again, so freeing a stale one cannot free another
+ * tracker. A call on the tracker still running on another thread finishes first.
  *
  * # Safety
- * `tracker` is any pointer; only handles from `hf_tracker_new` are freed.
+ * `tracker` is any pointer value (it is looked up, never dereferenced).
  */
 enum HfStatus hf_tracker_free(struct HfTracker *tracker);
 
 /**
- * The calling thread's last error message (empty if none). Valid until the next call on this thread.
+ * What went wrong in the calling thread's most recent call that returns an `HfStatus`: its message when it
+ * returned anything but `HF_STATUS_OK`, and empty when it returned `HF_STATUS_OK` (a success clears it).
+ * Calls that return no status (`hf_version`, `hf_blendshape_name`, this one) leave it as it is. Valid until
+ * the thread's next call that returns a status.
  */
 const char *hf_last_error(void);
 

@@ -21,7 +21,9 @@ impl FaceTracker {
 
     /// Processes one frame: every tracked face's result, or why there is none. In
     /// [`RunningMode::Image`](crate::RunningMode::Image) every frame starts from a detection; otherwise a
-    /// timestamp not after the previous one is refused ([`TrackerError::Timestamp`]).
+    /// timestamp not after the previous one ([`TrackerError::Timestamp`]) or an hour past it
+    /// ([`TrackerError::TimestampJump`]) is refused, leaving the tracker as it was. A camera pose beyond 10 km
+    /// from the world origin is refused in every mode ([`TrackerError::CameraDistance`]).
     pub fn process(&mut self, frame: &Frame<'_>) -> Result<FrameResult, TrackerError> {
         self.0.process(frame)
     }

@@ -23,6 +23,17 @@ pub enum EngineError {
         /// The loader's message.
         detail: String,
     },
+    /// ONNX Runtime is already loaded in this process from another library (one per process, ever).
+    #[error(
+        "ONNX Runtime is already loaded in this process from {loaded}; {asked} cannot be loaded beside it (one \
+         library per process): give the same path, or none"
+    )]
+    RuntimeAlreadyLoaded {
+        /// The library the process loaded first.
+        loaded: PathBuf,
+        /// The one asked for now.
+        asked: PathBuf,
+    },
     /// A directory was given where the model file belongs.
     #[error("DAN model path {path} is a directory, not an .onnx file: give the model file itself")]
     ModelIsDirectory {

@@ -19,13 +19,15 @@ pub fn default_ort_dylib() -> PathBuf {
     crate::home::ORT_LIBRARY.default_path()
 }
 
-/// The process's ONNX Runtime environment: ort allows one per process, ever,
-/// so it is created once and shared by every engine.
-static ENVIRONMENT: std::sync::Mutex<Option<ort::environment::Environment>> = std::sync::Mutex::new(None);
+/// The process's ONNX Runtime environment and the library it came from (canonical path): ort allows one per
+/// process, ever, so it is created once and shared by every engine.
+static ENVIRONMENT: std::sync::Mutex<Option<(PathBuf, ort::environment::Environment)>> =
+    std::sync::Mutex::new(None);
 
-/// Loads the ONNX Runtime library (once per process; later calls reuse the
-/// first library) and returns the shared environment. ONNX Runtime allows one
-/// environment per process; every session of the process shares this one.
+/// Loads the ONNX Runtime library (once per process) and returns the shared environment. ONNX Runtime
+/// allows one environment per process; every session of the process shares this one. A later call with
+/// the same library (by any path to it) gets that environment; one with another library is refused
+/// ([`EngineError::RuntimeAlreadyLoaded`]) rather than silently given the first.
 pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, EngineError> {
     if dylib.is_dir() {
         return Err(EngineError::RuntimeIsDirectory {
@@ -38,7 +40,14 @@ pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, Engin
     let mut slot = ENVIRONMENT
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner);
-    if let Some(env) = slot.as_ref() {
+    let canonical = std::fs::canonicalize(dylib).unwrap_or_else(|_| dylib.to_path_buf());
+    if let Some((loaded, env)) = slot.as_ref() {
+        if *loaded != canonical {
+            return Err(EngineError::RuntimeAlreadyLoaded {
+                loaded: loaded.clone(),
+                asked: dylib.to_path_buf(),
+            });
+        }
         return Ok(env.clone());
     }
     // A truncated or foreign file would be mapped by the dynamic loader and kill the process (SIGBUS) the
@@ -52,7 +61,7 @@ pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, Engin
         detail: e.to_string(),
     })?;
     let env = builder.with_name(ENVIRONMENT_NAME).build()?;
-    *slot = Some(env.clone());
+    *slot = Some((canonical, env.clone()));
     Ok(env)
 }
 

@@ -635,7 +635,10 @@ const PY_OPTIONS: &[(holoface_headset_client::assets::Asset, &str)] = &[
 fn tracker_error(e: TrackerError) -> PyErr {
     match e {
         TrackerError::Asset(_) => AssetError::new_err(e.to_string()),
-        TrackerError::Timestamp { .. } | TrackerError::Options(_) => PyValueError::new_err(e.to_string()),
+        TrackerError::Timestamp { .. }
+        | TrackerError::TimestampJump { .. }
+        | TrackerError::CameraDistance { .. }
+        | TrackerError::Options(_) => PyValueError::new_err(e.to_string()),
         _ => ProcessingError::new_err(e.to_string()),
     }
 }

@@ -22,6 +22,25 @@ pub struct Frame<'a> {
     pub world_from_camera: Pose,
 }
 
+/// The farthest a camera may be from its world's origin, metres: a headset's world is a room, a building or
+/// a site, never beyond 10 km (a pose with 1e30 m is corrupt, not a pose). The tracker refuses such a frame, and
+/// the pose sidecars of `holoface-sources` refuse such a line, with this one limit.
+pub const MAX_CAMERA_DISTANCE_M: f64 = 1e4;
+
+/// The longest a video or live stream's clock may move forward between two frames, microseconds: an hour. A
+/// larger step is a corrupt or mis-scaled timestamp (nanoseconds passed as microseconds, `UINT64_MAX`), refused
+/// for that frame; a stream that really resumes after a longer pause shows it with a second frame that follows
+/// the first (the tracker then starts again from a detection).
+pub const MAX_TIMESTAMP_STEP_US: u64 = 3_600_000_000;
+
+/// How far `world_from_camera` puts the camera from its world's origin, when that is beyond
+/// [`MAX_CAMERA_DISTANCE_M`] (or not finite): the distance, for the message.
+pub fn camera_too_far(world_from_camera: &Pose) -> Option<f64> {
+    let t = world_from_camera.translation;
+    let distance = t.x.hypot(t.y).hypot(t.z);
+    (!distance.is_finite() || distance > MAX_CAMERA_DISTANCE_M).then_some(distance)
+}
+
 /// A frame that owns its pixels.
 #[derive(Clone, Debug)]
 pub struct OwnedFrame {

@@ -136,6 +136,29 @@ pub enum TrackerError {
         /// This frame's.
         got: u64,
     },
+    /// A frame's timestamp is more than [`crate::frame::MAX_TIMESTAMP_STEP_US`] after the previous one and
+    /// the frame before did not lead up to it (video and live modes): refused, the tracker's clock unchanged.
+    #[error(
+        "frame timestamp {got} µs is {} s after the previous {previous} µs (at most {} s between frames; a \
+         clock in nanoseconds, or a corrupt one?)",
+        got.saturating_sub(*previous) / 1_000_000,
+        crate::frame::MAX_TIMESTAMP_STEP_US / 1_000_000
+    )]
+    TimestampJump {
+        /// The previous accepted timestamp.
+        previous: u64,
+        /// This frame's.
+        got: u64,
+    },
+    /// The frame's camera-to-world pose puts the camera beyond [`crate::frame::MAX_CAMERA_DISTANCE_M`].
+    #[error(
+        "world_from_camera puts the camera {distance:.1e} m from the world origin (at most {} m)",
+        crate::frame::MAX_CAMERA_DISTANCE_M
+    )]
+    CameraDistance {
+        /// The camera's distance from the world origin, metres.
+        distance: f64,
+    },
 }
 
 /// The answer for one frame.
@@ -204,6 +227,8 @@ pub struct FaceTracker<A: ?Sized = dyn Aligner + Send> {
     session: TrackerSession,
     link: Option<LinkWatch>,
     last_timestamp: Option<u64>,
+    /// A timestamp refused as a jump: a next frame that follows it shows the stream really resumed there.
+    jumped_to: Option<u64>,
     aligner: Box<A>,
 }
 
@@ -255,6 +280,7 @@ impl Parts {
             ),
             link,
             last_timestamp: None,
+            jumped_to: None,
             aligner,
         }
     }
@@ -308,6 +334,7 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
     pub fn reset(&mut self) {
         self.session.reset();
         self.last_timestamp = None;
+        self.jumped_to = None;
     }
 
     /// Every tracked face calibrates its neutral expression again on its next frames (the blendshape
@@ -341,17 +368,37 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
         self.step(frame)
     }
 
+    /// Accepts a video or live frame's timestamp, or refuses it leaving the clock as it was: one not after the
+    /// previous, or one more than an hour after it, unless the frame before was refused as that same jump and
+    /// this one follows it (the stream resumed after a pause: tracking starts again from a detection).
+    fn check_timestamp(&mut self, got: u64) -> Result<(), TrackerError> {
+        let max = crate::frame::MAX_TIMESTAMP_STEP_US;
+        if let Some(previous) = self.last_timestamp {
+            if got <= previous {
+                return Err(TrackerError::Timestamp { previous, got });
+            }
+            if got - previous > max {
+                let resumed = self.jumped_to.is_some_and(|j| got > j && got - j <= max);
+                if !resumed {
+                    self.jumped_to = Some(got);
+                    return Err(TrackerError::TimestampJump { previous, got });
+                }
+                self.session.reset();
+            }
+        }
+        self.jumped_to = None;
+        self.last_timestamp = Some(got);
+        Ok(())
+    }
+
     fn step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
+        if let Some(distance) = crate::frame::camera_too_far(&frame.world_from_camera) {
+            return Err(TrackerError::CameraDistance { distance });
+        }
         if self.mode == RunningMode::Image {
             self.session.reset();
         } else {
-            if let Some(previous) = self.last_timestamp.filter(|&p| frame.timestamp_us <= p) {
-                return Err(TrackerError::Timestamp {
-                    previous,
-                    got: frame.timestamp_us,
-                });
-            }
-            self.last_timestamp = Some(frame.timestamp_us);
+            self.check_timestamp(frame.timestamp_us)?;
         }
         crate::frame_step::step_faces(&mut self.session, &mut *self.aligner, frame)
             .map_err(TrackerError::from_step)

@@ -27,22 +27,17 @@ use serde::Deserialize;
 
 use crate::{FrameSource, SourceError};
 use holoface_runtime::OwnedFrame;
+use holoface_runtime::frame::{MAX_CAMERA_DISTANCE_M, camera_too_far};
 
-/// The farthest a camera may be from its world's origin, metres: a headset's world is a room, a building or
-/// a site, never beyond 10 km (a sidecar with 3e38 m is corrupt, not a pose).
-pub const MAX_TRANSLATION_M: f64 = 1e4;
-
-/// Refuses a camera farther than [`MAX_TRANSLATION_M`] from its world's origin (the message continues
-/// "camera_to_world of frame N ...").
+/// Refuses a camera farther than [`MAX_CAMERA_DISTANCE_M`] from its world's origin (the message continues
+/// "camera_to_world of frame N ..."): the tracker's own limit.
 pub(crate) fn check_distance(world_from_camera: &Pose) -> Result<(), String> {
-    let t = world_from_camera.translation;
-    let distance = t.x.hypot(t.y).hypot(t.z);
-    if !distance.is_finite() || distance > MAX_TRANSLATION_M {
-        return Err(format!(
-            "puts the camera {distance:.1e} m from the world origin (at most {MAX_TRANSLATION_M} m)"
-        ));
+    match camera_too_far(world_from_camera) {
+        Some(distance) => Err(format!(
+            "puts the camera {distance:.1e} m from the world origin (at most {MAX_CAMERA_DISTANCE_M} m)"
+        )),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 #[derive(Deserialize)]
