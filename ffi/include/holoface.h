@@ -156,7 +156,8 @@ typedef enum HfLinkFailure {
 } HfLinkFailure;
 
 /**
- * An opaque tracker. C code holds `HfTracker *` handles, which are ids (see [`Registry`]), never addresses.
+ * An opaque tracker. C code holds `HfTracker *` handles, which are ids from a table of live trackers, never
+ * addresses.
  */
 typedef struct HfTracker HfTracker;
 

@@ -426,7 +426,8 @@ fn link_status(status: Option<LinkInfo>) -> HfLinkStatus {
     out
 }
 
-/// An opaque tracker. C code holds `HfTracker *` handles, which are ids (see [`Registry`]), never addresses.
+/// An opaque tracker. C code holds `HfTracker *` handles, which are ids from a table of live trackers, never
+/// addresses.
 #[derive(Debug)]
 pub struct HfTracker {
     inner: FaceTracker,
