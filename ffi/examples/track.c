@@ -140,11 +140,14 @@ int main(int argc, char **argv) {
         free(px);
         return 1;
     }
+    /* With its length, a buffer shorter than the image is refused rather than read past. */
+    if (hf_tracker_process_buf(t, px, (size_t)w * h - 1, w, h, w, 0, &cam, NULL, &r) != HF_STATUS_INVALID_ARGUMENT) return 3;
+    printf("short buffer rejected: %s\n", hf_last_error());
     /* A headset standing still: identity camera-to-world, 30 fps. */
     const float pose[16] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
     int faces = 0;
     for (int i = 0; i < 30; i++) {
-        s = hf_tracker_process(t, px, w, h, w, (uint64_t)i * 33333u, &cam, pose, &r);
+        s = hf_tracker_process_buf(t, px, (size_t)w * h, w, h, w, (uint64_t)i * 33333u, &cam, pose, &r);
         if (s != HF_STATUS_OK) {
             fprintf(stderr, "frame %d failed (%d): %s\n", i, (int)s, hf_last_error());
             break;

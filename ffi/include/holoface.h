@@ -524,12 +524,14 @@ enum HfStatus hf_tracker_new_with(const struct HfOptions *options,
 
 /**
  * Processes one gray8 frame. `world_from_camera` is a row-major 4x4 camera-to-world matrix (16 floats) or
- * NULL for identity. Timestamps must increase in video mode.
+ * NULL for identity. Timestamps must increase in video mode, by at most an hour between frames (a larger
+ * step is refused for that frame unless the next frame follows it), and the camera must be within 10 km of
+ * the world origin. `hf_tracker_process_buf` takes the buffer's length too and refuses a short buffer.
  *
  * # Safety
- * `tracker` is a handle from `hf_tracker_new` or anything else (checked); `pixels` points to
- * `stride * height` readable bytes; `camera` to one `HfCamera`; `world_from_camera` is NULL or points to 16
- * floats; `out` to writable memory for one `HfResult`.
+ * `tracker` is any pointer value (looked up, never dereferenced); `pixels` points to `stride * height`
+ * readable bytes; `camera` to one `HfCamera`; `world_from_camera` is NULL or points to 16 floats; `out` to
+ * writable memory for one `HfResult`.
  */
 enum HfStatus hf_tracker_process(struct HfTracker *tracker,
                                  const uint8_t *pixels,
@@ -542,8 +544,26 @@ enum HfStatus hf_tracker_process(struct HfTracker *tracker,
                                  struct HfResult *out);
 
 /**
+ * `hf_tracker_process` with the length of the pixel buffer: a buffer shorter than the image spans
+ * (`stride * (height - 1) + width` bytes) is `HF_STATUS_INVALID_ARGUMENT`, never a read past its end.
+ *
+ * # Safety
+ * As `hf_tracker_process`, with `pixels` pointing to `pixels_len` readable bytes.
+ */
+enum HfStatus hf_tracker_process_buf(struct HfTracker *tracker,
+                                     const uint8_t *pixels,
+                                     size_t pixels_len,
+                                     uint32_t width,
+                                     uint32_t height,
+                                     uint32_t stride,
+                                     uint64_t timestamp_us,
+                                     const struct HfCamera *camera,
+                                     const float *world_from_camera,
+                                     struct HfResult *out);
+
+/**
  * Processes one gray8 frame like `hf_tracker_process` and reports every tracked face with its id. Set
- * `out->struct_size = sizeof(HfFaces)` first.
+ * `out->struct_size = sizeof(HfFaces)` first. `hf_tracker_process_faces_buf` takes the buffer's length too.
  *
  * # Safety
  * As `hf_tracker_process`, with `out` pointing to one `HfFaces` whose `struct_size` is initialised.
@@ -557,6 +577,23 @@ enum HfStatus hf_tracker_process_faces(struct HfTracker *tracker,
                                        const struct HfCamera *camera,
                                        const float *world_from_camera,
                                        struct HfFaces *out);
+
+/**
+ * `hf_tracker_process_faces` with the length of the pixel buffer, as `hf_tracker_process_buf`.
+ *
+ * # Safety
+ * As `hf_tracker_process_faces`, with `pixels` pointing to `pixels_len` readable bytes.
+ */
+enum HfStatus hf_tracker_process_faces_buf(struct HfTracker *tracker,
+                                           const uint8_t *pixels,
+                                           size_t pixels_len,
+                                           uint32_t width,
+                                           uint32_t height,
+                                           uint32_t stride,
+                                           uint64_t timestamp_us,
+                                           const struct HfCamera *camera,
+                                           const float *world_from_camera,
+                                           struct HfFaces *out);
 
 /**
  * The tracker's link to the alignment server: `HF_LINK_STATE_LOCAL` without a server, else whether it is up

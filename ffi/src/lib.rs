@@ -816,19 +816,16 @@ unsafe fn new_tracker(
     }
 }
 
-/// The checks and the tracking `hf_tracker_process` and `hf_tracker_process_faces` share.
+/// The checks and the tracking every process call shares.
 ///
 /// # Safety
-/// As `hf_tracker_process` (`out` excepted).
+/// As `hf_tracker_process_buf` when the length is given, else as `hf_tracker_process` (`out` excepted).
 unsafe fn process_frame(
     what: &str,
     tracker: &Shared,
-    pixels: *const u8,
-    (width, height, stride): (u32, u32, u32),
-    timestamp_us: u64,
-    camera: *const HfCamera,
-    world_from_camera: *const f32,
+    frame: CFrame,
 ) -> Result<holoface_headset_client::FrameResult, HfStatus> {
+    let (pixels, pixels_len, (width, height, stride), timestamp_us, camera, world_from_camera) = frame;
     if pixels.is_null() || camera.is_null() {
         return Err(fail(
             HfStatus::NullPointer,
@@ -842,8 +839,34 @@ unsafe fn process_frame(
             format!("image {width}x{height} with stride {stride}"),
         ));
     }
-    // SAFETY: the caller guarantees `stride * height` readable bytes.
-    let data = unsafe { std::slice::from_raw_parts(pixels, s * h) };
+    // The bytes the image spans: every row but the last at `stride`, the last `width` long.
+    let (Some(spans), Some(whole)) = (
+        s.checked_mul(h - 1).and_then(|b| b.checked_add(w)),
+        s.checked_mul(h),
+    ) else {
+        return Err(fail(
+            HfStatus::InvalidArgument,
+            format!(
+                "{what}: a {width}x{height} image with stride {stride} spans more bytes than memory holds"
+            ),
+        ));
+    };
+    let readable = match pixels_len {
+        Some(len) if len < spans => {
+            return Err(fail(
+                HfStatus::InvalidArgument,
+                format!(
+                    "{what}: a {width}x{height} image with stride {stride} spans {spans} bytes, the buffer holds \
+                     {len}"
+                ),
+            ));
+        }
+        Some(_) => spans,
+        // The call without a length: the caller guarantees `stride * height` readable bytes.
+        None => whole,
+    };
+    // SAFETY: `readable` bytes are readable: checked against the buffer's length, or the caller's guarantee.
+    let data = unsafe { std::slice::from_raw_parts(pixels, readable) };
     let Ok(image) = GrayView::new(data, w, h, s) else {
         return Err(fail(HfStatus::InvalidArgument, "image does not fit its buffer"));
     };
@@ -897,12 +920,14 @@ unsafe fn process_frame(
 }
 
 /// Processes one gray8 frame. `world_from_camera` is a row-major 4x4 camera-to-world matrix (16 floats) or
-/// NULL for identity. Timestamps must increase in video mode.
+/// NULL for identity. Timestamps must increase in video mode, by at most an hour between frames (a larger
+/// step is refused for that frame unless the next frame follows it), and the camera must be within 10 km of
+/// the world origin. `hf_tracker_process_buf` takes the buffer's length too and refuses a short buffer.
 ///
 /// # Safety
-/// `tracker` is a handle from `hf_tracker_new` or anything else (checked); `pixels` points to
-/// `stride * height` readable bytes; `camera` to one `HfCamera`; `world_from_camera` is NULL or points to 16
-/// floats; `out` to writable memory for one `HfResult`.
+/// `tracker` is any pointer value (looked up, never dereferenced); `pixels` points to `stride * height`
+/// readable bytes; `camera` to one `HfCamera`; `world_from_camera` is NULL or points to 16 floats; `out` to
+/// writable memory for one `HfResult`.
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn hf_tracker_process(
     tracker: *mut HfTracker,
@@ -915,37 +940,83 @@ pub unsafe extern "C" fn hf_tracker_process(
     world_from_camera: *const f32,
     out: *mut HfResult,
 ) -> HfStatus {
-    guard(|| {
-        let tracker = match self::tracker("hf_tracker_process", tracker) {
-            Ok(t) => t,
-            Err(status) => return status,
-        };
-        if out.is_null() {
-            return fail(HfStatus::NullPointer, "hf_tracker_process: out must not be NULL");
-        }
-        // SAFETY: the caller's contract is `process_frame`'s.
-        let r = match unsafe {
-            process_frame(
-                "hf_tracker_process",
-                &tracker,
-                pixels,
-                (width, height, stride),
-                timestamp_us,
-                camera,
-                world_from_camera,
-            )
-        } {
-            Ok(r) => r,
-            Err(status) => return status,
-        };
-        // SAFETY: writable per the contract.
-        unsafe { out.write(to_c(&r)) };
-        HfStatus::Ok
-    })
+    let frame = (
+        pixels,
+        None,
+        (width, height, stride),
+        timestamp_us,
+        camera,
+        world_from_camera,
+    );
+    // SAFETY: the caller's contract is `process_one`'s.
+    guard(|| unsafe { process_one("hf_tracker_process", tracker, frame, out) })
+}
+
+/// `hf_tracker_process` with the length of the pixel buffer: a buffer shorter than the image spans
+/// (`stride * (height - 1) + width` bytes) is `HF_STATUS_INVALID_ARGUMENT`, never a read past its end.
+///
+/// # Safety
+/// As `hf_tracker_process`, with `pixels` pointing to `pixels_len` readable bytes.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_process_buf(
+    tracker: *mut HfTracker,
+    pixels: *const u8,
+    pixels_len: usize,
+    width: u32,
+    height: u32,
+    stride: u32,
+    timestamp_us: u64,
+    camera: *const HfCamera,
+    world_from_camera: *const f32,
+    out: *mut HfResult,
+) -> HfStatus {
+    let frame = (
+        pixels,
+        Some(pixels_len),
+        (width, height, stride),
+        timestamp_us,
+        camera,
+        world_from_camera,
+    );
+    // SAFETY: the caller's contract is `process_one`'s.
+    guard(|| unsafe { process_one("hf_tracker_process_buf", tracker, frame, out) })
+}
+
+/// A frame as the C calls pass it: pixels, their length when given, (width, height, stride), timestamp,
+/// camera, camera-to-world matrix.
+type CFrame = (
+    *const u8,
+    Option<usize>,
+    (u32, u32, u32),
+    u64,
+    *const HfCamera,
+    *const f32,
+);
+
+/// `hf_tracker_process` and `hf_tracker_process_buf`.
+///
+/// # Safety
+/// As `hf_tracker_process_buf` when the length is given, else as `hf_tracker_process`.
+unsafe fn process_one(what: &str, tracker: *mut HfTracker, frame: CFrame, out: *mut HfResult) -> HfStatus {
+    let tracker = match self::tracker(what, tracker) {
+        Ok(t) => t,
+        Err(status) => return status,
+    };
+    if out.is_null() {
+        return fail(HfStatus::NullPointer, format!("{what}: out must not be NULL"));
+    }
+    // SAFETY: the caller's contract is `process_frame`'s.
+    let r = match unsafe { process_frame(what, &tracker, frame) } {
+        Ok(r) => r,
+        Err(status) => return status,
+    };
+    // SAFETY: writable per the contract.
+    unsafe { out.write(to_c(&r)) };
+    HfStatus::Ok
 }
 
 /// Processes one gray8 frame like `hf_tracker_process` and reports every tracked face with its id. Set
-/// `out->struct_size = sizeof(HfFaces)` first.
+/// `out->struct_size = sizeof(HfFaces)` first. `hf_tracker_process_faces_buf` takes the buffer's length too.
 ///
 /// # Safety
 /// As `hf_tracker_process`, with `out` pointing to one `HfFaces` whose `struct_size` is initialised.
@@ -961,41 +1032,71 @@ pub unsafe extern "C" fn hf_tracker_process_faces(
     world_from_camera: *const f32,
     out: *mut HfFaces,
 ) -> HfStatus {
-    guard(|| {
-        let tracker = match self::tracker("hf_tracker_process_faces", tracker) {
-            Ok(t) => t,
-            Err(status) => return status,
-        };
-        if out.is_null() {
-            return fail(
-                HfStatus::NullPointer,
-                "hf_tracker_process_faces: out must not be NULL",
-            );
-        }
-        // SAFETY: non-NULL; the caller initialised `struct_size`.
-        if let Err(s) = unsafe { check_struct_size("hf_tracker_process_faces", "HfFaces", out.cast_const()) }
-        {
-            return s;
-        }
-        // SAFETY: the caller's contract is `process_frame`'s.
-        let r = match unsafe {
-            process_frame(
-                "hf_tracker_process_faces",
-                &tracker,
-                pixels,
-                (width, height, stride),
-                timestamp_us,
-                camera,
-                world_from_camera,
-            )
-        } {
-            Ok(r) => r,
-            Err(status) => return status,
-        };
-        // SAFETY: the sizes agree, so `out` is one writable `HfFaces` (written whole, never read).
-        unsafe { out.write(faces_to_c(&r, size_of::<HfFaces>() as u32)) };
-        HfStatus::Ok
-    })
+    let frame = (
+        pixels,
+        None,
+        (width, height, stride),
+        timestamp_us,
+        camera,
+        world_from_camera,
+    );
+    // SAFETY: the caller's contract is `process_faces`'s.
+    guard(|| unsafe { process_faces("hf_tracker_process_faces", tracker, frame, out) })
+}
+
+/// `hf_tracker_process_faces` with the length of the pixel buffer, as `hf_tracker_process_buf`.
+///
+/// # Safety
+/// As `hf_tracker_process_faces`, with `pixels` pointing to `pixels_len` readable bytes.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn hf_tracker_process_faces_buf(
+    tracker: *mut HfTracker,
+    pixels: *const u8,
+    pixels_len: usize,
+    width: u32,
+    height: u32,
+    stride: u32,
+    timestamp_us: u64,
+    camera: *const HfCamera,
+    world_from_camera: *const f32,
+    out: *mut HfFaces,
+) -> HfStatus {
+    let frame = (
+        pixels,
+        Some(pixels_len),
+        (width, height, stride),
+        timestamp_us,
+        camera,
+        world_from_camera,
+    );
+    // SAFETY: the caller's contract is `process_faces`'s.
+    guard(|| unsafe { process_faces("hf_tracker_process_faces_buf", tracker, frame, out) })
+}
+
+/// `hf_tracker_process_faces` and `hf_tracker_process_faces_buf`.
+///
+/// # Safety
+/// As `hf_tracker_process_faces_buf` when the length is given, else as `hf_tracker_process_faces`.
+unsafe fn process_faces(what: &str, tracker: *mut HfTracker, frame: CFrame, out: *mut HfFaces) -> HfStatus {
+    let tracker = match self::tracker(what, tracker) {
+        Ok(t) => t,
+        Err(status) => return status,
+    };
+    if out.is_null() {
+        return fail(HfStatus::NullPointer, format!("{what}: out must not be NULL"));
+    }
+    // SAFETY: non-NULL; the caller initialised `struct_size`.
+    if let Err(s) = unsafe { check_struct_size(what, "HfFaces", out.cast_const()) } {
+        return s;
+    }
+    // SAFETY: the caller's contract is `process_frame`'s.
+    let r = match unsafe { process_frame(what, &tracker, frame) } {
+        Ok(r) => r,
+        Err(status) => return status,
+    };
+    // SAFETY: the sizes agree, so `out` is one writable `HfFaces` (written whole, never read).
+    unsafe { out.write(faces_to_c(&r, size_of::<HfFaces>() as u32)) };
+    HfStatus::Ok
 }
 
 fn answered_by_c(a: Option<AnsweredBy>) -> HfAnsweredBy {

@@ -4,12 +4,13 @@
 //! timestamp locked a tracker for good; a second `ort_dylib` was silently ignored; a pose 1e30 m away passed.
 #![allow(unsafe_code, clippy::unwrap_used)]
 
+use std::collections::HashMap;
 use std::ffi::CStr;
 use std::mem::MaybeUninit;
 
 use holoface::{
     HfCamera, HfOptions, HfResult, HfStatus, HfTracker, hf_last_error, hf_options_default, hf_tracker_free,
-    hf_tracker_new, hf_tracker_process,
+    hf_tracker_link_status, hf_tracker_new, hf_tracker_process, hf_tracker_process_buf,
 };
 
 const SIDE: u32 = 64;
@@ -185,4 +186,155 @@ fn a_second_onnx_runtime_library_is_refused_naming_the_loaded_one() {
     );
     assert_eq!(process(first, 1), HfStatus::Ok, "{}", last_error());
     assert_eq!(free(first), HfStatus::Ok);
+}
+
+#[test]
+fn with_its_length_a_short_buffer_or_an_absurd_stride_is_refused_not_read_past() {
+    let t = new_tracker();
+    let px = vec![0u8; (SIDE * SIDE) as usize];
+    let cam = HfCamera {
+        fx: 60.0,
+        fy: 60.0,
+        cx: 32.0,
+        cy: 32.0,
+    };
+    let mut out = MaybeUninit::<HfResult>::uninit();
+    let call =
+        |len: usize, width: u32, height: u32, stride: u32, ts: u64, out: &mut MaybeUninit<HfResult>| {
+            // SAFETY: `px` holds `px.len()` >= `len` bytes; the other pointers are valid.
+            unsafe {
+                hf_tracker_process_buf(
+                    t,
+                    px.as_ptr(),
+                    len,
+                    width,
+                    height,
+                    stride,
+                    ts,
+                    &cam,
+                    std::ptr::null(),
+                    out.as_mut_ptr(),
+                )
+            }
+        };
+    // The probe's cases: a 16384x16384 frame over this 4 KB buffer, and stride UINT32_MAX.
+    assert_eq!(
+        call(px.len(), 16_384, 16_384, 16_384, 1, &mut out),
+        HfStatus::InvalidArgument
+    );
+    assert!(
+        last_error().contains("spans 268435456 bytes, the buffer holds 4096"),
+        "{}",
+        last_error()
+    );
+    assert_eq!(
+        call(px.len(), SIDE, SIDE, u32::MAX, 1, &mut out),
+        HfStatus::InvalidArgument
+    );
+    // One byte short of what the image spans (the last row needs only its width).
+    let spans = (SIDE * (SIDE - 1) + SIDE) as usize;
+    assert_eq!(
+        call(spans - 1, SIDE, SIDE, SIDE, 1, &mut out),
+        HfStatus::InvalidArgument
+    );
+    assert_eq!(
+        call(spans, SIDE, SIDE, SIDE, 1, &mut out),
+        HfStatus::Ok,
+        "{}",
+        last_error()
+    );
+    assert_eq!(free(t), HfStatus::Ok);
+}
+
+fn link_status(t: *mut HfTracker) -> HfStatus {
+    let mut out = MaybeUninit::uninit();
+    // SAFETY: any pointer value may be passed; `out` is writable.
+    unsafe { hf_tracker_link_status(t, out.as_mut_ptr()) }
+}
+
+/// xorshift64*: the property test's sequences, reproducible from their seed.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n as u64) as usize
+    }
+}
+
+/// Random sequences of create, process, link status, free, stale use, double free and forged handles, checked
+/// against a model of which handles are live: a live handle always works and keeps its own clock, anything
+/// else is INVALID_HANDLE, and no handle is ever issued twice. 10,000 operations natively (creating a tracker
+/// is the costly one, so the sequences create about one in three hundred), 600 under emulation.
+#[test]
+fn random_sequences_of_handle_operations_match_the_model() {
+    let ops_per_seed = if emulated() { 150 } else { 2_500 };
+    for seed in [0x5eed_0001_u64, 0x5eed_0002, 0x5eed_0003, 0x5eed_0004] {
+        let mut rng = Rng(seed);
+        let mut live: Vec<*mut HfTracker> = Vec::new();
+        let mut dead: Vec<*mut HfTracker> = Vec::new();
+        let mut clock: HashMap<usize, u64> = HashMap::new();
+        for op in 0..ops_per_seed {
+            let at = format!("seed {seed:#x}, operation {op}");
+            let roll = rng.below(1_000);
+            if live.is_empty() || (roll < 3 && live.len() < 3) {
+                let t = new_tracker();
+                assert!(
+                    !live.contains(&t) && !dead.contains(&t),
+                    "{at}: handle {t:p} issued twice"
+                );
+                live.push(t);
+            } else if roll < 6 {
+                let t = live.swap_remove(rng.below(live.len()));
+                assert_eq!(free(t), HfStatus::Ok, "{at}: {}", last_error());
+                dead.push(t);
+            } else if roll < 100 {
+                let t = live[rng.below(live.len())];
+                let ts = clock.entry(t.addr()).or_insert(0);
+                *ts += 1 + rng.next() % 100_000;
+                assert_eq!(process(t, *ts), HfStatus::Ok, "{at}: {}", last_error());
+                assert_eq!(last_error(), "", "{at}: a success clears the last error");
+            } else if roll < 450 {
+                let t = live[rng.below(live.len())];
+                assert_eq!(link_status(t), HfStatus::Ok, "{at}: {}", last_error());
+            } else {
+                // Something that is not a live handle: a freed one, or a forged value (small numbers, which a
+                // later tracker could be given, an address, the extremes).
+                let t = if !dead.is_empty() && roll < 725 {
+                    dead[rng.below(dead.len())]
+                } else {
+                    let forged = match rng.below(4) {
+                        0 => rng.below(64),
+                        1 => rng.next() as usize,
+                        2 => (&raw const roll).addr(),
+                        _ => usize::MAX - rng.below(8),
+                    };
+                    std::ptr::without_provenance_mut(forged)
+                };
+                if live.contains(&t) {
+                    continue;
+                }
+                let status = match rng.below(3) {
+                    0 => process(t, 1),
+                    1 => link_status(t),
+                    _ => free(t),
+                };
+                assert_eq!(status, HfStatus::InvalidHandle, "{at}: {t:p}");
+                assert!(
+                    last_error().contains("not a live tracker handle"),
+                    "{at}: {}",
+                    last_error()
+                );
+            }
+        }
+        for t in live {
+            assert_eq!(free(t), HfStatus::Ok, "seed {seed:#x}: {}", last_error());
+        }
+    }
 }

@@ -116,6 +116,10 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_new(ref HfOptions options, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_process(IntPtr tracker, byte[] pixels, uint width, uint height,
             uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, out HfResult result);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_process_buf(IntPtr tracker, byte[] pixels, UIntPtr pixelsLen,
+            uint width, uint height, uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, out HfResult result);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_process_faces_buf(IntPtr tracker, byte[] pixels, UIntPtr pixelsLen,
+            uint width, uint height, uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, ref HfFaces faces);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_new_faces(ref HfOptions options, uint maxFaces, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_process_faces(IntPtr tracker, byte[] pixels, uint width, uint height,
             uint stride, ulong timestampUs, ref HfCamera camera, float[] worldFromCamera, ref HfFaces faces);
@@ -181,8 +185,9 @@ namespace HoloFace
         public HfResult Process(byte[] gray, int width, int height, ulong timestampUs, HfCamera camera, float[] worldFromCamera)
         {
             CheckFrame(gray, width, height, worldFromCamera);
-            var s = Native.hf_tracker_process(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
-                worldFromCamera, out var r);
+            // The length too: the library refuses a buffer shorter than the image instead of reading past it.
+            var s = Native.hf_tracker_process_buf(handle, gray, (UIntPtr)gray.Length, (uint)width, (uint)height, (uint)width,
+                timestampUs, ref camera, worldFromCamera, out var r);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             return r;
         }
@@ -192,8 +197,8 @@ namespace HoloFace
         {
             CheckFrame(gray, width, height, worldFromCamera);
             var all = new HfFaces { structSize = (uint)Marshal.SizeOf(typeof(HfFaces)), faces = new HfFace[HfFaces.MaxFaces] };
-            var s = Native.hf_tracker_process_faces(handle, gray, (uint)width, (uint)height, (uint)width, timestampUs, ref camera,
-                worldFromCamera, ref all);
+            var s = Native.hf_tracker_process_faces_buf(handle, gray, (UIntPtr)gray.Length, (uint)width, (uint)height,
+                (uint)width, timestampUs, ref camera, worldFromCamera, ref all);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             var faces = new HfFace[Math.Min(all.count, (uint)HfFaces.MaxFaces)];
             Array.Copy(all.faces, faces, faces.Length);

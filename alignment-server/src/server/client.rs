@@ -12,7 +12,7 @@ use holoface_protocol::{
 use quinn::{Connection, Incoming, RecvStream, SendStream, VarInt};
 use tokio::sync::watch;
 use tokio::task::{JoinHandle, JoinSet};
-use tracing::{debug, info, warn};
+use tracing::{debug, info};
 
 use super::admission::PendingSlot;
 use super::auth::{authorize, read_hello};
@@ -83,7 +83,7 @@ pub(super) async fn connection(incoming: Incoming, slot: PendingSlot, shared: Ar
         }
         ConnectionEnd::Fault(f) => {
             metrics.count_close(f.code);
-            warn!(client, %remote, code = %f.code, detail = %f.detail, "closing misbehaving client");
+            shared.log_fault(client, remote, &f);
             close_conn(&conn, f.code, &f.detail);
         }
     }
@@ -114,12 +114,12 @@ async fn serve_connection(
     // Authenticated: leave the pending budget for a client slot.
     let Some(_permit) = slot.promote() else {
         shared.metrics.rejected_overloaded.fetch_add(1, Ordering::Relaxed);
-        warn!(
-            client,
-            max_clients = settings.max_clients,
-            "client cap reached: closing with Overloaded"
-        );
-        return Fault::new(CloseCode::Overloaded, "client cap reached").into();
+        // Logged (within the misbehaving-client log's bounds) as the close.
+        return Fault::new(
+            CloseCode::Overloaded,
+            format!("client cap reached ({} clients)", settings.max_clients),
+        )
+        .into();
     };
     let _gauge = GaugeGuard::new(&shared.metrics.connected_clients);
 

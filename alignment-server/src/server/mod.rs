@@ -43,6 +43,7 @@ mod engine_thread;
 mod fault;
 mod frame_stream;
 pub(crate) mod lifecycle;
+mod log_throttle;
 mod rate_limit;
 mod reply;
 mod scheduler;
@@ -117,6 +118,36 @@ struct Shared {
     stop: watch::Receiver<bool>,
     next_client: AtomicU64,
     admission: Arc<Admission>,
+    /// Which misbehaving clients' closes get a log line of their own.
+    log_throttle: Arc<std::sync::Mutex<log_throttle::LogThrottle>>,
+}
+
+impl Shared {
+    /// Logs a misbehaving client's close, unless its code has had its burst of lines in this window; logs
+    /// the previous window's summary when it ended with closes left out.
+    fn log_fault(&self, client: crate::batcher::ClientId, remote: SocketAddr, fault: &fault::Fault) {
+        let (log, ended) = self
+            .log_throttle
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .admit(fault.code, std::time::Instant::now());
+        if let Some(s) = ended {
+            log_suppressed(s);
+        }
+        if log {
+            warn!(client, %remote, code = %fault.code, detail = %fault.detail, "closing misbehaving client");
+        }
+    }
+}
+
+/// One line for the closes of a window that were not logged one by one.
+fn log_suppressed(s: log_throttle::Suppressed) {
+    warn!(
+        code = %s.code,
+        closes = s.count,
+        window_s = log_throttle::WINDOW.as_secs(),
+        "closed more misbehaving clients than logged one by one (the metrics count every close)"
+    );
 }
 
 /// A bound, not yet running, alignment server.
@@ -400,7 +431,31 @@ impl AlignmentServer {
             stop: stop_rx,
             next_client: AtomicU64::new(1),
             admission,
+            log_throttle: Arc::default(),
         });
+        // The tail of a flood of bad clients is summed up even when no close follows it, and at shutdown.
+        let log_flush = {
+            let (throttle, mut stop) = (Arc::clone(&shared.log_throttle), shared.stop.clone());
+            tokio::spawn(async move {
+                let mut tick = tokio::time::interval(log_throttle::WINDOW);
+                loop {
+                    let stopping = tokio::select! {
+                        _ = tick.tick() => false,
+                        _ = stop.changed() => true,
+                    };
+                    let mut throttle = throttle.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                    let ended = if stopping {
+                        throttle.drain()
+                    } else {
+                        throttle.flush(std::time::Instant::now())
+                    };
+                    ended.into_iter().for_each(log_suppressed);
+                    if stopping {
+                        break;
+                    }
+                }
+            })
+        };
         metrics.ready.store(true, Ordering::Relaxed);
         notify_systemd_ready();
         info!(
@@ -478,6 +533,7 @@ impl AlignmentServer {
             task.abort();
         }
         join_engine_threads(engine_threads).await?;
+        let _ = log_flush.await;
         info!("shutdown complete");
         Ok(())
     }
