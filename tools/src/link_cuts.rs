@@ -1,10 +1,15 @@
 //! `--link-cuts`: a link schedule in media time for `holoface track` and `holoface stability`. The remote
 //! aligner talks to its server through a loopback relay ([`crate::relay::UdpRelay`], the demo's) that drops
 //! every datagram while the frame being tracked lies inside a cut, so a clip run remote shows the local
-//! answers (and their adaptation) where a real link would have dropped.
+//! answers (and their adaptation) where a real link would have dropped. The link itself runs on the wall
+//! clock (connecting, its hold-off after a loss, its backoff, the deadlines), so the frames are fed at their
+//! own timestamps ([`Pacer`]), as a camera's come: a file or pipe read faster than real time would otherwise
+//! see the link recover after far more media time than a headset would, and by how much would depend on how
+//! fast the machine decodes.
 
 use std::net::SocketAddr;
 use std::str::FromStr;
+use std::time::{Duration, Instant};
 
 use crate::relay::UdpRelay;
 
@@ -60,6 +65,31 @@ impl LinkCuts {
     }
 }
 
+/// Feeds frames at their own timestamps, as a camera delivers them: [`Pacer::wait`] returns when the frame's
+/// time has come on the wall clock, counted from the first frame. A frame that is already late (the source
+/// is live, or the tracker is slower than real time) is not waited for.
+#[derive(Debug, Default)]
+pub struct Pacer {
+    origin: Option<(Instant, u64)>,
+    waited: Duration,
+}
+
+impl Pacer {
+    /// Waits until the frame at `timestamp_us` is due.
+    pub fn wait(&mut self, timestamp_us: u64) {
+        let (t0, ts0) = *self.origin.get_or_insert((Instant::now(), timestamp_us));
+        let due = t0 + Duration::from_micros(timestamp_us.saturating_sub(ts0));
+        let wait = due.saturating_duration_since(Instant::now());
+        self.waited += wait;
+        std::thread::sleep(wait);
+    }
+
+    /// How long the frames were held back in all: the time a faster-than-real-time source would have saved.
+    pub fn waited(&self) -> Duration {
+        self.waited
+    }
+}
+
 /// A relay in front of a server that cuts the link on [`LinkCuts`]' schedule as frames go by.
 #[derive(Debug)]
 pub struct CutRelay {
@@ -107,6 +137,21 @@ impl CutRelay {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_pacer_holds_frames_until_their_time_and_never_waits_for_a_late_one() {
+        let mut p = Pacer::default();
+        let t0 = Instant::now();
+        p.wait(1_000_000);
+        p.wait(1_030_000);
+        p.wait(1_060_000);
+        assert!(t0.elapsed() >= Duration::from_millis(60), "{:?}", t0.elapsed());
+        // A frame already late: no wait.
+        std::thread::sleep(Duration::from_millis(50));
+        let before = p.waited();
+        p.wait(1_070_000);
+        assert_eq!(p.waited(), before);
+    }
 
     #[test]
     fn schedules_parse_and_say_what_is_wrong() {

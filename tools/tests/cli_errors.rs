@@ -381,7 +381,9 @@ fn link_cuts_follow_media_time_and_need_the_remote_aligner() {
         !ok && text.contains("starts before the previous cut ends"),
         "{text}"
     );
-    // 30 fps: frames at 0, 33, 67 and 100 ms; a cut from 40 ms for 50 ms holds the third frame only.
+    // 30 fps: frames at 0, 33, 67 and 100 ms; a cut from 40 ms for 50 ms holds the third frame only. The
+    // frames come at their timestamps, as a camera's would (the link's own clock is the wall clock).
+    let started = std::time::Instant::now();
     let (ok, text) = track(&[
         "--aligner",
         "remote",
@@ -394,6 +396,11 @@ fn link_cuts_follow_media_time_and_need_the_remote_aligner() {
         "--no-adapt",
     ]);
     assert!(ok, "{text}");
+    assert!(started.elapsed() >= std::time::Duration::from_millis(100));
+    assert!(
+        text.contains("--link-cuts: frames fed at their timestamps"),
+        "{text}"
+    );
     let cut: Vec<bool> = json_lines(&out)
         .iter()
         .map(|l| l["link_cut"].as_bool().unwrap())

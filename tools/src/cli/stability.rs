@@ -421,16 +421,14 @@ fn track_clip(
 ) -> anyhow::Result<Vec<bool>> {
     let mut in_cut = Vec::new();
     let mut frames = 0usize;
-    let mut clock: Option<(std::time::Instant, u64)> = None;
+    let mut pacer = paced.then(crate::link_cuts::Pacer::default);
     let mut first_us = None;
     while frames < max_frames {
         let Some(sf) = source.next_frame()? else {
             break;
         };
-        if paced {
-            let (t0, ts0) = *clock.get_or_insert((std::time::Instant::now(), sf.timestamp_us));
-            let due = t0 + Duration::from_micros(sf.timestamp_us.saturating_sub(ts0));
-            std::thread::sleep(due.saturating_duration_since(std::time::Instant::now()));
+        if let Some(p) = pacer.as_mut() {
+            p.wait(sf.timestamp_us);
         }
         let origin = *first_us.get_or_insert(sf.timestamp_us);
         in_cut.push(cuts.is_some_and(|c| c.contains(sf.timestamp_us.saturating_sub(origin) as f64 * 1e-6)));
@@ -789,7 +787,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .iter()
         .map(|(n, f)| other_peer(n, f, peer.as_deref()))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    crate::say!("{}: {frames} frames", args.source.display());
+    crate::say!(
+        "{}: {frames} frames{}",
+        args.source.display(),
+        if remote_runs {
+            ", fed at their timestamps as a camera's come (a server is in the loop: the link and its deadlines \
+             run on the wall clock)"
+        } else {
+            ", as fast as they decode"
+        }
+    );
     say_table(&reports, peer.as_deref(), peer_jitter);
     say_others(&reports, &others);
     let doc = json!({
@@ -797,6 +804,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "frames": frames,
         "steady": !args.steady.no_steady,
         "link_cuts": args.link_cuts.as_ref().map(|c| c.windows().to_vec()),
+        "paced": remote_runs,
         "aligners": reports,
         "other_peers": others,
         "peer": peer.as_ref().map(|p| json!({

@@ -196,6 +196,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .map(|p| Annotated::open(p, args.input.fps))
         .transpose()?;
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
+    // The cuts are in media time and the link runs on the wall clock: the frames come at their timestamps.
+    let mut pacer = relay.is_some().then(crate::link_cuts::Pacer::default);
     let mut reader_gone = false;
     let mut line_bytes = Vec::new();
     while stop::requested().is_none() {
@@ -206,6 +208,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             Err(_) if stop::requested().is_some() => break,
             Err(e) => return Err(e.into()),
         };
+        if let Some(p) = pacer.as_mut() {
+            p.wait(sf.timestamp_us);
+        }
         let link_cut = relay.as_mut().map(|r| r.at(sf.timestamp_us));
         let frame = sf.view();
         let step = tracker
@@ -262,6 +267,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (frames, faces, remote_frames),
         annotated,
     );
+    if let Some(p) = &pacer {
+        crate::say!(
+            "--link-cuts: frames fed at their timestamps, as a camera's come (the link connects, holds off and \
+             backs off on the wall clock); held back {:.1} s in all",
+            p.waited().as_secs_f64()
+        );
+    }
     if let Some(sig) = stopped {
         // The shell's code for the signal, as for any command it ends; the outputs are complete.
         std::process::exit(stop::exit_code(sig));
