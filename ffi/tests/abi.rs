@@ -15,6 +15,14 @@ use holoface::{
 
 const SIDE: u32 = 64;
 
+/// The frames' camera: a 64-px image, principal point at its centre.
+const CAMERA: HfCamera = HfCamera {
+    fx: 60.0,
+    fy: 60.0,
+    cx: 32.0,
+    cy: 32.0,
+};
+
 /// Under qemu (`make arm64-test` sets `HOLOFACE_EMULATED`).
 fn emulated() -> bool {
     std::env::var_os("HOLOFACE_EMULATED").is_some()
@@ -52,12 +60,7 @@ const IDENTITY: [f32; 16] = [
 /// One blank frame (no face) at `timestamp_us` with the row-major camera-to-world matrix `pose`.
 fn process_at(t: *mut HfTracker, timestamp_us: u64, pose: &[f32; 16]) -> HfStatus {
     let px = [0u8; (SIDE * SIDE) as usize];
-    let cam = HfCamera {
-        fx: 60.0,
-        fy: 60.0,
-        cx: 32.0,
-        cy: 32.0,
-    };
+    let cam = CAMERA;
     let mut out = MaybeUninit::<HfResult>::uninit();
     // SAFETY: `px` holds stride * height bytes, `cam` and `out` are valid; the handle is looked up.
     unsafe {
@@ -192,12 +195,7 @@ fn a_second_onnx_runtime_library_is_refused_naming_the_loaded_one() {
 fn with_its_length_a_short_buffer_or_an_absurd_stride_is_refused_not_read_past() {
     let t = new_tracker();
     let px = vec![0u8; (SIDE * SIDE) as usize];
-    let cam = HfCamera {
-        fx: 60.0,
-        fy: 60.0,
-        cx: 32.0,
-        cy: 32.0,
-    };
+    let cam = CAMERA;
     let mut out = MaybeUninit::<HfResult>::uninit();
     let call =
         |len: usize, width: u32, height: u32, stride: u32, ts: u64, out: &mut MaybeUninit<HfResult>| {
