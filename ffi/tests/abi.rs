@@ -7,6 +7,7 @@
 use std::collections::HashMap;
 use std::ffi::CStr;
 use std::mem::MaybeUninit;
+use std::sync::{PoisonError, RwLock, RwLockReadGuard};
 
 use holoface::{
     HfCamera, HfOptions, HfResult, HfStatus, HfTracker, hf_last_error, hf_options_default, hf_tracker_free,
@@ -22,6 +23,15 @@ const CAMERA: HfCamera = HfCamera {
     cx: 32.0,
     cy: 32.0,
 };
+
+/// The handle registry is one per process, and `cargo test` (as `make arm64-test` runs it) runs these tests as
+/// threads of one process: the property test forges small handle values that another test's live tracker can
+/// hold, so it holds this lock exclusively and every other test holds it shared.
+static REGISTRY: RwLock<()> = RwLock::new(());
+
+fn shared_registry() -> RwLockReadGuard<'static, ()> {
+    REGISTRY.read().unwrap_or_else(PoisonError::into_inner)
+}
 
 /// Under qemu (`make arm64-test` sets `HOLOFACE_EMULATED`).
 fn emulated() -> bool {
@@ -85,6 +95,7 @@ fn free(t: *mut HfTracker) -> HfStatus {
 
 #[test]
 fn a_stale_handle_never_reaches_a_tracker_created_after_it() {
+    let _registry = shared_registry();
     let stale = new_tracker();
     assert_eq!(process(stale, 1), HfStatus::Ok, "{}", last_error());
     assert_eq!(free(stale), HfStatus::Ok);
@@ -117,6 +128,7 @@ fn a_stale_handle_never_reaches_a_tracker_created_after_it() {
 
 #[test]
 fn an_absurd_timestamp_is_refused_for_its_frame_and_the_tracker_goes_on() {
+    let _registry = shared_registry();
     let t = new_tracker();
     let other = new_tracker();
     assert_eq!(process(t, 1_000), HfStatus::Ok, "{}", last_error());
@@ -150,6 +162,7 @@ fn an_absurd_timestamp_is_refused_for_its_frame_and_the_tracker_goes_on() {
 
 #[test]
 fn a_camera_beyond_ten_kilometres_is_refused_and_the_next_frame_is_not() {
+    let _registry = shared_registry();
     let t = new_tracker();
     let mut far = IDENTITY;
     far[3] = 1e30;
@@ -167,6 +180,7 @@ fn a_camera_beyond_ten_kilometres_is_refused_and_the_next_frame_is_not() {
 
 #[test]
 fn a_second_onnx_runtime_library_is_refused_naming_the_loaded_one() {
+    let _registry = shared_registry();
     let first = new_tracker();
     let mut o = MaybeUninit::<HfOptions>::uninit();
     // SAFETY: a writable HfOptions.
@@ -193,6 +207,7 @@ fn a_second_onnx_runtime_library_is_refused_naming_the_loaded_one() {
 
 #[test]
 fn with_its_length_a_short_buffer_or_an_absurd_stride_is_refused_not_read_past() {
+    let _registry = shared_registry();
     let t = new_tracker();
     let px = vec![0u8; (SIDE * SIDE) as usize];
     let cam = CAMERA;
@@ -272,6 +287,7 @@ impl Rng {
 /// is the costly one, so the sequences create about one in three hundred), 600 under emulation.
 #[test]
 fn random_sequences_of_handle_operations_match_the_model() {
+    let _registry = REGISTRY.write().unwrap_or_else(PoisonError::into_inner);
     let ops_per_seed = if emulated() { 150 } else { 2_500 };
     for seed in [0x5eed_0001_u64, 0x5eed_0002, 0x5eed_0003, 0x5eed_0004] {
         let mut rng = Rng(seed);
