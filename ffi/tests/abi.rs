@@ -284,12 +284,17 @@ impl Rng {
 /// Random sequences of create, process, link status, free, stale use, double free and forged handles, checked
 /// against a model of which handles are live: a live handle always works and keeps its own clock, anything
 /// else is INVALID_HANDLE, and no handle is ever issued twice. 10,000 operations natively (creating a tracker
-/// is the costly one, so the sequences create about one in three hundred), 600 under emulation.
+/// is the costly one, so the sequences create about one in three hundred). Under emulation, where a frame takes a
+/// third of a second, one sequence of 100: the handle table is the same code on both architectures, and the
+/// sequence shows it behaves there too.
 #[test]
 fn random_sequences_of_handle_operations_match_the_model() {
     let _registry = REGISTRY.write().unwrap_or_else(PoisonError::into_inner);
-    let ops_per_seed = if emulated() { 150 } else { 2_500 };
-    for seed in [0x5eed_0001_u64, 0x5eed_0002, 0x5eed_0003, 0x5eed_0004] {
+    let (seeds, ops_per_seed) = if emulated() { (1, 100) } else { (4, 2_500) };
+    for seed in [0x5eed_0001_u64, 0x5eed_0002, 0x5eed_0003, 0x5eed_0004]
+        .into_iter()
+        .take(seeds)
+    {
         let mut rng = Rng(seed);
         let mut live: Vec<*mut HfTracker> = Vec::new();
         let mut dead: Vec<*mut HfTracker> = Vec::new();

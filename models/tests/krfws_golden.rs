@@ -69,21 +69,21 @@ fn validation_faces(root: &std::path::Path) -> impl Iterator<Item = (GrayImage, 
         })
 }
 
+// Under qemu (`make arm64-test`) it would take a fifth of the emulated tests' time to prove nothing new: the restarts
+// are arithmetic over the kernels, and `every_instruction_set_path_gives_exactly_the_portable_results` proves
+// those equal to the portable ones there; the aarch64 accuracy run (scripts/arm64-accuracy.py) aligns all 168 faces.
 #[test]
+#[cfg_attr(
+    holoface_emulated,
+    ignore = "under emulation the kernels' equality and the accuracy run cover it"
+)]
 fn restarts_recover_from_shifted_boxes_better_than_one_start() {
     let root = data_root();
     let m = model();
     let mut scratch = KrfwsScratch::new();
     let mut out = [Point2::default(); N_POINTS];
     let (mut one, mut many) = (0.0, 0.0);
-    // Under emulation (`make arm64-test` runs the aarch64 build under qemu, about 40x slower) every 6th
-    // face: 28 faces, 13 starts each, instead of 168.
-    let every = if std::env::var_os("HOLOFACE_EMULATED").is_some() {
-        6
-    } else {
-        1
-    };
-    let faces: Vec<_> = validation_faces(&root).step_by(every).collect();
+    let faces: Vec<_> = validation_faces(&root).collect();
     for (k, (img, gt)) in faces.iter().enumerate() {
         // A box shifted by 15 % of its width, alternating directions: a poor detection.
         let r = Rect::bounding(gt).unwrap();
