@@ -308,7 +308,7 @@ QEMU_USER_VERSION := 1:10.0.2+ds-2+deb13u1~bpo12+1
 ARM64_DEBS := rustc-web=$(RUST_WEB_VERSION) cargo-web=$(RUST_WEB_VERSION) libstd-rust-web-dev:arm64=$(RUST_WEB_VERSION) \
   gcc-aarch64-linux-gnu=4:12.2.0-3 libc6-dev-arm64-cross=2.36-8cross1 qemu-user=$(QEMU_USER_VERSION)
 BACKPORTS_LIST := /etc/apt/sources.list.d/bookworm-backports.list
-.PHONY: arm64-toolchain arm64 arm64-test
+.PHONY: arm64-toolchain arm64 arm64-build arm64-test
 arm64-toolchain:
 	@if ( for p in $(foreach p,$(ARM64_DEBS),$(firstword $(subst =, ,$(p)))); do \
 	    dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || exit 1; done ) && \
@@ -371,10 +371,13 @@ ARM64_ENV := HOLOFACE_HOME=$(ARM64_HOME) ORT_DYLIB_PATH=$(ARM64_HOME)/libonnxrun
 # The whole validation split (168 faces): about 1.2 s a face under qemu, in two processes; smaller fixed subsets
 # were too noisy for the bound (every 6th face: -0.10 to +0.07 points between the six subsets).
 ARM64_FACES = $(HOLOFACE_DATA)/faces68/train models/splits/val.txt
-arm64-test: arm64-toolchain setup-test golden $(SAMPLE_PGM)
-	HOLOFACE_HOME=$(ARM64_HOME) target/debug/holoface setup --arch aarch64 >/dev/null
+# The aarch64 test build alone: it needs nothing of the x86-64 build, so `make test` runs it beside x86-64 phases.
+arm64-build: arm64-toolchain
 	$(ARM64_CARGO) build --locked --profile test --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests --examples
 	$(ARM64_CC) -L $(ARM64_OUT)/debug -lholoface -Wl,-rpath,$(abspath $(ARM64_OUT)/debug) -o $(ARM64_OUT)/debug/track
+
+arm64-test: arm64-build setup-test golden $(SAMPLE_PGM)
+	HOLOFACE_HOME=$(ARM64_HOME) target/debug/holoface setup --arch aarch64 >/dev/null
 	scripts/arm64-abi.sh target/debug/libholoface.so $(ARM64_OUT)/debug/libholoface.so $(ARM64_OUT)/debug/track \
 	  $(ARM64_OUT)/debug/examples/embed
 	$(ARM64_ENV) $(ARM64_CARGO) test --locked --target $(ARM64_TARGET) $(ARM64_PKGS) --lib --tests -q
@@ -463,11 +466,19 @@ python-test: setup-test $(VENV)/.python-dev-installed
 	HOLOFACE_CLI=$(abspath target/debug/holoface) HOLOFACE_WHEEL=$$(ls $(abspath target/wheels)/holoface-*.whl) \
 	  $(PY) -m pytest -q -p no:cacheprovider python/tests
 
-# The phases in order (scripts/test-timings.sh times the same list). Each phase names every set-up step it needs as
+# The phases in order. Each phase names every set-up step it needs as
 # a prerequisite, so any phase, run first or alone on a bare machine, installs what it uses; `setup-order`
 # (scripts/setup-order.py) checks that on the dry run of every target, first.
-TEST_PHASES := setup-order deploy-check check deps-check unit c-example csharp-example python-test arm64-toolchain arm64-test fuzz-build
-test: $(TEST_PHASES)
+TEST_PHASES := setup-order deploy-check arm64-toolchain check deps-check unit c-example csharp-example python-test \
+  fuzz-build arm64-build arm64-test
+# `make test` runs them in this order (scripts/test-steps.sh), two of them beside others: the cross toolchain's
+# apt install beside deploy-check's pip installs, and the aarch64 build (its own target folder) beside the x86-64
+# phases after the unit tests, which use about one core (the C example, C#, the wheel, the fuzz targets' check).
+# Nothing runs beside the unit tests or the emulated ones: those measure latencies against deadlines.
+TEST_STEPS := setup-order deploy-check+arm64-toolchain check deps-check unit \
+  c-example,csharp-example,python-test,fuzz-build+arm64-build arm64-test
+test:
+	scripts/test-steps.sh $(TEST_STEPS)
 # A bare machine's order, checked without running anything (scripts/setup-order.py: `make -n -B` of each target).
 setup-order:
 	python3 scripts/setup-order.py
@@ -475,7 +486,7 @@ setup-order:
 print-%:
 	@echo $($*)
 
-# The same checks phase by phase, with each phase's wall time (scripts/test-timings.sh; BENCHMARKS.md, "Build time").
+# The same steps one by one, with each step's wall and CPU time (scripts/test-timings.sh; BENCHMARKS.md, "Build time").
 test-timings:
 	scripts/test-timings.sh
 

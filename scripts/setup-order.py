@@ -80,10 +80,11 @@ CONSUMERS = [
     (lambda l: re.search(r"(^|[|;&]\s*)ffmpeg -", l) is not None, {"ffmpeg-cli"}, "runs ffmpeg"),
     (lambda l: "deploy/image.sh build" in l, {"container-tools", "home"}, "builds the container image"),
     (lambda l: "deploy/image.sh test" in l, {"container-tools", "home", "venv", "py-eval"}, "smoke-tests the image"),
-    # The aarch64 build (make arm64, arm64-test): Debian's cargo, the cross gcc, qemu.
+    # The aarch64 build (make arm64, arm64-build, arm64-test): Debian's cargo, the cross gcc, qemu. Building with
+    # the test profile (`--profile test`) runs nothing; `cargo test` does.
     (lambda l: re.search(r"(^|\s)(/usr/bin/cargo|aarch64-linux-gnu-gcc|qemu-aarch64) ", l) is not None,
      {"arm64-toolchain"}, "uses the aarch64 cross toolchain"),
-    (lambda l: re.search(r"(^|\s)qemu-aarch64 [^-\s]|--target aarch64\S* .*\btest\b|\btest\b.*--target aarch64|arm64-link\.sh", l)
+    (lambda l: re.search(r"(^|\s)qemu-aarch64 [^-\s]|--target aarch64\S* .*(?<!--profile )\btest\b|(?<!--profile )\btest\b.*--target aarch64|arm64-link\.sh", l)
      is not None, {"home-arm64", "home"}, "runs aarch64 binaries"),
     (lambda l: "examples/detector_krfws " in l, {"home"}, "runs the accuracy example"),
 ]
