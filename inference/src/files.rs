@@ -27,8 +27,8 @@ pub enum FileError {
         what: String,
         /// The path.
         path: PathBuf,
-        /// What it is instead, in words.
-        kind: &'static str,
+        /// What it is instead.
+        kind: FileKind,
     },
     /// A chain of symbolic links that never ends.
     #[error("{what} {path} is a loop of symbolic links")]
@@ -62,24 +62,62 @@ pub enum FileError {
     },
 }
 
-/// What a file that is not a regular file is, in words (`None` for a regular file).
-pub fn kind_in_words(meta: &std::fs::Metadata) -> Option<&'static str> {
-    use std::os::unix::fs::FileTypeExt as _;
-    let t = meta.file_type();
-    if t.is_file() {
-        None
-    } else if t.is_dir() {
-        Some("a directory")
-    } else if t.is_fifo() {
-        Some("a named pipe (FIFO)")
-    } else if t.is_char_device() {
-        Some("a character device")
-    } else if t.is_block_device() {
-        Some("a block device")
-    } else if t.is_socket() {
-        Some("a socket")
-    } else {
-        Some("not a file")
+/// What a path names when it is not a regular file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum FileKind {
+    /// A directory.
+    Directory,
+    /// A named pipe (FIFO).
+    NamedPipe,
+    /// A character device.
+    CharDevice,
+    /// A block device.
+    BlockDevice,
+    /// A Unix socket.
+    Socket,
+    /// Anything else that is not a regular file.
+    Other,
+}
+
+impl FileKind {
+    /// What a path of this kind is, in words ("a named pipe (FIFO)").
+    pub const fn in_words(self) -> &'static str {
+        match self {
+            Self::Directory => "a directory",
+            Self::NamedPipe => "a named pipe (FIFO)",
+            Self::CharDevice => "a character device",
+            Self::BlockDevice => "a block device",
+            Self::Socket => "a socket",
+            Self::Other => "not a file",
+        }
+    }
+
+    /// What `meta` describes, or `None` for a regular file.
+    pub fn of(meta: &std::fs::Metadata) -> Option<Self> {
+        use std::os::unix::fs::FileTypeExt as _;
+        let t = meta.file_type();
+        if t.is_file() {
+            None
+        } else if t.is_dir() {
+            Some(Self::Directory)
+        } else if t.is_fifo() {
+            Some(Self::NamedPipe)
+        } else if t.is_char_device() {
+            Some(Self::CharDevice)
+        } else if t.is_block_device() {
+            Some(Self::BlockDevice)
+        } else if t.is_socket() {
+            Some(Self::Socket)
+        } else {
+            Some(Self::Other)
+        }
+    }
+}
+
+impl std::fmt::Display for FileKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.in_words())
     }
 }
 
@@ -101,7 +139,7 @@ pub fn regular_file(path: &Path, what: &str) -> Result<std::fs::Metadata, FileEr
             source,
         },
     })?;
-    if let Some(kind) = kind_in_words(&meta) {
+    if let Some(kind) = FileKind::of(&meta) {
         return Err(FileError::NotAFile {
             what: what.to_owned(),
             path: path.to_owned(),

@@ -433,21 +433,12 @@ impl PyFaceResult {
     }
 }
 
-/// The snake_case name serde gives a unit enum variant.
-fn variant_name(v: &impl serde::Serialize) -> String {
-    match serde_json::to_value(v) {
-        Ok(serde_json::Value::String(s)) => s,
-        Ok(other) => other.to_string(),
-        Err(e) => format!("<{e}>"),
-    }
-}
-
 fn link_names(state: LinkState) -> (String, Option<String>) {
     match state {
         LinkState::Connecting => ("connecting".to_owned(), None),
         LinkState::Up => ("up".to_owned(), None),
-        LinkState::Retrying(k) => ("retrying".to_owned(), Some(variant_name(&k))),
-        LinkState::Failed(k) => ("failed".to_owned(), Some(variant_name(&k))),
+        LinkState::Retrying(k) => ("retrying".to_owned(), Some(k.name().to_owned())),
+        LinkState::Failed(k) => ("failed".to_owned(), Some(k.name().to_owned())),
         LinkState::Stopped => ("stopped".to_owned(), None),
     }
 }
@@ -491,8 +482,8 @@ fn face_to_py(py: Python<'_>, u: &tracker::FaceResult) -> PyResult<PyFace> {
             holoface_headset_client::results::LandmarkSet::Inner51 => "inner51",
         }
         .to_owned(),
-        answered_by: variant_name(&u.answered_by),
-        init: variant_name(&u.init),
+        answered_by: u.answered_by.name().to_owned(),
+        init: u.init.name().to_owned(),
         face_probability,
         predicted_error,
         camera_pose: matrix4(py, u.fit.rotation, u.fit.translation),
@@ -517,7 +508,7 @@ fn result_to_py(py: Python<'_>, r: &tracker::FrameResult) -> PyResult<PyFaceResu
         .iter()
         .map(|f| Py::new(py, face_to_py(py, f)?))
         .collect::<PyResult<Vec<_>>>()?;
-    let no_face_reason = r.no_face.map(|reason| variant_name(&reason));
+    let no_face_reason = r.no_face.map(|reason| reason.name().to_owned());
     let (link_state, link_failure) = match r.link.map(link_names) {
         Some((s, f)) => (Some(s), f),
         None => (None, None),
@@ -530,7 +521,7 @@ fn result_to_py(py: Python<'_>, r: &tracker::FrameResult) -> PyResult<PyFaceResu
         timestamp_us: r.timestamp_us,
         faces,
         no_face_reason,
-        answered_by: r.answered_by.map(|a: AnsweredBy| variant_name(&a)),
+        answered_by: r.answered_by.map(|a: AnsweredBy| a.name().to_owned()),
         link_state,
         link_failure,
         timings: timings.unbind(),

@@ -44,6 +44,17 @@ pub enum AnsweredBy {
     Krfws,
 }
 
+impl AnsweredBy {
+    /// The snake_case name, as serde writes it (per-frame JSON, the Python module).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::LocalDan => "local_dan",
+            Self::RemoteDan => "remote_dan",
+            Self::Krfws => "krfws",
+        }
+    }
+}
+
 /// The per-person adaptation's state for one face in one frame ([`crate::adapt`]; here, with the alignment
 /// that carries it).
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
@@ -141,6 +152,16 @@ pub enum InitSource {
     Detection,
     /// The previous frame's landmarks (motion-compensated when enabled).
     Tracking,
+}
+
+impl InitSource {
+    /// The snake_case name, as serde writes it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Detection => "detection",
+            Self::Tracking => "tracking",
+        }
+    }
 }
 
 /// One face to align in a frame: a tracked face (its id) or a new detection.

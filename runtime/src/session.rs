@@ -313,6 +313,18 @@ pub enum NoFaceReason {
     FitFailed,
 }
 
+impl NoFaceReason {
+    /// The snake_case name, as serde writes it (per-frame JSON, the Python module).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::NotDetected => "not_detected",
+            Self::Rejected => "rejected",
+            Self::NoAnswer => "no_answer",
+            Self::FitFailed => "fit_failed",
+        }
+    }
+}
+
 struct Track {
     id: u32,
     landmarks: [Point2; 68],
@@ -661,6 +673,41 @@ mod tests {
     use crate::detect::Detection;
     use holoface_models::candide::{Wfm, project_landmarks};
     use holoface_models::geometry::Rect;
+
+    /// The names the Python module reads are the ones the per-frame JSON (serde) writes.
+    #[test]
+    fn enum_names_are_serdes() {
+        use crate::align::{AnsweredBy, InitSource};
+        use crate::link::FailureKind;
+        let serde_name = |v: serde_json::Value| v.as_str().map(str::to_owned);
+        for v in [AnsweredBy::LocalDan, AnsweredBy::RemoteDan, AnsweredBy::Krfws] {
+            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
+        }
+        for v in [InitSource::Detection, InitSource::Tracking] {
+            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
+        }
+        for v in [
+            NoFaceReason::NotDetected,
+            NoFaceReason::Rejected,
+            NoFaceReason::NoAnswer,
+            NoFaceReason::FitFailed,
+        ] {
+            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
+        }
+        for v in [
+            FailureKind::Unreachable,
+            FailureKind::Unauthorized,
+            FailureKind::CertificateMismatch,
+            FailureKind::BadVersion,
+            FailureKind::ServerFull,
+            FailureKind::ShuttingDown,
+            FailureKind::ConnectionLost,
+            FailureKind::Protocol,
+            FailureKind::Local,
+        ] {
+            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
+        }
+    }
 
     const K: Intrinsics = Intrinsics::new(500.0, 500.0, 160.0, 120.0);
 

@@ -336,7 +336,10 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
     } else {
         // Not a folder, not a file: say what it is (a pipe, a device, a link loop) rather than "missing".
         match holoface_inference::files::regular_file(path, "frame source") {
-            Err(holoface_inference::files::FileError::NotAFile { kind, .. }) if kind.contains("pipe") => {
+            Err(holoface_inference::files::FileError::NotAFile {
+                kind: holoface_inference::files::FileKind::NamedPipe,
+                ..
+            }) => {
                 bail!(
                     "frame source {} is a named pipe (FIFO): stream a y4m video through standard input instead \
                  (`--source - < {}`, or `ffmpeg -i VIDEO -f yuv4mpegpipe - | holoface track --source -`)",
