@@ -679,33 +679,22 @@ mod tests {
     fn enum_names_are_serdes() {
         use crate::align::{AnsweredBy, InitSource};
         use crate::link::FailureKind;
-        let serde_name = |v: serde_json::Value| v.as_str().map(str::to_owned);
-        for v in [AnsweredBy::LocalDan, AnsweredBy::RemoteDan, AnsweredBy::Krfws] {
-            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
-        }
-        for v in [InitSource::Detection, InitSource::Tracking] {
-            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
-        }
-        for v in [
-            NoFaceReason::NotDetected,
-            NoFaceReason::Rejected,
-            NoFaceReason::NoAnswer,
-            NoFaceReason::FitFailed,
-        ] {
-            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
-        }
-        for v in [
-            FailureKind::Unreachable,
-            FailureKind::Unauthorized,
-            FailureKind::CertificateMismatch,
-            FailureKind::BadVersion,
-            FailureKind::ServerFull,
-            FailureKind::ShuttingDown,
-            FailureKind::ConnectionLost,
-            FailureKind::Protocol,
-            FailureKind::Local,
-        ] {
-            assert_eq!(serde_name(serde_json::json!(v)).as_deref(), Some(v.name()));
+        let pairs = [AnsweredBy::LocalDan, AnsweredBy::RemoteDan, AnsweredBy::Krfws]
+            .map(|v| (serde_json::json!(v), v.name()))
+            .into_iter()
+            .chain([InitSource::Detection, InitSource::Tracking].map(|v| (serde_json::json!(v), v.name())))
+            .chain(
+                [
+                    NoFaceReason::NotDetected,
+                    NoFaceReason::Rejected,
+                    NoFaceReason::NoAnswer,
+                    NoFaceReason::FitFailed,
+                ]
+                .map(|v| (serde_json::json!(v), v.name())),
+            )
+            .chain(FailureKind::ALL.map(|v| (serde_json::json!(v), v.name())));
+        for (serde, name) in pairs {
+            assert_eq!(serde.as_str(), Some(name));
         }
     }
 

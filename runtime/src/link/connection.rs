@@ -135,6 +135,20 @@ pub enum FailureKind {
 }
 
 impl FailureKind {
+    /// Every kind, for tests that go through them all.
+    #[cfg(test)]
+    pub(crate) const ALL: [Self; 9] = [
+        Self::Unreachable,
+        Self::Unauthorized,
+        Self::CertificateMismatch,
+        Self::BadVersion,
+        Self::ServerFull,
+        Self::ShuttingDown,
+        Self::ConnectionLost,
+        Self::Protocol,
+        Self::Local,
+    ];
+
     /// True when retrying cannot help until someone changes the configuration (token, fingerprint,
     /// client or server version): the link stops instead of retrying.
     pub const fn is_permanent(self) -> bool {
@@ -507,20 +521,10 @@ mod tests {
             FailureKind::Unreachable
         );
         assert_eq!(LinkError::Version { server: 99 }.kind(), FailureKind::BadVersion);
-        let permanent: Vec<_> = [
-            FailureKind::Unreachable,
-            FailureKind::Unauthorized,
-            FailureKind::CertificateMismatch,
-            FailureKind::BadVersion,
-            FailureKind::ServerFull,
-            FailureKind::ShuttingDown,
-            FailureKind::ConnectionLost,
-            FailureKind::Protocol,
-            FailureKind::Local,
-        ]
-        .into_iter()
-        .filter(|k| k.is_permanent())
-        .collect();
+        let permanent: Vec<_> = FailureKind::ALL
+            .into_iter()
+            .filter(|k| k.is_permanent())
+            .collect();
         assert_eq!(
             permanent,
             [
