@@ -16,13 +16,21 @@
 //! here).
 //!
 //! Switching aligners (remote DAN and local KRFWS disagree by a few percent of the eye distance) would make
-//! the raw landmarks jump. [`LandmarkFilter::filter`] is told which source answered; on a change it moves the
-//! new source's answers back onto the path the filters were on (their shape, and their placement where its
-//! speed would have taken it), then lets that offset fade out over [`SteadyParams::switch_fade_s`]: the
-//! placement keeps its position and its speed across the switch (a face moving when the link drops does
-//! not stop for a frame); the shape in the face's frame keeps its position but not its speed, so an
-//! expression in motion holds for the switch's frame (on the development clips that is up to 0.7 % of the
-//! eye distance at a switch, docs/experiments/fallback-adaptation.md, "Each switch, taken apart").
+//! the raw landmarks jump. [`LandmarkFilter::filter`] is told which source answered; on a change it blends the
+//! old source into the new one over [`SteadyParams::switch_fade_s`], along a smoothstep (whose speed is zero
+//! where it starts and where it ends), instead of passing the jump through:
+//! - the shape in the face's frame is crossfaded from the old source's path (its last input continued at its
+//!   speed) to the new source's answers, so the new source's offset, and its own frame-to-frame noise, come in
+//!   gradually;
+//! - the placement takes the new source's answers moved back to where its filtered position and speed were
+//!   going, and lets that offset go along the blend (the headset's motion moves the placement's state every
+//!   frame, so it blends by offset);
+//! - the filters' settings move from the stronger of the old and the new ones to the new source's.
+//!
+//! So the shown landmarks keep their position and their speed across a switch (a face or an expression moving
+//! when the link drops does not stop for a frame). A switch back before the blend has ended starts a new blend
+//! from where the output is going: a single missed deadline (one local answer between two remote ones) makes no
+//! jump, neither to the local answer nor back (docs/experiments/fallback-adaptation.md, "A blended switch").
 
 use crate::geometry::{Point2, Similarity2};
 
@@ -56,8 +64,8 @@ pub struct SteadyParams {
     /// For a precise aligner (DAN with the server's refinement: about a third of KRFWS's frame-to-frame
     /// noise on real video).
     pub precise: FilterParams,
-    /// After an aligner switch, the offset between the old and the new source fades out over this long
-    /// (seconds); 0 passes the jump through.
+    /// After an aligner switch, the blend from the old source to the new one takes this long (seconds, along a
+    /// smoothstep); 0 passes the jump through.
     pub switch_fade_s: f64,
     /// A gap between frames longer than this (seconds) restarts the filter (the face was lost or the
     /// stream paused: the old state says nothing about now).
@@ -81,7 +89,7 @@ impl Default for SteadyParams {
                 shape: one_euro(3.0, 10.0, 1.0),
                 rigid: one_euro(20.0, 5.0, 3.0),
             },
-            switch_fade_s: 0.25,
+            switch_fade_s: SWITCH_FADE_S,
             max_gap_s: 0.5,
         }
     }
@@ -108,6 +116,48 @@ impl SteadyParams {
     }
 }
 
+/// The blend's window after a switch ([`SteadyParams::switch_fade_s`]), measured on the development clips in both
+/// directions (docs/experiments/fallback-adaptation.md, "A blended switch").
+const SWITCH_FADE_S: f64 = 0.25;
+
+/// How much of a switch's offset is still taken off the new source when `left` of the blend's `total` window
+/// remains: a smoothstep from 1 to 0, whose slope is zero at both ends (the blend adds no step in speed where it
+/// starts or where it ends).
+#[inline]
+fn blend_weight(left: f64, total: f64) -> f64 {
+    if left <= 0.0 || total <= 0.0 {
+        return 0.0;
+    }
+    let u = (left / total).min(1.0);
+    u * u * (3.0 - 2.0 * u)
+}
+
+/// `new` moved towards `old` by `w` (0: `new`; 1: `old`), every setting.
+fn mix(new: &FilterParams, old: &FilterParams, w: f64) -> FilterParams {
+    let one = |n: &OneEuroParams, o: &OneEuroParams| OneEuroParams {
+        min_cutoff_hz: n.min_cutoff_hz + w * (o.min_cutoff_hz - n.min_cutoff_hz),
+        beta: n.beta + w * (o.beta - n.beta),
+        d_cutoff_hz: n.d_cutoff_hz + w * (o.d_cutoff_hz - n.d_cutoff_hz),
+    };
+    FilterParams {
+        shape: one(&new.shape, &old.shape),
+        rigid: one(&new.rigid, &old.rigid),
+    }
+}
+
+/// Per setting, the one that smooths more (the lower cut-offs and speed coefficient).
+fn stronger(a: &FilterParams, b: &FilterParams) -> FilterParams {
+    let one = |a: &OneEuroParams, b: &OneEuroParams| OneEuroParams {
+        min_cutoff_hz: a.min_cutoff_hz.min(b.min_cutoff_hz),
+        beta: a.beta.min(b.beta),
+        d_cutoff_hz: a.d_cutoff_hz.min(b.d_cutoff_hz),
+    };
+    FilterParams {
+        shape: one(&a.shape, &b.shape),
+        rigid: one(&a.rigid, &b.rigid),
+    }
+}
+
 /// Smoothing factor of a first-order low-pass with cut-off `cutoff_hz` sampled every `dt` seconds.
 #[inline]
 fn alpha(cutoff_hz: f64, dt: f64) -> f64 {
@@ -120,16 +170,25 @@ fn alpha(cutoff_hz: f64, dt: f64) -> f64 {
 struct OneEuro {
     x: f64,
     dx: f64,
+    /// The last input (where a switch continues the input's path from).
+    input: f64,
 }
 
 impl OneEuro {
     fn start(x: f64) -> Self {
-        Self { x, dx: 0.0 }
+        Self { x, dx: 0.0, input: x }
+    }
+
+    /// Where the input would be after `dt` more seconds on its path: the last input moved at the filtered speed.
+    #[inline]
+    fn next_input(&self, dt: f64) -> f64 {
+        self.input + self.dx * dt
     }
 
     /// One step: the new raw value `x` after `dt` seconds; returns the filtered value.
     #[inline]
     fn step(&mut self, x: f64, dt: f64, p: &OneEuroParams) -> f64 {
+        self.input = x;
         let dx = (x - self.x) / dt;
         self.dx += alpha(p.d_cutoff_hz, dt) * (dx - self.dx);
         let cutoff = p.min_cutoff_hz + p.beta * self.dx.abs();
@@ -141,6 +200,7 @@ impl OneEuro {
     /// face crossing the image is not left behind (the placement's filter).
     #[inline]
     fn step_predicted(&mut self, x: f64, dt: f64, p: &OneEuroParams) -> f64 {
+        self.input = x;
         let predicted = self.x + self.dx * dt;
         let dx = (x - self.x) / dt;
         self.dx += alpha(p.d_cutoff_hz, dt) * (dx - self.dx);
@@ -176,16 +236,24 @@ pub struct LandmarkFilter<const N: usize> {
 struct State<const N: usize> {
     timestamp_us: u64,
     source: u8,
+    /// The filters' settings on the last frame, and those a blend starts from (the stronger of the settings
+    /// in effect when the source changed and the new source's): they move to the new source's along with its
+    /// offset.
+    last_params: FilterParams,
+    blend_from: FilterParams,
     shape: [[OneEuro; 2]; N],
     rigid: [OneEuro; RIGID],
     /// The rigid parameters last seen (angle unwrapping).
     last_angle: f64,
-    /// After a switch, how far the new source's answers sit from where the filter was going (its shape in
-    /// the face's frame, its placement's predicted parameters): taken off the filters' inputs, fading out,
-    /// so that the output keeps its position (and the placement its speed) across the switch. The time the
-    /// fade has left.
-    bias_shape: [Point2; N],
+    /// After a switch, the blend's state. The shape in the face's frame: where its input was going (the
+    /// position at the switch, per coordinate, and the speed it was moving at), the old source continued, which
+    /// the new source's answers are crossfaded with. The placement: how far the new source's parameters sit from
+    /// where its filter was going, taken off its inputs as it fades (the headset's motion moves the placement's
+    /// state every frame, so it blends by offset, not by position). The time since the switch, and the time the
+    /// blend has left of its window.
+    blend_shape: [[(f64, f64); 2]; N],
     bias_rigid: [f64; RIGID],
+    since_switch_s: f64,
     fade_left_s: f64,
     fade_total_s: f64,
 }
@@ -261,12 +329,14 @@ impl<const N: usize> LandmarkFilter<N> {
         source: Source,
         moved: &Similarity2,
     ) -> [Point2; N] {
-        let p = if source.precise {
-            self.params.precise
-        } else {
-            self.params.noisy
+        let params_of = |precise: bool| {
+            if precise {
+                self.params.precise
+            } else {
+                self.params.noisy
+            }
         };
-        let source = source.id;
+        let (precise, source) = (source.precise, source.id);
         let Some(sim) = Similarity2::fit(&self.reference, raw).filter(|s| {
             s.scale() > 1e-9 && s.a.is_finite() && s.b.is_finite() && s.tx.is_finite() && s.ty.is_finite()
         }) else {
@@ -296,6 +366,8 @@ impl<const N: usize> LandmarkFilter<N> {
             self.state = Some(State {
                 timestamp_us,
                 source,
+                last_params: params_of(precise),
+                blend_from: params_of(precise),
                 shape: std::array::from_fn(|i| {
                     [
                         OneEuro::start(f64::from(face[i].x)),
@@ -304,8 +376,9 @@ impl<const N: usize> LandmarkFilter<N> {
                 }),
                 rigid: r.map(OneEuro::start),
                 last_angle: r[3],
-                bias_shape: [Point2::default(); N],
+                blend_shape: [[(0.0, 0.0); 2]; N],
                 bias_rigid: [0.0; RIGID],
+                since_switch_s: 0.0,
                 fade_left_s: 0.0,
                 fade_total_s: 0.0,
             });
@@ -342,26 +415,31 @@ impl<const N: usize> LandmarkFilter<N> {
         let r = rigid_raw(angle);
         if source != st.source {
             st.source = source;
-            // The new source's offset from where the filters were going: its answers are moved back onto
-            // that path, then let go over the fade, so nothing jumps and the placement does not stop.
+            st.blend_from = stronger(&st.last_params, &params_of(precise));
+            // The new source's offset from where the filters' inputs were going: its answers are moved back onto
+            // that path, then let go along the blend, so that nothing jumps and nothing stops. A switch during a
+            // blend starts a new one from there (the old offset belonged to the source that no longer answers).
             if self.params.switch_fade_s > 0.0 {
                 for ((b, f), now) in st.bias_rigid.iter_mut().zip(&st.rigid).zip(r) {
                     *b = now - (f.x + f.dx * dt);
                 }
-                for ((b, f), now) in st.bias_shape.iter_mut().zip(&st.shape).zip(&face) {
-                    *b = Point2::new(now.x - f[0].x as f32, now.y - f[1].x as f32);
+                for (b, f) in st.blend_shape.iter_mut().zip(&st.shape) {
+                    *b = [(f[0].next_input(dt), f[0].dx), (f[1].next_input(dt), f[1].dx)];
                 }
+                st.since_switch_s = 0.0;
                 st.fade_left_s = self.params.switch_fade_s;
                 st.fade_total_s = self.params.switch_fade_s;
             }
         } else {
             st.fade_left_s = (st.fade_left_s - dt).max(0.0);
+            st.since_switch_s += dt;
         }
-        let w = if st.fade_left_s > 0.0 && st.fade_total_s > 0.0 {
-            st.fade_left_s / st.fade_total_s
-        } else {
-            0.0
-        };
+        let w = blend_weight(st.fade_left_s, st.fade_total_s);
+        // The filters' settings move to the new source's with the offset, from the stronger of the old and the
+        // new: the precise source's light filter does not let the blend through at once after a noisy one, and a
+        // noisy source gets its strong filter from its first answer.
+        let p = mix(&params_of(precise), &st.blend_from, w);
+        st.last_params = p;
         let mut rf = [0.0; RIGID];
         for k in 0..RIGID {
             rf[k] = st.rigid[k].step_predicted(r[k] - w * st.bias_rigid[k], dt, &p.rigid);
@@ -369,12 +447,22 @@ impl<const N: usize> LandmarkFilter<N> {
         let (s, a) = (rf[2].exp(), rf[3]);
         let placed = Similarity2::from_parts(s, a, rf[0] * s, rf[1] * s);
         let mut shape = [Point2::default(); N];
-        let wf = w as f32;
+        // The shape's input: the new source's answer, crossfaded from the old source's path (continued at its
+        // speed) along the blend; so the new source's own frame-to-frame noise also comes in gradually.
+        let since = st.since_switch_s;
+        let blend = |(at, speed): (f64, f64), now: f32| {
+            let now = f64::from(now);
+            if w > 0.0 {
+                w * (at + speed * since) + (1.0 - w) * now
+            } else {
+                now
+            }
+        };
         for (i, f) in st.shape.iter_mut().enumerate() {
-            let b = st.bias_shape[i];
+            let [bx, by] = st.blend_shape[i];
             shape[i] = Point2::new(
-                f[0].step(f64::from(face[i].x - wf * b.x), dt, &p.shape) as f32,
-                f[1].step(f64::from(face[i].y - wf * b.y), dt, &p.shape) as f32,
+                f[0].step(blend(bx, face[i].x), dt, &p.shape) as f32,
+                f[1].step(blend(by, face[i].y), dt, &p.shape) as f32,
             );
         }
         let mut out = [Point2::default(); N];
@@ -593,6 +681,176 @@ mod tests {
             .map(|(p, q)| p.dist(*q))
             .fold(0.0f32, f32::max);
         assert!(settled < 0.5, "still {settled} px off the new source");
+    }
+
+    /// The largest second difference (change of speed, px per frame) of any point at frames `range` of `out`.
+    fn largest_second(out: &[[Point2; 68]], range: std::ops::Range<usize>) -> f32 {
+        range
+            .map(|t| {
+                (0..68)
+                    .map(|i| {
+                        let (a, b, c) = (out[t - 2][i], out[t - 1][i], out[t][i]);
+                        (a.x + c.x - 2.0 * b.x).hypot(a.y + c.y - 2.0 * b.y)
+                    })
+                    .fold(0.0f32, f32::max)
+            })
+            .fold(0.0f32, f32::max)
+    }
+
+    /// A switch between two sources whose answers differ by a known offset: the shown landmarks take the
+    /// offset over the blend, never faster than the blend's bound, still or moving, in both directions.
+    #[test]
+    fn a_blended_switch_changes_speed_at_most_by_the_blends_bound() {
+        let params = SteadyParams::default();
+        // 30 fps; the blend covers n frames; its smoothstep changes speed by at most 6 D / n^2 per frame for an
+        // offset D (its second derivative's peak), and moves at most 1.5 D / n per frame.
+        let n = params.switch_fade_s * 30.0;
+        let precise = Source { id: 2, precise: true };
+        for (speed, from, to) in [
+            (0.0, NOISY0, precise),
+            (0.0, precise, NOISY0),
+            (3.0, NOISY0, precise),
+            (3.0, precise, NOISY0),
+        ] {
+            let mut f = LandmarkFilter::new(&reference(), (36, 45), params).unwrap();
+            let at = |k: u64| {
+                placed(&Similarity2::from_parts(
+                    2.0,
+                    0.0,
+                    150.0 + speed * k as f64,
+                    150.0,
+                ))
+            };
+            // The second source: 5 px lower, its mouth 3 px further right (offset D = 5.83 px at the mouth).
+            let offset = |i: usize| Point2::new(if i >= 48 { 3.0 } else { 0.0 }, 5.0);
+            let d = 34f32.sqrt();
+            let mut out = Vec::new();
+            for k in 0..90u64 {
+                let mut lm = at(k);
+                let src = if k < 45 {
+                    from
+                } else {
+                    for (i, p) in lm.iter_mut().enumerate() {
+                        p.x += offset(i).x;
+                        p.y += offset(i).y;
+                    }
+                    to
+                };
+                out.push(f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY));
+            }
+            let bound = 6.0 * d / (n * n) as f32;
+            let worst = largest_second(&out, 40..90);
+            assert!(
+                worst <= 1.1 * bound,
+                "{speed} px/frame, {from:?} -> {to:?}: speed changed by {worst} px/frame (bound {bound})"
+            );
+            // Not slower than the blend either: on the new source once it has ended.
+            let end = at(89);
+            let settled = out[89]
+                .iter()
+                .zip(&end)
+                .enumerate()
+                .map(|(i, (p, q))| (p.x - q.x - offset(i).x).hypot(p.y - q.y - offset(i).y))
+                .fold(0.0f32, f32::max);
+            assert!(
+                settled < 0.3,
+                "{speed} px/frame: still {settled} px off the new source"
+            );
+        }
+    }
+
+    /// An expression in motion when the link drops (the mouth opening at 0.6 px per frame, the new source's mouth
+    /// 4 px off): the mouth keeps its speed across the switch instead of holding for a frame.
+    #[test]
+    fn an_expression_in_motion_keeps_its_speed_across_a_switch() {
+        let precise = Source { id: 2, precise: true };
+        let mut f = LandmarkFilter::new(&reference(), (36, 45), SteadyParams::default()).unwrap();
+        let s = Similarity2::from_parts(2.0, 0.0, 200.0, 150.0);
+        let mut out = Vec::new();
+        for k in 0..60u64 {
+            let mut lm = placed(&s);
+            for p in &mut lm[56..60] {
+                p.y += 0.6 * k as f32;
+            }
+            let src = if k < 30 { precise } else { NOISY0 };
+            if k >= 30 {
+                for p in &mut lm[48..] {
+                    p.x += 4.0;
+                }
+            }
+            out.push(f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY));
+        }
+        let worst = largest_second(&out, 29..33);
+        assert!(
+            worst < 0.25,
+            "the mouth's speed changed by {worst} px per frame at the switch"
+        );
+    }
+
+    /// After a switch to a noisy source, its noise comes in along the blend: the first frames move less than
+    /// the same source's frames do once the blend is over.
+    #[test]
+    fn a_noisy_sources_noise_comes_in_gradually() {
+        let precise = Source { id: 2, precise: true };
+        let (mut first, mut later) = (0.0f32, 0.0f32);
+        for seed in 0..20 {
+            let mut f = LandmarkFilter::new(&reference(), (36, 45), SteadyParams::default()).unwrap();
+            let s = Similarity2::from_parts(2.0, 0.0, 200.0, 150.0);
+            let mut rng = Rng::new(seed);
+            let mut out = Vec::new();
+            for k in 0..90u64 {
+                let (lm, src) = if k < 30 {
+                    (placed(&s), precise)
+                } else {
+                    (noisy(&s, &mut rng, 1.5), NOISY0)
+                };
+                out.push(f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY));
+            }
+            first += largest_second(&out, 30..33);
+            later += largest_second(&out, 70..73);
+        }
+        assert!(
+            first < 0.5 * later,
+            "first frames {first} px, later {later} px (20 runs)"
+        );
+    }
+
+    /// One missed deadline: a single local answer, 4 px off, between two runs of remote ones. The shown
+    /// landmarks neither jump to it nor back: they stay on the remote path within a fraction of a pixel.
+    #[test]
+    fn a_single_missed_deadline_makes_no_jump() {
+        let precise = Source { id: 2, precise: true };
+        let mut f = LandmarkFilter::new(&reference(), (36, 45), SteadyParams::default()).unwrap();
+        let at = |k: u64| {
+            placed(&Similarity2::from_parts(
+                2.0,
+                0.01 * k as f64,
+                150.0 + 2.0 * k as f64,
+                150.0,
+            ))
+        };
+        let mut worst = 0.0f32;
+        for k in 0..60u64 {
+            let (mut lm, src) = (at(k), if k == 30 { NOISY0 } else { precise });
+            if k == 30 {
+                for p in &mut lm {
+                    p.x += 4.0;
+                }
+            }
+            let out = f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY);
+            if k >= 20 {
+                let off = out
+                    .iter()
+                    .zip(&at(k))
+                    .map(|(p, q)| p.dist(*q))
+                    .fold(0.0f32, f32::max);
+                worst = worst.max(off);
+            }
+        }
+        assert!(
+            worst < 0.25,
+            "the shown landmarks left the remote path by {worst} px"
+        );
     }
 
     #[test]

@@ -59,13 +59,15 @@ pub fn jump(frames: &[Landmarks], t: usize) -> Option<f64> {
     Some(second_difference(a, b, c, 1.0, eye_distance(c)?))
 }
 
-/// Mean, 95th percentile and count of the `Some` values.
+/// Mean, median, 95th percentile and count of the `Some` values.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Summary {
     /// Frames measured.
     pub frames: usize,
     /// Mean.
     pub mean: f64,
+    /// Median (nearest rank).
+    pub median: f64,
     /// 95th percentile (nearest rank).
     pub p95: f64,
     /// Largest.
@@ -84,11 +86,12 @@ pub fn summarise(values: &[Option<f64>]) -> Option<Summary> {
         return None;
     }
     v.sort_by(f64::total_cmp);
-    let rank = ((0.95 * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    let rank = |q: f64| ((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1;
     Some(Summary {
         frames: v.len(),
         mean: v.iter().sum::<f64>() / v.len() as f64,
-        p95: v[rank - 1],
+        median: v[rank(0.5)],
+        p95: v[rank(0.95)],
         max: v[v.len() - 1],
     })
 }

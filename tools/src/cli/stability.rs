@@ -243,6 +243,13 @@ struct Report {
     /// Each switch measured (not at a clip jump): its frame, the steadied jump, and with a `remote-uncut` run
     /// beside it, that run's steadied jump at the same frame when it did not switch there itself.
     switch_jumps: Vec<SwitchJump>,
+    /// Over the switches with a `remote-uncut` run beside: the largest and the median excess
+    /// ([`SwitchJump::excess`]; eye distances).
+    largest_switch_excess: Option<f64>,
+    median_switch_excess: Option<f64>,
+    /// The steadied landmarks' jump on every frame (`|p(t) - 2 p(t-1) + p(t-2)|`, eye distances): the measure
+    /// of a switch's jump, over the whole clip (KRFWS's median is the bar a switch's excess is held to).
+    steadied_jump: Option<Summary>,
     /// The blendshapes against the lips' gap and the eyes' opening measured on the peer's landmarks (ours,
     /// raw, without a peer), after calibration.
     expressions: VideoReport,
@@ -259,6 +266,10 @@ struct SwitchJump {
     frame: usize,
     steadied: Option<f64>,
     uncut_steadied: Option<f64>,
+    /// What the switching run moves beyond the run that never switched: the larger of the steadied jump minus
+    /// the uncut run's, at the switch's frame and at the next (where a blend that starts with a step in speed
+    /// shows), over the frames where the uncut run did not switch itself.
+    excess: Option<f64>,
 }
 
 /// One aligner's answers split by who gave them while the link was cut on a schedule.
@@ -363,14 +374,21 @@ fn switch_jumps(
     steady: &[Landmarks],
     uncut: Option<(&[Option<AnsweredBy>], &[Landmarks])>,
 ) -> Vec<SwitchJump> {
+    let theirs = |t: usize| {
+        uncut
+            .filter(|(by, _)| !switched(by, t))
+            .and_then(|(_, lm)| jump(lm, t))
+    };
     frames
         .iter()
         .map(|&t| SwitchJump {
             frame: t,
             steadied: jump(steady, t),
-            uncut_steadied: uncut
-                .filter(|(by, _)| !switched(by, t))
-                .and_then(|(_, lm)| jump(lm, t)),
+            uncut_steadied: theirs(t),
+            excess: [t, t + 1]
+                .into_iter()
+                .filter_map(|k| Some(jump(steady, k)? - theirs(k)?))
+                .reduce(f64::max),
         })
         .collect()
 }
@@ -405,6 +423,7 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>, uncut: O
         .filter(|u| u.name != r.name)
         .map(|u| (&u.by[..], &u.steady[..]));
     let switch_jumps = switch_jumps(&switch_frames, &r.steady, uncut);
+    let excess = summarise(&switch_jumps.iter().map(|j| j.excess).collect::<Vec<_>>());
     Report {
         aligner: r.name,
         frames,
@@ -421,6 +440,9 @@ fn report(r: &Run, peer: Option<&[Landmarks]>, in_cut: Option<&[bool]>, uncut: O
         largest_switch_jump_raw: largest(&r.raw),
         largest_switch_jump_steadied: largest(&r.steady),
         switch_jumps,
+        largest_switch_excess: excess.map(|e| e.max),
+        median_switch_excess: excess.map(|e| e.median),
+        steadied_jump: summarise(&(0..frames).map(|t| jump(&r.steady, t)).collect::<Vec<_>>()),
         expressions: video_report(
             &r.shapes,
             peer.unwrap_or(&r.raw),
@@ -593,6 +615,23 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
                 crate::say!(
                     "         steadied jump at each switch / remote-uncut's at that frame: {}",
                     beside.join(", ")
+                );
+            }
+            if let (Some(worst), Some(median)) = (r.largest_switch_excess, r.median_switch_excess) {
+                let bar = reports
+                    .iter()
+                    .find(|k| k.aligner == "krfws")
+                    .and_then(|k| k.steadied_jump)
+                    .map_or(String::new(), |j| {
+                        format!(
+                            "; KRFWS's median steadied jump (the bar) {:.2} %",
+                            100.0 * j.median
+                        )
+                    });
+                crate::say!(
+                    "         excess over remote-uncut at a switch (its frame or the next): worst {:.2} %, median {:.2} %{bar}",
+                    100.0 * worst,
+                    100.0 * median
                 );
             }
         }
@@ -890,6 +929,12 @@ mod tests {
             jumps[0].uncut_steadied.unwrap() < 1e-6,
             "the uncut run moved evenly"
         );
+        // The excess: the step shows at the switch and again (the other way) on the next frame; the uncut run
+        // moved evenly on both, so all of it is the switch's.
+        assert!((jumps[0].excess.unwrap() - 2.0 / 90.0).abs() < 1e-4);
+        // Where the switching run is the smoother one, the excess is negative.
+        let smoother = switch_jumps(&[3], &theirs, Some((&steady_by, &ours)));
+        assert!((smoother[0].excess.unwrap() + 2.0 / 90.0).abs() < 1e-4);
         // Where the uncut run switched too, its jump says nothing about the head: left out.
         let mut switching = steady_by.clone();
         switching[3] = local;
@@ -898,6 +943,7 @@ mod tests {
             None
         );
         assert_eq!(switch_jumps(&[3], &ours, None)[0].uncut_steadied, None);
+        assert_eq!(switch_jumps(&[3], &ours, None)[0].excess, None);
         assert_eq!(
             switch_jumps(&[1], &ours, None)[0].steadied,
             None,
