@@ -514,7 +514,10 @@ compare: setup venv-peer
 # steadied, against dlib run on every frame from its own detector (cached in runs/stability/). The link is cut
 # twice per clip in media time (issue 55: STABILITY_CUTS_<clip>, START:LENGTH in seconds), and the remote
 # pipeline runs with and without the local aligner's adaptation (remote, remote-no-adapt); MediaPipe Face Mesh
-# (its own venv) is the peer users would pick, measured per frame beside dlib.
+# (its own venv) is the peer users would pick, measured per frame beside dlib. With cuts, a second pass per clip sets
+# the remote run beside one whose link is never cut (remote-uncut): what each remote/local switch adds over the head's
+# own motion, against the bar of KRFWS's median steadied frame (issue 70; BENCHMARKS.md, "A fallback that learned
+# from the server"). Two passes, not one: four trackers and three in-process servers overload 2 cores.
 STABILITY_CLIPS ?= cap12_edit cap13_edit2
 STABILITY_VIDEO_DIR ?= .data/video/examples/media
 STABILITY_DEADLINE_MS ?= 33
@@ -539,7 +542,11 @@ stability: setup venv-peer venv-mediapipe ffmpeg
 	  ffmpeg -v error $(STABILITY_INPUT) -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | $(TOOLS_BIN) --log warn \
 	    stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) --peer runs/stability/$$c.dlib.tsv \
 	    --also-peer mediapipe=runs/stability/$$c.mediapipe.tsv --aligners krfws,remote,remote-no-adapt \
-	    $${cuts:+--link-cuts $$cuts} --out $(STABILITY_OUT)/$$c.json --plot $(STABILITY_OUT)/$$c.png; done
+	    $${cuts:+--link-cuts $$cuts} --out $(STABILITY_OUT)/$$c.json --plot $(STABILITY_OUT)/$$c.png; \
+	  test -z "$$cuts" || ffmpeg -v error $(STABILITY_INPUT) -i $(STABILITY_VIDEO_DIR)/$$c.webm -f yuv4mpegpipe - | \
+	    $(TOOLS_BIN) --log warn stability --source - --deadline-ms $(STABILITY_DEADLINE_MS) \
+	    --peer runs/stability/$$c.dlib.tsv --aligners krfws,remote,remote-uncut --link-cuts $$cuts \
+	    --out $(STABILITY_OUT)/$$c.uncut.json; done
 
 # KRFWS vs dlib's shape predictor: time per face on the same faces, alternating rounds, one command.
 speed-vs-dlib: setup venv-peer

@@ -438,7 +438,11 @@ impl<const N: usize> LandmarkFilter<N> {
         // The filters' settings move to the new source's with the offset, from the stronger of the old and the
         // new: the precise source's light filter does not let the blend through at once after a noisy one, and a
         // noisy source gets its strong filter from its first answer.
-        let p = mix(&params_of(precise), &st.blend_from, w);
+        let p = if w > 0.0 {
+            mix(&params_of(precise), &st.blend_from, w)
+        } else {
+            params_of(precise)
+        };
         st.last_params = p;
         let mut rf = [0.0; RIGID];
         for k in 0..RIGID {
@@ -449,21 +453,27 @@ impl<const N: usize> LandmarkFilter<N> {
         let mut shape = [Point2::default(); N];
         // The shape's input: the new source's answer, crossfaded from the old source's path (continued at its
         // speed) along the blend; so the new source's own frame-to-frame noise also comes in gradually.
-        let since = st.since_switch_s;
-        let blend = |(at, speed): (f64, f64), now: f32| {
-            let now = f64::from(now);
-            if w > 0.0 {
-                w * (at + speed * since) + (1.0 - w) * now
-            } else {
-                now
+        if w > 0.0 {
+            let since = st.since_switch_s;
+            let blend =
+                |(at, speed): (f64, f64), now: f32| w * (at + speed * since) + (1.0 - w) * f64::from(now);
+            for ((shown, f), (b, now)) in shape
+                .iter_mut()
+                .zip(&mut st.shape)
+                .zip(st.blend_shape.iter().zip(&face))
+            {
+                *shown = Point2::new(
+                    f[0].step(blend(b[0], now.x), dt, &p.shape) as f32,
+                    f[1].step(blend(b[1], now.y), dt, &p.shape) as f32,
+                );
             }
-        };
-        for (i, f) in st.shape.iter_mut().enumerate() {
-            let [bx, by] = st.blend_shape[i];
-            shape[i] = Point2::new(
-                f[0].step(blend(bx, face[i].x), dt, &p.shape) as f32,
-                f[1].step(blend(by, face[i].y), dt, &p.shape) as f32,
-            );
+        } else {
+            for ((shown, f), now) in shape.iter_mut().zip(&mut st.shape).zip(&face) {
+                *shown = Point2::new(
+                    f[0].step(f64::from(now.x), dt, &p.shape) as f32,
+                    f[1].step(f64::from(now.y), dt, &p.shape) as f32,
+                );
+            }
         }
         let mut out = [Point2::default(); N];
         placed.apply_all(&shape, &mut out);

@@ -248,7 +248,8 @@ struct Report {
     largest_switch_excess: Option<f64>,
     median_switch_excess: Option<f64>,
     /// The steadied landmarks' jump on every frame (`|p(t) - 2 p(t-1) + p(t-2)|`, eye distances): the measure
-    /// of a switch's jump, over the whole clip (KRFWS's median is the bar a switch's excess is held to).
+    /// of a switch's jump, over the whole clip. (A switch's excess is held to KRFWS's median steadied
+    /// `jitter49`, half of this measure's median: an ordinary local frame's motion.)
     steadied_jump: Option<Summary>,
     /// The blendshapes against the lips' gap and the eyes' opening measured on the peer's landmarks (ours,
     /// raw, without a peer), after calibration.
@@ -621,10 +622,10 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
                 let bar = reports
                     .iter()
                     .find(|k| k.aligner == "krfws")
-                    .and_then(|k| k.steadied_jump)
+                    .and_then(|k| k.steadied_jitter49)
                     .map_or(String::new(), |j| {
                         format!(
-                            "; KRFWS's median steadied jump (the bar) {:.2} %",
+                            "; the bar, KRFWS's median steadied jitter49: {:.2} %",
                             100.0 * j.median
                         )
                     });
