@@ -1,7 +1,7 @@
 //! The model contract every engine meets, whatever runs it: the [`InferenceEngine`] trait, the batch it
 //! takes ([`BatchTensor`]), what it writes ([`LandmarkOut`]), the model's description ([`ModelInfo`]) and the
 //! checks of a graph's inputs and outputs ([`validate_io`]). The ONNX Runtime engine is [`crate::onnx`], the
-//! refinement cascade that follows DAN [`crate::cascade`], the tests' fake [`crate::fake`].
+//! refinement cascade that follows DAN [`crate::cascade`], the tests' fake `crate::fake` (feature `test-util`).
 //!
 //! The engine is synchronous and owned by one dedicated thread (the server's engine thread); the server copies
 //! each batch's crops into a preallocated [`BatchTensor`] (`[max_batch, 1, S, S]` u8) and the engine writes
