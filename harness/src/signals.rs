@@ -1,10 +1,12 @@
 //! Ctrl-C and SIGTERM for the binaries (`holoface`, `holoface-load`): one thread waits for either and hands each
-//! to the binary's own rule; the stop state they share is `holoface_sources::stop`.
+//! to the binary's own rule, which records it in the `holoface_sources::stop::Stop` it shares with the run.
 
-/// Calls `on_signal(signal)` (2 = SIGINT, 15 = SIGTERM) for every Ctrl-C or SIGTERM, on a thread of its own,
+use holoface_sources::stop::Signal;
+
+/// Calls `on_signal(signal)` for every Ctrl-C or SIGTERM, on a thread of its own,
 /// for the life of the process. Without the thread (none could be started) a signal keeps its default action;
 /// the error says so.
-pub fn on_signals(on_signal: impl Fn(i32) + Send + 'static) -> std::io::Result<()> {
+pub fn on_signals(on_signal: impl Fn(Signal) + Send + 'static) -> std::io::Result<()> {
     std::thread::Builder::new()
         .name("signals".into())
         .spawn(move || {
@@ -20,8 +22,8 @@ pub fn on_signals(on_signal: impl Fn(i32) + Send + 'static) -> std::io::Result<(
                 };
                 loop {
                     let sig = tokio::select! {
-                        _ = int.recv() => 2,
-                        _ = term.recv() => 15,
+                        _ = int.recv() => Signal::Interrupt,
+                        _ = term.recv() => Signal::Terminate,
                     };
                     on_signal(sig);
                 }

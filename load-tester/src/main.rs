@@ -19,6 +19,7 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use holoface_quic::Fingerprint;
 use holoface_runtime::assets::home;
+use holoface_sources::stop::Stop;
 
 use crate::report::{Stats, Window};
 
@@ -112,11 +113,12 @@ struct Args {
 fn main() -> ExitCode {
     let args = Args::parse();
     holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
-    stop_on_signals();
-    let result = run(args);
-    if let (Some(sig), Ok(_)) = (holoface_sources::stop::requested(), &result) {
+    let stop = Stop::new();
+    stop_on_signals(&stop);
+    let result = run(args, &stop);
+    if let (Some(sig), Ok(_)) = (stop.requested(), &result) {
         // Ended by a signal, its report written: the shell's code for the signal.
-        return ExitCode::from(u8::try_from(holoface_sources::stop::exit_code(sig)).unwrap_or(1));
+        return ExitCode::from(u8::try_from(sig.exit_code()).unwrap_or(1));
     }
     match result {
         Ok(true) => ExitCode::SUCCESS,
@@ -128,20 +130,20 @@ fn main() -> ExitCode {
     }
 }
 
-/// Ctrl-C and SIGTERM: the first ends the test early, with the report (table, `--out`, `--plot`) for the time
-/// it ran; a second ends the process at once.
-fn stop_on_signals() {
-    use holoface_sources::stop;
-    let installed = holoface_harness::signals::on_signals(|sig| {
-        if stop::request(sig) {
+/// Ctrl-C and SIGTERM, recorded in `stop` (which the run watches): the first ends the test early, with the report
+/// (table, `--out`, `--plot`) for the time it ran; a second ends the process at once.
+fn stop_on_signals(stop: &Stop) {
+    let stop = stop.clone();
+    let installed = holoface_harness::signals::on_signals(move |sig| {
+        if stop.request(sig) {
             eprintln!(
                 "{}: ending the test and writing its report for the time it ran (send it again to stop at once)",
-                stop::name(sig)
+                sig.name()
             );
             return;
         }
-        eprintln!("{}: stopped at once, no report", stop::name(sig));
-        std::process::exit(stop::exit_code(sig));
+        eprintln!("{}: stopped at once, no report", sig.name());
+        std::process::exit(sig.exit_code());
     });
     if let Err(e) = installed {
         eprintln!("warning: no signal handler ({e}): Ctrl-C ends the test without a report");
@@ -204,8 +206,8 @@ fn target(args: &Args, rt: &tokio::runtime::Runtime) -> anyhow::Result<Target> {
     }
 }
 
-/// Runs the test; `Ok(false)` when an SLO was broken.
-fn run(args: Args) -> anyhow::Result<bool> {
+/// Runs the test until its end or until `stop` is asked for; `Ok(false)` when an SLO was broken.
+fn run(args: Args, stop: &Stop) -> anyhow::Result<bool> {
     if args.clients == 0 || args.duration_s <= 0.0 || args.interval_s <= 0.0 {
         bail!("--clients, --duration-s and --interval-s must be positive");
     }
@@ -244,7 +246,7 @@ fn run(args: Args) -> anyhow::Result<bool> {
             .map_or(mean_interval / args.clients as f64, |m| m / 1e3),
     );
     let tasks = swarm::launch(&rt, &args, &target, &streams, &window, stagger, &stats);
-    let measured = report::monitor(&stats, &window, args.interval_s, rss_pid, &tasks);
+    let measured = report::monitor(&stats, &window, args.interval_s, rss_pid, &tasks, stop);
     if measured.stopped_by.is_some() {
         // A signal ended the test: the headsets stop now, not at the planned end.
         for t in &tasks {

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use holoface_harness::plot::{Series, series_plot_png};
+use holoface_sources::stop::{Signal, Stop};
 use serde_json::json;
 
 use crate::Args;
@@ -111,7 +112,7 @@ pub(crate) struct Measured {
     /// signal ended the test).
     duration: Duration,
     /// The signal that ended the test early, if one did (the report covers the time it ran).
-    pub(crate) stopped_by: Option<i32>,
+    pub(crate) stopped_by: Option<Signal>,
 }
 
 /// The run's clock: headsets start at `t0`, measuring starts after `warmup` and stops at `end`.
@@ -131,6 +132,7 @@ pub(crate) fn monitor(
     interval_s: f64,
     rss_pid: Option<u32>,
     tasks: &[tokio::task::JoinHandle<anyhow::Result<()>>],
+    stop: &Stop,
 ) -> Measured {
     let Window {
         t0,
@@ -164,13 +166,13 @@ pub(crate) fn monitor(
             warmed = true;
         }
         // Sleep to the row's time in short steps: Ctrl-C or SIGTERM ends the test with a report of the time it ran.
-        while Instant::now() < next && holoface_sources::stop::requested().is_none() {
+        while Instant::now() < next && stop.requested().is_none() {
             std::thread::sleep(
                 next.saturating_duration_since(Instant::now())
                     .min(Duration::from_millis(50)),
             );
         }
-        if holoface_sources::stop::requested().is_some() {
+        if stop.requested().is_some() {
             let mut s = stats.lock().unwrap_or_else(PoisonError::into_inner);
             s.measuring = false;
             duration = if warmed {
@@ -221,7 +223,7 @@ pub(crate) fn monitor(
         timeline,
         rss: (rss_start, rss_end),
         duration,
-        stopped_by: holoface_sources::stop::requested(),
+        stopped_by: stop.requested(),
     }
 }
 
@@ -313,13 +315,13 @@ pub(crate) fn finish(
         "outages": outages,
         "slo": {"broken": broken},
         // A signal ended the test early: the totals cover the `measured_s` it ran.
-        "interrupted": stopped_by.map(holoface_sources::stop::name),
+        "interrupted": stopped_by.map(Signal::name),
         "measured_s": secs,
     });
     if let Some(sig) = stopped_by {
         println!(
             "interrupted by {} after {secs:.1} s of measurement: the report covers that time",
-            holoface_sources::stop::name(sig)
+            sig.name()
         );
     }
     println!(

@@ -1,6 +1,7 @@
 //! The `holoface` command line. Each subcommand lives in its own module and exposes `Args` + `run`.
 
 use clap::{Parser, Subcommand};
+use holoface_sources::stop::Stop;
 
 pub mod demo;
 pub mod eval;
@@ -96,8 +97,8 @@ pub enum Command {
     TrainRefiner(train_refiner::Args),
 }
 
-/// Runs the parsed command line.
-pub fn run(cli: Cli) -> anyhow::Result<()> {
+/// Runs the parsed command line; `stop` is the one [`handle_signals`] records Ctrl-C and SIGTERM in.
+pub fn run(cli: Cli, stop: &Stop) -> anyhow::Result<()> {
     match cli.command {
         Command::Setup(args) => {
             // Setup's product is the files it installs: a closed stdout must not stop it half-way.
@@ -107,8 +108,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(args),
         Command::Eval(args) => eval::run(args),
         Command::MultiFace(args) => multi_face::run(args),
-        Command::Track(args) => track::run(args),
-        Command::Record(args) => record::run(args),
+        Command::Track(args) => track::run(args, stop),
+        Command::Record(args) => record::run(args, stop),
         Command::Simulate(args) => simulate::run(args),
         Command::Stability(args) => stability::run(args),
         #[cfg(feature = "train")]
@@ -123,28 +124,19 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     }
 }
 
-/// Whether the running command stops gracefully on a signal ([`stop_gracefully`]).
-static GRACEFUL: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Called by a command that reads a live source (`track --source -`): the first Ctrl-C or SIGTERM then asks it
-/// to stop after the frame in hand ([`holoface_sources::stop`]), as if its source had ended, so that it finishes
-/// its outputs with every frame seen; a second signal ends the process at once, keeping what is on disk.
-pub fn stop_gracefully() {
-    GRACEFUL.store(true, std::sync::atomic::Ordering::SeqCst);
-}
-
-/// Ctrl-C and SIGTERM (binaries only). A command that called [`stop_gracefully`] is asked to stop after the
-/// current frame by the first one and ended at once by a second, its journals (live outputs, flushed per frame)
-/// kept. Any other command ends at once without leaving its own temporary files behind (whole-or-nothing outputs
-/// not yet committed); the exit code is the shell's for the signal (130 / 143).
-pub fn handle_signals() {
-    use holoface_sources::stop;
-    let installed = holoface_harness::signals::on_signals(|sig| {
-        let graceful = GRACEFUL.load(std::sync::atomic::Ordering::SeqCst);
-        if graceful && stop::request(sig) {
+/// Ctrl-C and SIGTERM (binaries only), recorded in `stop`, which the binary also hands to [`run`]. A command that
+/// called [`Stop::stop_gracefully`] (one reading a live source, `track --source -`) is asked to stop after the
+/// current frame by the first one, as if its source had ended, and ended at once by a second, its journals (live
+/// outputs, flushed per frame) kept. Any other command ends at once without leaving its own temporary files behind
+/// (whole-or-nothing outputs not yet committed); the exit code is the shell's for the signal (130 / 143).
+pub fn handle_signals(stop: &Stop) {
+    let stop = stop.clone();
+    let installed = holoface_harness::signals::on_signals(move |sig| {
+        let graceful = stop.is_graceful();
+        if graceful && stop.request(sig) {
             eprintln!(
                 "{}: finishing the frame in hand and keeping every frame so far (send it again to stop at once)",
-                stop::name(sig)
+                sig.name()
             );
             return;
         }
@@ -155,7 +147,7 @@ pub fn handle_signals() {
         };
         eprintln!(
             "{}: stopped at once{}",
-            stop::name(sig),
+            sig.name(),
             if graceful {
                 "; every frame written so far is kept".to_owned()
             } else if removed > 0 {
@@ -164,7 +156,7 @@ pub fn handle_signals() {
                 String::new()
             }
         );
-        std::process::exit(stop::exit_code(sig));
+        std::process::exit(sig.exit_code());
     });
     if let Err(e) = installed {
         tracing::warn!(error = %e, "no signal handler: an interrupted command may leave temporary files");

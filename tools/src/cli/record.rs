@@ -11,7 +11,7 @@ use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
 
-use holoface_sources::stop;
+use holoface_sources::stop::Stop;
 use holoface_sources::{FrameSource, OwnedFrame};
 
 /// How full frames are stored.
@@ -139,13 +139,13 @@ fn header(args: &Args, first: &OwnedFrame) -> RecordingHeader {
 }
 
 /// Runs `holoface record`.
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     let mut source = args.input.open()?;
     let Some(first) = source.next_frame()? else {
         bail!("{} holds no frames", args.input.source.display())
     };
     let header = header(&args, &first);
-    record(&args, source, first, &header)
+    record(&args, source, first, &header, stop)
 }
 
 /// Writes the recording, from its first frame on.
@@ -154,6 +154,7 @@ fn record(
     mut source: Box<dyn FrameSource>,
     first: OwnedFrame,
     header: &RecordingHeader,
+    stop: &Stop,
 ) -> anyhow::Result<()> {
     // From a live source (`-`) the recording is a journal: written under its real name (or to standard output)
     // and flushed record by record, and a signal ends the run as the stream's end would. From a file it appears
@@ -161,7 +162,7 @@ fn record(
     let stdout = args.out == std::path::Path::new("-");
     let live = args.input.is_stdin() || stdout;
     let out = if live {
-        crate::cli::stop_gracefully();
+        stop.stop_gracefully();
         Output::live(&args.out)?
     } else {
         Output::create(&args.out)?
@@ -169,11 +170,11 @@ fn record(
     let mut writer = RecordingWriter::new(out, header)?;
     // The next frame, or none once a stop was asked for (a source cut by the same signal is its end).
     let next = |source: &mut Box<dyn FrameSource>| -> anyhow::Result<Option<OwnedFrame>> {
-        if stop::requested().is_some() {
+        if stop.requested().is_some() {
             return Ok(None);
         }
         match source.next_frame() {
-            Err(_) if stop::requested().is_some() => Ok(None),
+            Err(_) if stop.requested().is_some() => Ok(None),
             r => Ok(r?),
         }
     };
@@ -222,13 +223,13 @@ fn record(
     } else {
         args.out.display().to_string()
     };
-    match stop::requested() {
+    match stop.requested() {
         Some(sig) => {
             crate::say!(
                 "stopped by {} after {count} frames; kept every one in {to}",
-                stop::name(sig)
+                sig.name()
             );
-            std::process::exit(stop::exit_code(sig));
+            std::process::exit(sig.exit_code());
         }
         None => crate::say!("wrote {count} frames to {to}"),
     }

@@ -12,7 +12,7 @@ use crate::args::{AlignerKind, RuntimeArgs};
 use holoface_runtime::{
     AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackerOptions,
 };
-use holoface_sources::stop;
+use holoface_sources::stop::{Signal, Stop};
 
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
@@ -176,7 +176,7 @@ fn start_tracker(args: &Args) -> anyhow::Result<(FaceTracker, Option<crate::link
 }
 
 /// Runs `holoface track`.
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     let (mut tracker, mut relay) = start_tracker(&args)?;
     let mut source = args.input.open()?;
     // A live source has no end but the user's: its lines are a journal (written per frame under the real name, or
@@ -185,7 +185,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let stdout = args.out == std::path::Path::new("-");
     let live = args.input.is_stdin() || stdout;
     let mut out = if live {
-        crate::cli::stop_gracefully();
+        stop.stop_gracefully();
         Output::live(&args.out)?
     } else {
         Output::create(&args.out)?
@@ -200,12 +200,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut pacer = relay.is_some().then(crate::link_cuts::Pacer::default);
     let mut reader_gone = false;
     let mut line_bytes = Vec::new();
-    while stop::requested().is_none() {
+    while stop.requested().is_none() {
         let sf = match source.next_frame() {
             Ok(Some(sf)) => sf,
             Ok(None) => break,
             // The signal reached the whole pipeline: ffmpeg, stopped mid-frame, ends the stream short.
-            Err(_) if stop::requested().is_some() => break,
+            Err(_) if stop.requested().is_some() => break,
             Err(e) => return Err(e.into()),
         };
         if let Some(p) = pacer.as_mut() {
@@ -259,7 +259,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !reader_gone {
         out.commit()?;
     }
-    let stopped = stop::requested();
+    let stopped = stop.requested();
     say_summary(
         &args,
         &tracker,
@@ -276,7 +276,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if let Some(sig) = stopped {
         // The shell's code for the signal, as for any command it ends; the outputs are complete.
-        std::process::exit(stop::exit_code(sig));
+        std::process::exit(sig.exit_code());
     }
     Ok(())
 }
@@ -314,7 +314,7 @@ fn frame_line(
 fn say_summary(
     args: &Args,
     tracker: &FaceTracker,
-    stopped: Option<i32>,
+    stopped: Option<Signal>,
     (frames, faces, remote_frames): (usize, usize, usize),
     annotated: Option<impl std::fmt::Display>,
 ) {
@@ -322,7 +322,7 @@ fn say_summary(
     match stopped {
         Some(sig) => crate::say!(
             "stopped by {} after {frames} frames, {faces} faces; kept every one in {}",
-            stop::name(sig),
+            sig.name(),
             if stdout {
                 "standard output".into()
             } else {
