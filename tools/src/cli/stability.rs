@@ -654,6 +654,17 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
             );
         }
     }
+    for r in reports
+        .iter()
+        .filter(|r| r.aligner != "krfws" && r.remote_answers == 0)
+    {
+        // Its rows measure the local aligner, not the remote pipeline: said, not left to be read off the table.
+        tracing::warn!(
+            aligner = r.aligner,
+            "no answer from its server came in time on any frame: its numbers are the local aligner's (a machine \
+             too loaded for this many remote runs at once misses every deadline; run fewer --aligners)"
+        );
+    }
     if let Some(g) = gap_closed(reports) {
         crate::say!(
             "adaptation: during the cuts it closes {:.0} % of the gap between KRFWS alone and the remote answers (raw)",
