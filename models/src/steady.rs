@@ -132,30 +132,27 @@ fn blend_weight(left: f64, total: f64) -> f64 {
     u * u * (3.0 - 2.0 * u)
 }
 
-/// `new` moved towards `old` by `w` (0: `new`; 1: `old`), every setting.
-fn mix(new: &FilterParams, old: &FilterParams, w: f64) -> FilterParams {
-    let one = |n: &OneEuroParams, o: &OneEuroParams| OneEuroParams {
-        min_cutoff_hz: n.min_cutoff_hz + w * (o.min_cutoff_hz - n.min_cutoff_hz),
-        beta: n.beta + w * (o.beta - n.beta),
-        d_cutoff_hz: n.d_cutoff_hz + w * (o.d_cutoff_hz - n.d_cutoff_hz),
-    };
-    FilterParams {
-        shape: one(&new.shape, &old.shape),
-        rigid: one(&new.rigid, &old.rigid),
-    }
-}
-
-/// Per setting, the one that smooths more (the lower cut-offs and speed coefficient).
-fn stronger(a: &FilterParams, b: &FilterParams) -> FilterParams {
+/// `f` applied to each setting of `a` and `b` (cut-offs and speed coefficients, shape and placement).
+fn each(a: &FilterParams, b: &FilterParams, f: impl Fn(f64, f64) -> f64) -> FilterParams {
     let one = |a: &OneEuroParams, b: &OneEuroParams| OneEuroParams {
-        min_cutoff_hz: a.min_cutoff_hz.min(b.min_cutoff_hz),
-        beta: a.beta.min(b.beta),
-        d_cutoff_hz: a.d_cutoff_hz.min(b.d_cutoff_hz),
+        min_cutoff_hz: f(a.min_cutoff_hz, b.min_cutoff_hz),
+        beta: f(a.beta, b.beta),
+        d_cutoff_hz: f(a.d_cutoff_hz, b.d_cutoff_hz),
     };
     FilterParams {
         shape: one(&a.shape, &b.shape),
         rigid: one(&a.rigid, &b.rigid),
     }
+}
+
+/// `new` moved towards `old` by `w` (0: `new`; 1: `old`), every setting.
+fn mix(new: &FilterParams, old: &FilterParams, w: f64) -> FilterParams {
+    each(new, old, |n, o| n + w * (o - n))
+}
+
+/// Per setting, the one that smooths more (the lower cut-offs and speed coefficient).
+fn stronger(a: &FilterParams, b: &FilterParams) -> FilterParams {
+    each(a, b, f64::min)
 }
 
 /// Smoothing factor of a first-order low-pass with cut-off `cutoff_hz` sampled every `dt` seconds.
@@ -671,15 +668,7 @@ mod tests {
             out.push(f.filter(&lm, k * 33_333, src, &Similarity2::IDENTITY));
         }
         // The largest change of speed (second difference, any point) around the switch, in pixels per frame.
-        let second = |t: usize| {
-            (0..68)
-                .map(|i| {
-                    let (a, b, c) = (out[t - 2][i], out[t - 1][i], out[t][i]);
-                    (a.x + c.x - 2.0 * b.x).hypot(a.y + c.y - 2.0 * b.y)
-                })
-                .fold(0.0f32, f32::max)
-        };
-        let worst = (28..40).map(second).fold(0.0f32, f32::max);
+        let worst = largest_second(&out, 28..40);
         // Stopping for a frame would change the speed by the face's 3 px per frame.
         assert!(
             worst < 1.2,
