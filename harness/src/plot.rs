@@ -235,6 +235,10 @@ impl Canvas {
     pub fn rgb(&self) -> &[u8] {
         &self.px
     }
+    /// The pixels to change in place: rows of `width` RGB triples.
+    pub fn rgb_mut(&mut self) -> &mut [u8] {
+        &mut self.px
+    }
     /// Encodes as PNG.
     pub fn to_png(&self) -> Vec<u8> {
         png(&self.px, self.w, self.h)

@@ -286,9 +286,9 @@ pub struct FaceModel {
     pub scale: f64,
 }
 
-/// CANDIDE vertices of the two eyes whose means define the eye centres (the 63 mm distance).
-const LEFT_EYE_VERTICES: [usize; 6] = [53, 98, 106, 56, 108, 100];
-const RIGHT_EYE_VERTICES: [usize; 6] = [23, 105, 97, 20, 99, 107];
+/// CANDIDE vertices of the two eyes whose means define the eye centres (the 63 mm distance): the image-left
+/// eye's six, then the image-right eye's.
+pub(crate) const EYE_VERTICES: [usize; 12] = [53, 98, 106, 56, 108, 100, 23, 105, 97, 20, 99, 107];
 
 impl FaceModel {
     /// Builds the model from a parsed `.wfm`.
@@ -310,7 +310,7 @@ impl FaceModel {
             }
             Ok(c)
         };
-        let (l, r) = (centre(&LEFT_EYE_VERTICES)?, centre(&RIGHT_EYE_VERTICES)?);
+        let (l, r) = (centre(&EYE_VERTICES[..6])?, centre(&EYE_VERTICES[6..])?);
         let d = ((l[0] - r[0]).powi(2) + (l[1] - r[1]).powi(2) + (l[2] - r[2]).powi(2)).sqrt();
         if d <= 0.0 {
             return Err(CandideError::Parse {

@@ -9,6 +9,7 @@
 
 pub mod accuracy;
 pub mod adapt;
+pub mod anchor;
 pub mod blendshapes;
 pub mod camera;
 pub mod candide;

@@ -11,6 +11,7 @@
 
 pub mod annotate;
 pub mod args;
+pub mod augment;
 pub mod cli;
 pub mod expressions;
 #[cfg(feature = "train")]

@@ -1,6 +1,6 @@
 //! `holoface tracking-losses` and `holoface track` end to end over video: a rendered validation-face
 //! sequence exported as MP4 + pose sidecar is tracked with annotated PNGs; a video without a face gets an
-//! explicit "no face" line for every frame; bad sources and sidecars fail with clear errors.
+//! explicit "no face" line for every frame; bad sources, sidecars and scenes fail with clear errors.
 #![allow(clippy::unwrap_used)]
 
 use crate::common;
@@ -42,6 +42,7 @@ fn rendered_sequence_tracks_from_mp4_with_sidecar_and_annotations() {
 
     let out = d.join("track.jsonl");
     let ann = d.join("ann");
+    let aug = d.join("aug/augmented.mp4");
     let (ok, text) = run(&[
         "track",
         "--source",
@@ -52,8 +53,20 @@ fn rendered_sequence_tracks_from_mp4_with_sidecar_and_annotations() {
         out.to_str().unwrap(),
         "--annotate",
         ann.to_str().unwrap(),
+        "--augment",
+        "default",
+        "--augment-out",
+        aug.to_str().unwrap(),
     ]);
     assert!(ok, "{text}");
+    // The augmented video has every frame, as the decoder reads it back.
+    assert!(text.contains("60 augmented frames in"), "{text}");
+    let mut back = holoface_sources::source::open_source(&aug, 30.0, None).unwrap();
+    let mut decoded = 0;
+    while back.next_frame().unwrap().is_some() {
+        decoded += 1;
+    }
+    assert_eq!(decoded, 60);
     let got = lines(&out);
     let truth = lines(&seq.join("truth.jsonl"));
     assert_eq!(got.len(), 60);
@@ -147,6 +160,23 @@ fn bad_videos_and_sidecars_fail_with_clear_errors() {
         sidecar.to_str().unwrap(),
     ]);
     assert!(!ok && text.contains("bad.jsonl line 1"), "{text}");
+
+    // A scene that cannot be read or is wrong fails before any frame, naming the file and the key.
+    let scene = d.join("scene.toml");
+    std::fs::write(&scene, "[[object]]\nshape = \"glasses\"\nanchor = \"chin\"\n").unwrap();
+    for (path, says) in [
+        (&scene, "unknown anchor \"chin\""),
+        (&d.join("none.toml"), "none.toml"),
+    ] {
+        let (ok, text) = run(&[
+            "track",
+            "--source",
+            video.to_str().unwrap(),
+            "--augment",
+            path.to_str().unwrap(),
+        ]);
+        assert!(!ok && text.contains(says), "{text}");
+    }
     let _ = std::fs::remove_dir_all(&d);
 }
 

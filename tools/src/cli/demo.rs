@@ -5,7 +5,9 @@
 //! with remote DAN over QUIC (through a fault-injecting relay) and local KRFWS as fallback; part-way the
 //! relay cuts the link, later restores it. Reference landmarks: DAN run in-process on the still photo,
 //! moved into each frame by its homography (so "error" means drift from that reference, not from a human
-//! annotation). Prints a summary table, writes one JSON line per frame and a PNG strip of annotated frames.
+//! annotation). Prints a summary table, writes one JSON line per frame, a PNG strip of annotated frames and
+//! one of augmented frames (the shipped scene's glasses and hat, drawn where a headset would show them), and
+//! says how still the anchored glasses stayed in the world while each aligner answered.
 
 use holoface_sources::output::{Output, write_atomic};
 use std::io::Write;
@@ -206,6 +208,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let cut_end = args.cut_at + args.cut_frames;
     let strip_at = strip_frames(args.frames, args.cut_at, cut_end);
     let mut strip = Vec::new();
+    let mut augmenter = crate::augment::Augmenter::new(
+        crate::augment::scene::Scene::parse(crate::augment::scene::DEFAULT_SCENE)?,
+        tracker.face_model().clone(),
+        SessionOptions::default().lookahead_s * 1e3,
+    );
+    let mut augmented = Vec::new();
+    let mut anchored = AnchorTrack::default();
     let mut records = Vec::with_capacity(args.frames);
     let mut expressions = Vec::with_capacity(args.frames);
     let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
@@ -277,10 +286,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let FaceOutcome::Face(u) = &result {
             expressions.push(u.blendshapes);
         }
+        anchored.push(&augmenter, answered_by, &step.faces.faces);
+        augmenter.update(
+            frame.timestamp_us,
+            step.faces
+                .faces
+                .iter()
+                .map(crate::augment::FaceSnapshot::of)
+                .collect(),
+        );
         serde_json::to_writer(&mut log, &line)?;
         log.write_all(b"\n")?;
         if strip_at.contains(&i) {
             strip.push((i, image.clone(), landmarks, answered_by, truth));
+            let mut canvas = Canvas::new(FRAME_W, FRAME_H);
+            canvas.blit_gray(0, 0, image.as_bytes(), FRAME_W, FRAME_H, 1);
+            augmenter.draw(&mut canvas, &SCENE_CAMERA, &pose);
+            augmented.push((i, canvas, answered_by));
         }
     }
     let wall = start.elapsed().as_secs_f64();
@@ -290,7 +312,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     drop(tracker);
     drop(relay);
     server.stop();
-    let summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    let mut summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
+    summary["anchored_glasses"] = anchored.report();
+    write_atomic(&args.out.join("augmented.png"), augmented_png(&augmented))?;
     write_outputs(&args, &strip, summary, &expressions, &log_path)?;
     let unanswered = records.iter().filter(|r| r.answered_by.is_none()).count();
     if unanswered == records.len() {
@@ -327,9 +351,10 @@ fn write_outputs(
     let summary_path = args.out.join("summary.json");
     write_atomic(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     crate::say!(
-        "wrote {}, {} and {}",
+        "wrote {}, {}, {} and {}",
         log_path.display(),
         strip_path.display(),
+        args.out.join("augmented.png").display(),
         summary_path.display()
     );
     Ok(())
@@ -442,6 +467,78 @@ fn strip_png(frames: &[StripFrame]) -> Vec<u8> {
                 colour,
             );
         }
+    }
+    cv.to_png()
+}
+
+/// The shipped scene's glasses in the world, frame by frame, for each aligner (`None` on the other's frames):
+/// the face is a picture hanging still, so every movement of theirs is the tracker's.
+#[derive(Default)]
+struct AnchorTrack {
+    remote: Vec<Option<Vec3>>,
+    local: Vec<Option<Vec3>>,
+}
+
+impl AnchorTrack {
+    fn push(
+        &mut self,
+        a: &crate::augment::Augmenter,
+        by: Option<AnsweredBy>,
+        faces: &[holoface_runtime::FaceResult],
+    ) {
+        let at = faces
+            .first()
+            .map(|f| a.place(0, &crate::augment::FaceSnapshot::of(f)).translation);
+        let remote = by == Some(AnsweredBy::RemoteDan);
+        self.remote.push(at.filter(|_| remote));
+        self.local.push(at.filter(|_| !remote));
+    }
+
+    /// Says and returns the drift for each aligner.
+    fn report(&self) -> serde_json::Value {
+        let mut out = serde_json::Map::new();
+        for (name, track) in [("remote", &self.remote), ("local", &self.local)] {
+            let Some(d) = crate::augment::drift(track) else {
+                continue;
+            };
+            crate::say!(
+                "anchored glasses, {name}: {} frames, std {:.1} / {:.1} / {:.1} mm (x/y/z), frame to frame median \
+                 {:.2} mm, p95 {:.2} mm",
+                d.frames,
+                d.std_mm[0],
+                d.std_mm[1],
+                d.std_mm[2],
+                d.step_median_mm,
+                d.step_p95_mm
+            );
+            out.insert(name.into(), json!(d));
+        }
+        out.into()
+    }
+}
+
+/// The augmented frames, three to a row at half size, each labelled with its frame and aligner.
+fn augmented_png(frames: &[(usize, Canvas, Option<AnsweredBy>)]) -> Vec<u8> {
+    let (tw, th, band) = (FRAME_W / 2, FRAME_H / 2, 20);
+    let cols = 3;
+    let rows = frames.len().div_ceil(cols).max(1);
+    let mut cv = Canvas::new(cols * tw, rows * (th + band));
+    for (k, (i, frame, by)) in frames.iter().enumerate() {
+        let (x0, y0) = ((k % cols * tw) as i64, (k / cols * (th + band)) as i64);
+        let px = frame.rgb();
+        for y in 0..th {
+            for x in 0..tw {
+                // The mean of each 2 x 2 block.
+                let c = [0, 1, 2].map(|ch| {
+                    let at =
+                        |dx: usize, dy: usize| u16::from(px[((2 * y + dy) * FRAME_W + 2 * x + dx) * 3 + ch]);
+                    ((at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1) + 2) / 4) as u8
+                });
+                cv.set(x0 + x as i64, y0 + band as i64 + y as i64, c);
+            }
+        }
+        let (colour, label) = crate::annotate::aligner_style(*by);
+        cv.text(x0 + 4, y0 + 3, &format!("frame {i} {label}"), colour);
     }
     cv.to_png()
 }

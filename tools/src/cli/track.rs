@@ -47,6 +47,16 @@ pub struct Args {
     /// in `.mp4` gets an H.264 video at `--fps`, any other path a folder of PNGs (`frame_000000.png`, ...).
     #[arg(long)]
     pub annotate: Option<PathBuf>,
+    /// Also draw the objects and effects of a scene file anchored on each face, where a headset would show
+    /// them: each frame with the face result of the frame captured the display delay earlier (the scene's
+    /// `display_delay_ms`, else `--lookahead-ms`), at its predicted pose. `default` is the shipped scene
+    /// (glasses, a top hat, sparks from an open mouth, rose lenses on a smile). Written to `--augment-out`.
+    #[arg(long, value_name = "SCENE")]
+    pub augment: Option<PathBuf>,
+    /// Where `--augment` draws: a path ending in `.mp4` gets an H.264 video, any other a folder of PNGs
+    /// [default: runs/augmented.mp4 from a video or stream, runs/augmented/ from a folder of images].
+    #[arg(long, requires = "augment")]
+    pub augment_out: Option<PathBuf>,
     /// JSON-lines output, one line per frame; `-` is standard output (then every human message goes to standard
     /// error). From a live source (`--source -`) each line is written and flushed as its frame is tracked, under
     /// the file's real name: Ctrl-C or SIGTERM ends the run after the frame in hand, keeping every line (a second
@@ -193,7 +203,12 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     let mut annotated = args
         .annotate
         .as_deref()
-        .map(|p| Annotated::open(p, args.input.fps))
+        .map(|p| Frames::open(p, args.input.fps, "annotated"))
+        .transpose()?;
+    let mut augmented = args
+        .augment
+        .as_deref()
+        .map(|scene| open_augment(&args, scene, &tracker))
         .transpose()?;
     let (mut frames, mut faces, mut remote_frames) = (0usize, 0usize, 0usize);
     // The cuts are in media time and the link runs on the wall clock: the frames come at their timestamps.
@@ -235,6 +250,20 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
             );
             out.push(sf.index, &canvas)?;
         }
+        if let Some((augmenter, out)) = augmented.as_mut() {
+            augmenter.update(
+                sf.timestamp_us,
+                step.faces
+                    .faces
+                    .iter()
+                    .map(crate::augment::FaceSnapshot::of)
+                    .collect(),
+            );
+            let mut canvas = crate::plot::Canvas::new(sf.image.width(), sf.image.height());
+            canvas.blit_gray(0, 0, sf.image.as_bytes(), sf.image.width(), sf.image.height(), 1);
+            augmenter.draw(&mut canvas, &sf.intrinsics, &sf.world_from_camera);
+            out.push(sf.index, &canvas)?;
+        }
         let line = frame_line(&sf, &step, link_state, link_cut);
         line_bytes.clear();
         serde_json::to_writer(&mut line_bytes, &line)?;
@@ -255,7 +284,8 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
         faces += step.faces.faces.len();
     }
     // The annotation first: when it fails, the lines of a file source are not committed either.
-    let annotated = annotated.map(Annotated::finish).transpose()?;
+    let annotated = annotated.map(Frames::finish).transpose()?;
+    let augmented = augmented.map(|(_, out)| out.finish()).transpose()?;
     if !reader_gone {
         out.commit()?;
     }
@@ -265,7 +295,7 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
         &tracker,
         stopped,
         (frames, faces, remote_frames),
-        annotated,
+        annotated.into_iter().chain(augmented),
     );
     if let Some(p) = &pacer {
         crate::say!(
@@ -316,7 +346,7 @@ fn say_summary(
     tracker: &FaceTracker,
     stopped: Option<Signal>,
     (frames, faces, remote_frames): (usize, usize, usize),
-    annotated: Option<impl std::fmt::Display>,
+    drawn: impl Iterator<Item = String>,
 ) {
     let stdout = args.out == std::path::Path::new("-");
     match stopped {
@@ -332,8 +362,8 @@ fn say_summary(
         None if stdout => crate::say!("{frames} frames, {faces} faces"),
         None => crate::say!("{frames} frames, {faces} faces; wrote {}", args.out.display()),
     }
-    if let Some(a) = annotated {
-        crate::say!("{a}");
+    for d in drawn {
+        crate::say!("{d}");
     }
     if let Some(status) = tracker.link_status() {
         if matches!(status, holoface_runtime::LinkInfo::Up(_)) {
@@ -352,18 +382,43 @@ fn say_summary(
     }
 }
 
-/// Where `--annotate` draws: a folder of PNGs, or an H.264 MP4 (created at the first frame's size).
-enum Annotated {
-    Pngs(PathBuf),
+/// The augmentation `--augment` asks for, and where it draws.
+fn open_augment(
+    args: &Args,
+    scene: &std::path::Path,
+    tracker: &FaceTracker,
+) -> anyhow::Result<(crate::augment::Augmenter, Frames)> {
+    let scene = crate::augment::scene::Scene::load(scene)?;
+    let augmenter = crate::augment::Augmenter::new(scene, tracker.face_model().clone(), args.lookahead_ms);
+    let out = args.augment_out.clone().unwrap_or_else(|| {
+        if args.input.source.is_dir() {
+            PathBuf::from("runs/augmented")
+        } else {
+            PathBuf::from("runs/augmented.mp4")
+        }
+    });
+    crate::say!(
+        "--augment: drawn for a display {:.0} ms after capture, into {}",
+        augmenter.delay_ms(),
+        out.display()
+    );
+    Ok((augmenter, Frames::open(&out, args.input.fps, "augmented")?))
+}
+
+/// Where `--annotate` and `--augment` draw: a folder of PNGs, or an H.264 MP4 (created at the first frame's
+/// size); `noun` says which in the summary.
+enum Frames {
+    Pngs(PathBuf, &'static str),
     Video {
         path: PathBuf,
         fps: u32,
         writer: Option<Box<holoface_sources::video::Mp4Writer>>,
+        noun: &'static str,
     },
 }
 
-impl Annotated {
-    fn open(path: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
+impl Frames {
+    fn open(path: &std::path::Path, fps: f64, noun: &'static str) -> anyhow::Result<Self> {
         let is_mp4 = path
             .extension()
             .and_then(|e| e.to_str())
@@ -371,7 +426,8 @@ impl Annotated {
         if is_mp4 {
             anyhow::ensure!(
                 fps.is_finite() && (1.0..=1000.0).contains(&fps),
-                "--annotate {}: --fps {fps} must be within 1..=1000",
+                "{} frames to {}: --fps {fps} must be within 1..=1000",
+                noun,
                 path.display()
             );
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -381,20 +437,23 @@ impl Annotated {
                 path: path.to_path_buf(),
                 fps: fps.round() as u32,
                 writer: None,
+                noun,
             })
         } else {
             std::fs::create_dir_all(path).with_context(|| format!("creating {}", path.display()))?;
-            Ok(Self::Pngs(path.to_path_buf()))
+            Ok(Self::Pngs(path.to_path_buf(), noun))
         }
     }
 
     fn push(&mut self, index: usize, canvas: &crate::plot::Canvas) -> anyhow::Result<()> {
         match self {
-            Self::Pngs(dir) => {
+            Self::Pngs(dir, _) => {
                 let path = dir.join(format!("frame_{index:06}.png"));
                 write_atomic(&path, canvas.to_png())
             }
-            Self::Video { path, fps, writer } => {
+            Self::Video {
+                path, fps, writer, ..
+            } => {
                 let w = match writer {
                     Some(w) => w,
                     None => {
@@ -414,9 +473,11 @@ impl Annotated {
     /// Closes the video; says what was written.
     fn finish(self) -> anyhow::Result<String> {
         Ok(match self {
-            Self::Pngs(dir) => format!("annotated frames in {}", dir.display()),
-            Self::Video { path, writer, .. } => match writer {
-                Some(w) => format!("{} annotated frames in {}", w.finish()?, path.display()),
+            Self::Pngs(dir, noun) => format!("{noun} frames in {}", dir.display()),
+            Self::Video {
+                path, writer, noun, ..
+            } => match writer {
+                Some(w) => format!("{} {noun} frames in {}", w.finish()?, path.display()),
                 None => format!("no frames, so no video at {}", path.display()),
             },
         })
