@@ -95,6 +95,20 @@ static class TrackSample
         Check(r.hasFace == 1 && r.rawLandmarksPx.Length == 136 && r.rawLandmarksPx[60] > 0
               && Math.Abs(r.rawLandmarksPx[60] - r.landmarksPx[60]) < 5 && Math.Abs(r.rawLandmarksPx[61] - r.landmarksPx[61]) < 5,
               "raw nose (" + r.rawLandmarksPx[60] + ", " + r.rawLandmarksPx[61] + ") vs steadied (" + r.landmarksPx[60] + ", " + r.landmarksPx[61] + ")");
+        // The shipped scene's anchors through the C ABI (tools/assets/augment/glasses-and-hat.toml): the glasses
+        // 18 mm in front of the eyes, the hat's brim above the forehead; both near the head, the hat above it
+        // (world -y is up for the identity camera pose), and the glasses' rotation the head's own.
+        var glasses = tracker.Anchor(r, HfAnchorPoint.Eyes, new[] { 0.0, 0.002, -0.018 }, new[] { 0.0, 0.0, 0.0 });
+        var hat = tracker.Anchor(r, HfAnchorPoint.HeadTop, new[] { 0.0, 0.025, 0.06 }, new[] { -8.0, 0.0, 0.0 });
+        var head = r.displayPositionM;
+        Func<float[], double> Dist = m => Math.Sqrt(Math.Pow(m[3] - head[0], 2) + Math.Pow(m[7] - head[1], 2)
+                                                    + Math.Pow(m[11] - head[2], 2));
+        Console.WriteLine(string.Format("glasses at ({0:F3}, {1:F3}, {2:F3}) m, hat at ({3:F3}, {4:F3}, {5:F3}) m",
+            glasses[3], glasses[7], glasses[11], hat[3], hat[7], hat[11]));
+        Check(Dist(glasses) < 0.05 && Dist(hat) > 0.05 && Dist(hat) < 0.2 && hat[7] < glasses[7] && glasses[15] == 1,
+              "anchored glasses " + Dist(glasses).ToString("F3") + " m and hat " + Dist(hat).ToString("F3") + " m from the head");
+        Expect<InvalidOperationException>("anchor at an unknown point", () => tracker.Anchor(r, (HfAnchorPoint)9,
+            new[] { 0.0, 0.0, 0.0 }, new[] { 0.0, 0.0, 0.0 }), "point 9");
         var link = tracker.LinkStatus();
         Check(link.state == HfLinkState.Local && link.failure == HfLinkFailure.None, "link state without a server: " + link.state);
 

@@ -10,8 +10,9 @@ use std::mem::MaybeUninit;
 use std::sync::{PoisonError, RwLock, RwLockReadGuard};
 
 use holoface::{
-    HfCamera, HfOptions, HfResult, HfStatus, HfTracker, hf_last_error, hf_options_default, hf_tracker_free,
-    hf_tracker_link_status, hf_tracker_new, hf_tracker_process, hf_tracker_process_buf,
+    HfAnchorPoint, HfCamera, HfOptions, HfResult, HfStatus, HfTracker, hf_last_error, hf_options_default,
+    hf_tracker_anchor, hf_tracker_free, hf_tracker_link_status, hf_tracker_new, hf_tracker_process,
+    hf_tracker_process_buf,
 };
 
 const SIDE: u32 = 64;
@@ -356,4 +357,105 @@ fn random_sequences_of_handle_operations_match_the_model() {
             assert_eq!(free(t), HfStatus::Ok, "seed {seed:#x}: {}", last_error());
         }
     }
+}
+
+/// `hf_tracker_anchor` of `face`: the status and the object-to-world matrix (row-major).
+fn anchor(
+    t: *mut HfTracker,
+    face: &HfResult,
+    point: u32,
+    offset: [f64; 3],
+    rotation_deg: [f64; 3],
+) -> (HfStatus, [f32; 16]) {
+    let mut m = [0f32; 16];
+    // SAFETY: every pointer is valid for its length.
+    let s = unsafe {
+        hf_tracker_anchor(
+            t,
+            face,
+            point,
+            offset.as_ptr(),
+            rotation_deg.as_ptr(),
+            m.as_mut_ptr(),
+        )
+    };
+    (s, m)
+}
+
+#[test]
+fn an_anchored_object_is_the_display_pose_after_the_anchor() {
+    let _shared = shared_registry();
+    let t = new_tracker();
+    // A result with a face at (0.1, -0.2, 0.9) m, turned 90 degrees about the vertical (y).
+    // SAFETY: HfResult is plain data; all zeros is a valid value.
+    let mut face: HfResult = unsafe { std::mem::zeroed() };
+    face.has_face = 1;
+    face.display_position_m = [0.1, -0.2, 0.9];
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    face.display_rotation_wxyz = [h, 0.0, h, 0.0];
+    let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+    // At the origin, without offset or rotation: the display pose itself (the turn takes z to x).
+    let (s, m) = anchor(t, &face, HfAnchorPoint::Origin as u32, [0.0; 3], [0.0; 3]);
+    assert_eq!(s, HfStatus::Ok, "{}", last_error());
+    let display = [
+        0.0, 0.0, 1.0, 0.1, 0.0, 1.0, 0.0, -0.2, -1.0, 0.0, 0.0, 0.9, 0.0, 0.0, 0.0, 1.0,
+    ];
+    assert!(close(&m, &display), "{m:?}");
+    // 18 mm in front of the eyes (head -z): 18 mm along the world's -x from the eyes; the rotation unchanged.
+    let (_, eyes) = anchor(t, &face, HfAnchorPoint::Eyes as u32, [0.0; 3], [0.0; 3]);
+    let (_, glasses) = anchor(t, &face, HfAnchorPoint::Eyes as u32, [0.0, 0.0, -0.018], [0.0; 3]);
+    assert!(close(
+        &[glasses[3] - eyes[3], glasses[7] - eyes[7], glasses[11] - eyes[11]],
+        &[-0.018, 0.0, 0.0]
+    ));
+    // The eyes are a few centimetres from the head's origin, above it (head -y is world -y here).
+    let d = ((eyes[3] - 0.1).powi(2) + (eyes[7] + 0.2).powi(2) + (eyes[11] - 0.9).powi(2)).sqrt();
+    assert!(
+        (0.005..0.05).contains(&d) && eyes[7] < -0.2,
+        "eyes {d} m from the origin: {eyes:?}"
+    );
+    // Turned 90 degrees about the head's x: the object's y axis becomes the head's z (world x).
+    let (_, tipped) = anchor(t, &face, HfAnchorPoint::Origin as u32, [0.0; 3], [90.0, 0.0, 0.0]);
+    assert!(
+        close(&[tipped[1], tipped[5], tipped[9]], &[1.0, 0.0, 0.0]),
+        "{tipped:?}"
+    );
+    // Refused: an unknown point, a result without a face, a NaN offset, a non-unit rotation, NULL.
+    let (s, _) = anchor(t, &face, 5, [0.0; 3], [0.0; 3]);
+    assert!(
+        s == HfStatus::InvalidArgument && last_error().contains("point 5"),
+        "{}",
+        last_error()
+    );
+    let mut none = face;
+    none.has_face = 0;
+    assert_eq!(
+        anchor(t, &none, 1, [0.0; 3], [0.0; 3]).0,
+        HfStatus::InvalidArgument
+    );
+    assert_eq!(
+        anchor(t, &face, 1, [f64::NAN, 0.0, 0.0], [0.0; 3]).0,
+        HfStatus::InvalidArgument
+    );
+    let mut zero = face;
+    zero.display_rotation_wxyz = [0.0; 4];
+    assert_eq!(
+        anchor(t, &zero, 1, [0.0; 3], [0.0; 3]).0,
+        HfStatus::InvalidArgument
+    );
+    let mut m = [0f32; 16];
+    // SAFETY: NULL is what is checked; the other pointers are valid.
+    let s = unsafe {
+        hf_tracker_anchor(
+            t,
+            std::ptr::null(),
+            1,
+            [0.0; 3].as_ptr(),
+            [0.0; 3].as_ptr(),
+            m.as_mut_ptr(),
+        )
+    };
+    assert_eq!(s, HfStatus::NullPointer);
+    assert_eq!(free(t), HfStatus::Ok);
+    assert_eq!(anchor(t, &face, 1, [0.0; 3], [0.0; 3]).0, HfStatus::InvalidHandle);
 }

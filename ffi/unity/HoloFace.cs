@@ -7,6 +7,7 @@ namespace HoloFace
 {
     public enum HfStatus { Ok = 0, NullPointer = 1, InvalidHandle = 2, InvalidArgument = 3, AssetError = 4, ProcessingError = 5, Panic = 6 }
     public enum HfAnsweredBy { None = 0, RemoteDan = 1, Krfws = 2, LocalDan = 3 }
+    public enum HfAnchorPoint { Origin = 0, Eyes = 1, NoseBridge = 2, HeadTop = 3, Mouth = 4 }
 
     [StructLayout(LayoutKind.Sequential)]
     public struct HfOptions
@@ -127,6 +128,8 @@ namespace HoloFace
         [DllImport(Lib)] public static extern HfStatus hf_tracker_new_with(ref HfOptions options, ref HfSettings settings, out IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_free(IntPtr tracker);
         [DllImport(Lib)] public static extern HfStatus hf_tracker_link_status(IntPtr tracker, out HfLinkStatus status);
+        [DllImport(Lib)] public static extern HfStatus hf_tracker_anchor(IntPtr tracker, ref HfResult face, uint point,
+            double[] offsetM, double[] rotationDeg, [Out] float[] worldFromObject);
         [DllImport(Lib)] static extern IntPtr hf_last_error();
         [DllImport(Lib)] static extern IntPtr hf_blendshape_name(uint i);
 
@@ -224,6 +227,22 @@ namespace HoloFace
             var s = Native.hf_tracker_link_status(handle, out var st);
             if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
             return st;
+        }
+
+        /// <summary>Where an object anchored on the face sits in the world: the face's display pose after the
+        /// anchor (a head point, an offset in metres and a rotation in degrees about the head's x, y, z; head
+        /// frame: x right, y down, z into the head), as a row-major 4x4 object-to-world matrix in the frame of
+        /// the camera-to-world poses passed in. The same anchors as the tools' scene files
+        /// (tools/assets/augment/glasses-and-hat.toml).</summary>
+        public float[] Anchor(HfResult face, HfAnchorPoint point, double[] offsetM, double[] rotationDeg)
+        {
+            if (handle == IntPtr.Zero) throw new ObjectDisposedException(nameof(FaceTracker));
+            if (offsetM == null || offsetM.Length != 3) throw new ArgumentException("offsetM needs 3 doubles", nameof(offsetM));
+            if (rotationDeg == null || rotationDeg.Length != 3) throw new ArgumentException("rotationDeg needs 3 doubles", nameof(rotationDeg));
+            var m = new float[16];
+            var s = Native.hf_tracker_anchor(handle, ref face, (uint)point, offsetM, rotationDeg, m);
+            if (s != HfStatus.Ok) throw new InvalidOperationException($"HoloFace: {s}: {Native.LastError()}");
+            return m;
         }
 
         public void Dispose()

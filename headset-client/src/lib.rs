@@ -97,8 +97,22 @@ pub mod assets {
     };
 }
 
+/// Objects anchored on a face: where a virtual object (glasses, a hat) sits in the world for a face, from its
+/// display pose ([`FaceResult::display`]) and a point of the fitted head ([`FaceModel`](results::FaceModel),
+/// [`FaceTracker::face_model`]). `Anchor::world_from_object(model, &display_pose(face))` is what the tools'
+/// renderer (`holoface track --augment`), the C ABI (`hf_tracker_anchor`) and the Unity sample place.
+pub mod anchor {
+    #[doc(inline)]
+    pub use holoface_runtime::{Anchor, AnchorPoint};
+
+    /// A face's display pose (predicted for display, head → world) as a transform.
+    pub fn display_pose(face: &holoface_runtime::FaceResult) -> holoface_runtime::Pose {
+        crate::geometry::head_pose(face.display.0, face.display.1)
+    }
+}
+
 /// Points, rotations and the camera, as the API takes and returns them.
 pub mod geometry {
     #[doc(inline)]
-    pub use holoface_runtime::{Mat3, Point2, Quat, Similarity2, Vec3, default_intrinsics};
+    pub use holoface_runtime::{Mat3, Point2, Quat, Similarity2, Vec3, default_intrinsics, head_pose};
 }

@@ -77,6 +77,7 @@ pub use frame::{Frame, OwnedFrame, default_intrinsics};
 pub use frame_step::Timings;
 pub use holoface_inference::EngineError;
 pub use holoface_models::adapt::AdaptParams;
+pub use holoface_models::anchor::{Anchor, AnchorPoint, head_pose};
 pub use holoface_models::crop::CropError;
 pub use link::{
     FailureKind, LinkFailure, LinkInfo, LinkState, MAX_DEADLINE, RemoteOptions, RemoteOptionsError,

@@ -12,6 +12,10 @@
 //! start tracking. Needs `make setup` (the env vars the Makefile exports) and `../shared/data`; skips
 //! otherwise.
 //!
+//! Beside it, `augment/draw_glasses_and_hat_640x480`: drawing the shipped scene (`holoface track --augment
+//! default`: glasses and a top hat, the fitted head and a skull as occluders) into one of these frames, for the
+//! face tracked over the 30 frames before it (the display delay's history filled).
+//!
 //! `make bench` or `cargo bench -p holoface-tools --bench frame`
 #![allow(clippy::unwrap_used)] // bench setup; a panic is a failed run
 
@@ -354,7 +358,48 @@ fn bench_faces(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_frame, bench_faces);
+fn bench_augment(c: &mut Criterion) {
+    let Some(Setup { trackers, frames }) = setup() else {
+        return;
+    };
+    let [(mut tracker, truths), _] = trackers;
+    let scene =
+        holoface_tools::augment::scene::Scene::parse(holoface_tools::augment::scene::DEFAULT_SCENE).unwrap();
+    let mut augmenter = holoface_tools::augment::Augmenter::new(scene, tracker.face_model().clone(), 120.0);
+    for (n, (img, cam, truth)) in frames.iter().enumerate().take(30) {
+        *truths.lock().unwrap() = vec![*truth];
+        let frame = Frame {
+            timestamp_us: n as u64 * 33_333,
+            image: img.view(),
+            intrinsics: SCENE_CAMERA,
+            world_from_camera: *cam,
+        };
+        let r = tracker.process(&frame).unwrap();
+        augmenter.update(
+            frame.timestamp_us,
+            r.faces
+                .iter()
+                .map(holoface_tools::augment::FaceSnapshot::of)
+                .collect(),
+        );
+    }
+    assert_eq!(augmenter.anchors().len(), 1, "no face to draw");
+    let (img, cam, _) = &frames[29];
+    let mut canvas = holoface_tools::plot::Canvas::new(640, 480);
+    canvas.blit_gray(0, 0, img.as_bytes(), 640, 480, 1);
+    let mut g = c.benchmark_group("augment");
+    g.throughput(Throughput::Elements(1));
+    g.bench_function("draw_glasses_and_hat_640x480", |b| {
+        b.iter_batched_ref(
+            || canvas.clone(),
+            |cv| augmenter.draw(cv, &SCENE_CAMERA, cam),
+            criterion::BatchSize::LargeInput,
+        )
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_frame, bench_faces, bench_augment);
 
 fn main() {
     benches();

@@ -33,6 +33,30 @@ fn second_difference(a: &[Point2; 68], b: &[Point2; 68], c: &[Point2; 68], k: f6
 
 /// `jitter49` per frame: `Some` where the frame and both its neighbours have landmarks.
 pub fn jitter49(frames: &[Landmarks]) -> Vec<Option<f64>> {
+    jitter_of(frames, |prev, now, next| {
+        Some(second_difference(prev, now, next, 0.5, eye_distance(now)?))
+    })
+}
+
+/// `jitter49` in pixels (not divided by the eye distance), to set beside [`point_jitter_px`].
+pub fn jitter49_px(frames: &[Landmarks]) -> Vec<Option<f64>> {
+    jitter_of(frames, |prev, now, next| {
+        Some(second_difference(prev, now, next, 0.5, 1.0))
+    })
+}
+
+/// The same second difference for one point per frame (an anchored object's projection), pixels:
+/// `|p(t) - (p(t-1) + p(t+1)) / 2|`.
+pub fn point_jitter_px(track: &[Option<Point2>]) -> Vec<Option<f64>> {
+    jitter_of(track, |a, b, c| {
+        let dx = f64::from(a.x) + f64::from(c.x) - 2.0 * f64::from(b.x);
+        let dy = f64::from(a.y) + f64::from(c.y) - 2.0 * f64::from(b.y);
+        Some(dx.hypot(dy) * 0.5)
+    })
+}
+
+/// `f(previous, now, next)` per frame where the frame and both its neighbours have a value.
+fn jitter_of<T>(frames: &[Option<T>], f: impl Fn(&T, &T, &T) -> Option<f64>) -> Vec<Option<f64>> {
     (0..frames.len())
         .map(|t| {
             let (Some(prev), Some(now), Some(next)) = (
@@ -42,7 +66,7 @@ pub fn jitter49(frames: &[Landmarks]) -> Vec<Option<f64>> {
             ) else {
                 return None;
             };
-            Some(second_difference(prev, now, next, 0.5, eye_distance(now)?))
+            f(prev, now, next)
         })
         .collect()
 }
@@ -197,6 +221,12 @@ mod tests {
         let s = summarise(&j).unwrap();
         assert_eq!(s.frames, 5);
         assert!((s.max - 2.0 / eye).abs() < 1e-4);
+        // In pixels: the same shake, not divided by the eye distance; one point's track alike.
+        assert!((jitter49_px(&shaken)[5].unwrap() - 2.0).abs() < 1e-4);
+        let point: Vec<Option<Point2>> = shaken.iter().map(|f| f.map(|p| p[30])).collect();
+        let pj = point_jitter_px(&point);
+        assert!((pj[5].unwrap() - 2.0).abs() < 1e-4 && pj[3].unwrap() < 1e-6);
+        assert_eq!((pj[6], pj[7], pj[8]), (None, None, None));
     }
 
     #[test]

@@ -235,6 +235,11 @@ impl Augmenter {
         })
     }
 
+    /// The name of object `k` of the scene ("" when there is none).
+    pub fn object_name(&self, k: usize) -> &str {
+        self.objects.get(k).map_or("", |o| o.name.as_str())
+    }
+
     /// Whether effect `k` of the scene is on for face `id` (what the current frame shows).
     pub fn effect_on(&self, id: u32, k: usize) -> bool {
         self.fx

@@ -250,7 +250,7 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
             );
             out.push(sf.index, &canvas)?;
         }
-        if let Some((augmenter, out)) = augmented.as_mut() {
+        if let Some((augmenter, out, jitter)) = augmented.as_mut() {
             augmenter.update(
                 sf.timestamp_us,
                 step.faces
@@ -263,6 +263,7 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
             canvas.blit_gray(0, 0, sf.image.as_bytes(), sf.image.width(), sf.image.height(), 1);
             augmenter.draw(&mut canvas, &sf.intrinsics, &sf.world_from_camera);
             out.push(sf.index, &canvas)?;
+            jitter.push(augmenter, &sf, &step.faces.faces);
         }
         let line = frame_line(&sf, &step, link_state, link_cut);
         line_bytes.clear();
@@ -285,7 +286,12 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     }
     // The annotation first: when it fails, the lines of a file source are not committed either.
     let annotated = annotated.map(Frames::finish).transpose()?;
-    let augmented = augmented.map(|(_, out)| out.finish()).transpose()?;
+    let augmented = augmented
+        .map(|(augmenter, out, jitter)| {
+            jitter.say(&augmenter);
+            out.finish()
+        })
+        .transpose()?;
     if !reader_gone {
         out.commit()?;
     }
@@ -387,7 +393,7 @@ fn open_augment(
     args: &Args,
     scene: &std::path::Path,
     tracker: &FaceTracker,
-) -> anyhow::Result<(crate::augment::Augmenter, Frames)> {
+) -> anyhow::Result<(crate::augment::Augmenter, Frames, ScreenJitter)> {
     let scene = crate::augment::scene::Scene::load(scene)?;
     let augmenter = crate::augment::Augmenter::new(scene, tracker.face_model().clone(), args.lookahead_ms);
     let out = args.augment_out.clone().unwrap_or_else(|| {
@@ -402,7 +408,64 @@ fn open_augment(
         augmenter.delay_ms(),
         out.display()
     );
-    Ok((augmenter, Frames::open(&out, args.input.fps, "augmented")?))
+    Ok((
+        augmenter,
+        Frames::open(&out, args.input.fps, "augmented")?,
+        ScreenJitter::default(),
+    ))
+}
+
+/// Where the first face's anchored objects land in each frame (their origins projected), and its landmarks:
+/// their jitter side by side at the end of an `--augment` run.
+#[derive(Default)]
+struct ScreenJitter {
+    objects: Vec<Vec<Option<holoface_models::geometry::Point2>>>,
+    landmarks: Vec<crate::track_measures::Landmarks>,
+}
+
+impl ScreenJitter {
+    fn push(
+        &mut self,
+        a: &crate::augment::Augmenter,
+        sf: &holoface_runtime::OwnedFrame,
+        faces: &[holoface_runtime::FaceResult],
+    ) {
+        let camera_from_world = sf.world_from_camera.inverse();
+        let shown = a.anchors().into_iter().next();
+        let n = shown.as_ref().map_or(self.objects.len(), |(_, p)| p.len());
+        self.objects
+            .resize_with(n.max(self.objects.len()), || vec![None; self.landmarks.len()]);
+        for (k, track) in self.objects.iter_mut().enumerate() {
+            let at = shown
+                .as_ref()
+                .and_then(|(_, poses)| poses.get(k))
+                .and_then(|p| sf.intrinsics.project(camera_from_world.apply(p.translation)));
+            track.push(at);
+        }
+        self.landmarks.push(faces.first().map(|f| f.landmarks));
+    }
+
+    /// Says each object's screen-space jitter beside the landmarks'.
+    fn say(&self, a: &crate::augment::Augmenter) {
+        use crate::track_measures::{jitter49_px, point_jitter_px, summarise};
+        let Some(lm) = summarise(&jitter49_px(&self.landmarks)) else {
+            return;
+        };
+        for (k, track) in self.objects.iter().enumerate() {
+            if let Some(o) = summarise(&point_jitter_px(track)) {
+                crate::say!(
+                    "--augment: {} on screen jitters {:.2} px median, {:.2} p95 ({} frames); the steadied \
+                     landmarks {:.2} px median, {:.2} p95 (second difference, 49 points)",
+                    a.object_name(k),
+                    o.median,
+                    o.p95,
+                    o.frames,
+                    lm.median,
+                    lm.p95
+                );
+            }
+        }
+    }
 }
 
 /// Where `--annotate` and `--augment` draw: a folder of PNGs, or an H.264 MP4 (created at the first frame's
