@@ -67,80 +67,37 @@ fn disc_z(r: f64) -> Mesh {
     lathe(&[[0.0, 0.0, 0.0, -1.0], [r, 0.0, 0.0, -1.0]], AROUND).moved(&turn_x(std::f64::consts::FRAC_PI_2))
 }
 
-/// An axis-aligned box between `lo` and `hi`.
+/// An axis-aligned box between `lo` and `hi` (its faces' winding is free: the rasteriser draws both sides).
 fn cuboid(lo: Vec3, hi: Vec3) -> Mesh {
     let mut m = Mesh::default();
-    let faces: [(Vec3, [Vec3; 4]); 6] = {
-        let c = |x: bool, y: bool, z: bool| {
-            Vec3::new(
-                if x { hi.x } else { lo.x },
-                if y { hi.y } else { lo.y },
-                if z { hi.z } else { lo.z },
-            )
-        };
-        [
-            (
-                Vec3::new(-1.0, 0.0, 0.0),
-                [
-                    c(false, false, false),
-                    c(false, true, false),
-                    c(false, true, true),
-                    c(false, false, true),
-                ],
-            ),
-            (
-                Vec3::new(1.0, 0.0, 0.0),
-                [
-                    c(true, false, false),
-                    c(true, false, true),
-                    c(true, true, true),
-                    c(true, true, false),
-                ],
-            ),
-            (
-                Vec3::new(0.0, -1.0, 0.0),
-                [
-                    c(false, false, false),
-                    c(false, false, true),
-                    c(true, false, true),
-                    c(true, false, false),
-                ],
-            ),
-            (
-                Vec3::new(0.0, 1.0, 0.0),
-                [
-                    c(false, true, false),
-                    c(true, true, false),
-                    c(true, true, true),
-                    c(false, true, true),
-                ],
-            ),
-            (
-                Vec3::new(0.0, 0.0, -1.0),
-                [
-                    c(false, false, false),
-                    c(true, false, false),
-                    c(true, true, false),
-                    c(false, true, false),
-                ],
-            ),
-            (
-                Vec3::new(0.0, 0.0, 1.0),
-                [
-                    c(false, false, true),
-                    c(false, true, true),
-                    c(true, true, true),
-                    c(true, false, true),
-                ],
-            ),
-        ]
-    };
-    for (n, q) in faces {
-        let base = m.positions.len() as u32;
-        m.positions.extend(q);
-        m.normals.extend([n; 4]);
-        m.triangles.push([base, base + 1, base + 2]);
-        m.triangles.push([base, base + 2, base + 3]);
+    for axis in 0..3 {
+        for high in [false, true] {
+            // The face's corners: `axis` fixed at its low or high end, the other two going round.
+            let corner = |a: bool, b: bool| {
+                let mut bits = [false; 3];
+                bits[axis] = high;
+                bits[(axis + 1) % 3] = a;
+                bits[(axis + 2) % 3] = b;
+                let [x, y, z] = bits;
+                Vec3::new(
+                    if x { hi.x } else { lo.x },
+                    if y { hi.y } else { lo.y },
+                    if z { hi.z } else { lo.z },
+                )
+            };
+            let mut n = [0.0; 3];
+            n[axis] = if high { 1.0 } else { -1.0 };
+            let base = m.positions.len() as u32;
+            m.positions.extend([
+                corner(false, false),
+                corner(true, false),
+                corner(true, true),
+                corner(false, true),
+            ]);
+            m.normals.extend([Vec3::new(n[0], n[1], n[2]); 4]);
+            m.triangles.push([base, base + 1, base + 2]);
+            m.triangles.push([base, base + 2, base + 3]);
+        }
     }
     m
 }

@@ -434,39 +434,35 @@ mod tests {
         assert!(err(&format!("{obj}hat = 1\n")).contains("unknown field"));
         assert!(err("display_delay_ms = -5.0\n").contains("display_delay_ms"));
         let effect = |when: &str, what: &str| format!("{obj}[[effect]]\nwhen = {when}\n{what}\n");
-        assert!(
-            err(&effect(
+        let smile = "{ attribute = \"smile\" }";
+        for (when, what, says) in [
+            (
                 "{ blendshape = \"jawopen\", on = 0.5 }",
-                "particles = {}"
-            ))
-            .contains("jawopen")
-        );
-        assert!(err(&effect("{ blendshape = \"jawOpen\" }", "particles = {}")).contains("on threshold"));
-        assert!(
-            err(&effect(
+                "particles = {}",
+                "jawopen",
+            ),
+            ("{ blendshape = \"jawOpen\" }", "particles = {}", "on threshold"),
+            (
                 "{ blendshape = \"jawOpen\", on = 0.3, off = 0.6 }",
-                "particles = {}"
-            ))
-            .contains("off <= on")
-        );
-        assert!(
-            err(&effect(
-                "{ attribute = \"smile\" }",
-                "tint = { object = \"hat\", colour = [1, 2, 3] }"
-            ))
-            .contains("no object")
-        );
-        assert!(err(&effect("{ attribute = \"smile\" }", "")).contains("exactly one of particles and tint"));
-        assert!(
-            err(&effect("{ attribute = \"smile\", on = 0.2 }", "particles = {}")).contains("own thresholds")
-        );
-        assert!(
-            err(&effect(
-                "{ attribute = \"smile\" }",
-                "particles = { lifetime_s = 0.0 }"
-            ))
-            .contains("lifetime_s")
-        );
+                "particles = {}",
+                "off <= on",
+            ),
+            (
+                smile,
+                "tint = { object = \"hat\", colour = [1, 2, 3] }",
+                "no object",
+            ),
+            (smile, "", "exactly one of particles and tint"),
+            (
+                "{ attribute = \"smile\", on = 0.2 }",
+                "particles = {}",
+                "own thresholds",
+            ),
+            (smile, "particles = { lifetime_s = 0.0 }", "lifetime_s"),
+        ] {
+            let e = err(&effect(when, what));
+            assert!(e.contains(says), "{when} {what}: {e}");
+        }
         let many = obj.repeat(MAX_OBJECTS + 1);
         assert!(err(&many).contains("at most 16"));
     }
