@@ -606,28 +606,6 @@ enum HfStatus hf_tracker_link_status(const struct HfTracker *tracker,
                                      struct HfLinkStatus *out);
 
 /**
- * Where an object anchored on a face sits in the world: the face's display pose (`display_position_m`,
- * `display_rotation_wxyz`: predicted for display) after the anchor, which is the head point `point` (an
- * `HfAnchorPoint` value) of the tracker's CANDIDE-3 model, moved by `offset_m` and turned by `rotation_deg`
- * (about the head's x, then y, then z), both in the head frame (x right, y down, z into the head; metres,
- * degrees). Writes the object-to-world transform as a row-major 4x4 (the layout of the camera-to-world poses
- * passed in) to `out_world_from_object`. The tools' renderer (`holoface track --augment`) places its objects
- * with the same arithmetic; `ffi/unity/README.md` places its scene with this call. A call on the tracker in
- * flight on another thread finishes first.
- *
- * # Safety
- * `tracker` is any pointer (checked); `face` is NULL or points to one readable `HfResult`; `offset_m` and
- * `rotation_deg` are NULL or point to 3 readable doubles; `out_world_from_object` is NULL or points to 16
- * writable floats.
- */
-enum HfStatus hf_tracker_anchor(const struct HfTracker *tracker,
-                                const struct HfResult *face,
-                                uint32_t point,
-                                const double *offset_m,
-                                const double *rotation_deg,
-                                float *out_world_from_object);
-
-/**
  * Frees a tracker. NULL, unknown and already-freed handles free nothing and return
  * `HF_STATUS_INVALID_HANDLE`. A handle is never issued again, so freeing a stale one cannot free another
  * tracker. A call on the tracker still running on another thread finishes first.
@@ -649,6 +627,28 @@ const char *hf_last_error(void);
  * The library version, e.g. "0.1.0".
  */
 const char *hf_version(void);
+
+/**
+ * Where an object anchored on a face sits in the world: the face's display pose (`display_position_m`,
+ * `display_rotation_wxyz`: predicted for display) after the anchor, which is the head point `point` (an
+ * `HfAnchorPoint` value) of the tracker's CANDIDE-3 model, moved by `offset_m` and turned by `rotation_deg`
+ * (about the head's x, then y, then z), both in the head frame (x right, y down, z into the head; metres,
+ * degrees). Writes the object-to-world transform as a row-major 4x4 (the layout of the camera-to-world poses
+ * passed in) to `out_world_from_object`. The tools' renderer (`holoface track --augment`) places its objects
+ * with the same arithmetic; `ffi/unity/README.md` places its scene with this call. A call on the tracker in
+ * flight on another thread finishes first.
+ *
+ * # Safety
+ * `tracker` is any pointer (checked); `face` is NULL or points to one readable `HfResult`; `offset_m` and
+ * `rotation_deg` are NULL or point to 3 readable doubles; `out_world_from_object` is NULL or points to 16
+ * writable floats.
+ */
+enum HfStatus hf_tracker_anchor(const struct HfTracker *tracker,
+                                const struct HfResult *face,
+                                uint32_t point,
+                                const double *offset_m,
+                                const double *rotation_deg,
+                                float *out_world_from_object);
 
 #ifdef __cplusplus
 }  // extern "C"
