@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::batcher::{BatchPolicy, BatcherConfig};
 use crate::metrics_http::is_internal_addr;
+use holoface_inference::files::{FileError, read_text_bounded};
 use holoface_inference::{OnnxOptions, PrecisionChoice, Provider};
 
 /// Default QUIC listen address.
@@ -57,22 +58,11 @@ pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 /// The largest tokens file read (a token per line: tens of thousands of headsets).
 pub const MAX_TOKENS_FILE_BYTES: u64 = 4 << 20;
 
-/// A file read whole, refused before reading when it is not a regular file or larger than `max` (a device,
-/// a pipe or a huge file named by mistake must not hang the start or fill the memory).
-fn bounded_text(path: &Path, max: u64) -> std::io::Result<String> {
-    use holoface_inference::files::{FileError, read_text_bounded};
-    read_text_bounded(path, max, "file").map_err(|e| match e {
-        FileError::Io { source, .. } => source,
-        FileError::Missing { .. } => std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
-        FileError::NotAFile { kind, .. } => {
-            std::io::Error::other(format!("it is {kind}, not a regular file"))
-        }
-        FileError::Loop { .. } => std::io::Error::other("it is a loop of symbolic links"),
-        FileError::TooLarge { len, max, .. } => {
-            std::io::Error::other(format!("{len} bytes, more than such a file can be ({max} bytes)"))
-        }
-        other => std::io::Error::other(other.to_string()),
-    })
+/// The config file read whole, refused before reading when it is not a regular file or larger than
+/// [`MAX_CONFIG_BYTES`] (a device, a pipe or a huge file named by mistake must not hang the start or fill the
+/// memory); the error keeps what went wrong, for the caller to match.
+pub fn read_config_file(path: &Path) -> Result<String, FileError> {
+    read_text_bounded(path, MAX_CONFIG_BYTES, "config file")
 }
 
 /// The longest idle, hello and shutdown timeout accepted, ms (an hour).
@@ -94,22 +84,13 @@ pub enum ConfigError {
     /// Command-line parsing failed (or `--help` / `--version` was asked for).
     #[error(transparent)]
     Cli(#[from] clap::Error),
-    /// The config file could not be read.
-    #[error("reading config file {path}: {source}")]
-    Read {
-        /// The file.
-        path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
-    },
-    /// The access-tokens file could not be read.
-    #[error("reading tokens file {path}: {source}")]
-    TokensFile {
-        /// The file.
-        path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
-    },
+    /// The config file could not be read: missing, not a regular file, too large or unreadable (the
+    /// `FileError` names it as "config file").
+    #[error(transparent)]
+    Read(FileError),
+    /// The access-tokens file could not be read (named as "tokens file").
+    #[error(transparent)]
+    TokensFile(FileError),
     /// The config file is not valid TOML for this schema.
     #[error("parsing config file {path}: {source}")]
     Toml {
@@ -357,6 +338,9 @@ pub struct LogConfig {
     pub level: Option<String>,
 }
 
+/// The log filter without `[log] level` or RUST_LOG.
+pub const DEFAULT_LOG_LEVEL: &str = "info";
+
 impl LogConfig {
     /// The `tracing_subscriber::EnvFilter` directive: `RUST_LOG` if set, else
     /// the configured level, with quinn and rustls capped at `info`.
@@ -366,7 +350,7 @@ impl LogConfig {
         {
             return env;
         }
-        let level = self.level.as_deref().unwrap_or("info");
+        let level = self.level.as_deref().unwrap_or(DEFAULT_LOG_LEVEL);
         format!("{level},quinn=info,quinn_proto=info,rustls=info")
     }
 }
@@ -519,7 +503,7 @@ impl ServerConfig {
     /// from `read_file` and clap's environment look-ups.
     pub fn parse_and_merge<I, T>(
         args: I,
-        read_file: impl FnOnce(&Path) -> std::io::Result<String>,
+        read_file: impl FnOnce(&Path) -> Result<String, FileError>,
     ) -> Result<Self, ConfigError>
     where
         I: IntoIterator<Item = T>,
@@ -529,10 +513,7 @@ impl ServerConfig {
         let Some(path) = cli.config.clone() else {
             return Ok(cli);
         };
-        let text = read_file(&path).map_err(|source| ConfigError::Read {
-            path: path.clone(),
-            source,
-        })?;
+        let text = read_file(&path).map_err(ConfigError::Read)?;
         let file = Self::from_toml(&text, &path)?;
         Ok(cli.merge(file))
     }
@@ -540,7 +521,7 @@ impl ServerConfig {
     /// The binary's entry point: process arguments, the config file, then
     /// [`Self::resolve`].
     pub fn load() -> Result<(Settings, LogConfig), ConfigError> {
-        let cfg = Self::parse_and_merge(std::env::args_os(), |p| bounded_text(p, MAX_CONFIG_BYTES))?;
+        let cfg = Self::parse_and_merge(std::env::args_os(), read_config_file)?;
         let log = cfg.log.clone();
         Ok((cfg.resolve()?, log))
     }
@@ -739,10 +720,8 @@ fn resolve_tokens(auth: AuthConfig) -> Result<(Vec<String>, bool), ConfigError> 
     let invalid = |m: String| ConfigError::Invalid(m);
     let mut tokens = auth.tokens.unwrap_or_default();
     if let Some(path) = &auth.tokens_file {
-        let text = bounded_text(path, MAX_TOKENS_FILE_BYTES).map_err(|source| ConfigError::TokensFile {
-            path: path.clone(),
-            source,
-        })?;
+        let text =
+            read_text_bounded(path, MAX_TOKENS_FILE_BYTES, "tokens file").map_err(ConfigError::TokensFile)?;
         tokens.extend(
             text.lines()
                 .map(str::trim)
@@ -1260,11 +1239,158 @@ mod tests {
         let mut cfg = ServerConfig::default();
         cfg.auth.tokens_file = Some("/nonexistent/holoface-tokens".into());
         let e = cfg.resolve().unwrap_err().to_string();
+        assert_eq!(e, "tokens file /nonexistent/holoface-tokens does not exist");
+    }
+
+    /// What `resolve` makes of a config with nothing but a token, changed by `edit`.
+    fn resolved(edit: impl FnOnce(&mut ServerConfig)) -> Settings {
+        let mut cfg = ServerConfig::default();
+        cfg.auth.tokens = Some(vec!["t".into()]);
+        edit(&mut cfg);
+        cfg.resolve().unwrap()
+    }
+
+    /// The defaults as `resolve` applies them, spelled as the field docs spell them, by argument id: the one
+    /// table that the docs' "[default: ...]" and deploy/server.example.toml are checked against.
+    fn resolved_defaults() -> Vec<(&'static str, String)> {
+        let s = resolved(|_| {});
+        let wait = match resolved(|c| c.batch.policy = Some(BatchPolicyName::MaxWait)).batch.policy {
+            BatchPolicy::MaxWait(d) => d.as_micros().to_string(),
+            BatchPolicy::WorkConserving => "work-conserving".into(),
+        };
+        let (device, required) = match resolved(|c| c.engine.cuda = Some(true)).engine.provider {
+            Provider::Cuda { device, required } => (device.to_string(), required.to_string()),
+            other => (format!("{other:?}"), String::new()),
+        };
+        let names = match &s.tls {
+            TlsSource::SelfSigned { names } => names.join(","),
+            TlsSource::Files { .. } => "files".into(),
+        };
+        let ms = |d: Duration| d.as_millis().to_string();
+        vec![
+            ("listen", s.listen.to_string()),
+            ("self_signed_names", names),
+            ("idle_timeout_ms", ms(s.idle_timeout)),
+            ("hello_timeout_ms", ms(s.hello_timeout)),
+            ("reply_channel", format!("{:?}", s.reply_channel).to_lowercase()),
+            ("allow_anonymous", s.allow_anonymous.to_string()),
+            ("max_clients", s.max_clients.to_string()),
+            ("max_in_flight", s.max_in_flight.to_string()),
+            ("max_frame_age_ms", ms(s.max_frame_age)),
+            ("shutdown_timeout_ms", ms(s.shutdown_timeout)),
+            ("max_batch", s.batch.max_batch.to_string()),
+            (
+                "policy",
+                match s.batch.policy {
+                    BatchPolicy::WorkConserving => "work-conserving".into(),
+                    BatchPolicy::MaxWait(_) => "max-wait".into(),
+                },
+            ),
+            ("max_wait_us", wait),
+            ("per_client_queue", s.batch.per_client_queue.to_string()),
+            ("precision", format!("{:?}", s.precision).to_lowercase()),
+            ("cuda", (s.engine.provider != Provider::Cpu).to_string()),
+            ("cuda_device", device),
+            ("cuda_required", required),
+            ("spin", s.engine.spin.to_string()),
+            ("instances", s.engine_instances.to_string()),
+            ("refine", s.refine_model.is_some().to_string()),
+            ("metrics_listen", s.metrics_listen.map_or("off".into(), |a| a.to_string())),
+            // Applied by `LogConfig::filter_directive` (RUST_LOG overrides it), not by `resolve`.
+            ("level", DEFAULT_LOG_LEVEL.into()),
+        ]
+    }
+
+    #[test]
+    fn the_documented_defaults_are_the_ones_resolve_applies() {
+        // Defaults the docs give in words, not as one value: derived from another setting, a path in the data
+        // folder, the machine's cores.
+        const IN_WORDS: [&str; 7] = [
+            "max_pending",
+            "max_frame_rate",
+            "model",
+            "int8_model",
+            "ort_dylib",
+            "intra_threads",
+            "refine_model",
+        ];
+        let table = resolved_defaults();
+        let cmd = <ServerConfig as clap::CommandFactory>::command();
+        let mut checked = Vec::new();
+        for arg in cmd.get_arguments() {
+            let id = arg.get_id().as_str();
+            let help = arg.get_long_help().or(arg.get_help()).map(ToString::to_string).unwrap_or_default();
+            let Some(at) = help.find("[default: ") else {
+                continue;
+            };
+            let documented = help[at + 10..].split([';', ']']).next().unwrap_or_default().trim();
+            match table.iter().find(|(k, _)| *k == id) {
+                Some((_, value)) => {
+                    assert_eq!(documented, value, "--{id}: the docs say {documented}, resolve applies {value}");
+                    checked.push(id.to_owned());
+                }
+                None => assert!(
+                    IN_WORDS.contains(&id),
+                    "--{id} documents [default: {documented}], which nothing compares with resolve"
+                ),
+            }
+        }
+        let missing: Vec<_> = table.iter().filter(|(k, _)| !checked.iter().any(|c| c == k)).collect();
+        assert!(missing.is_empty(), "defaults the docs do not give: {missing:?}");
+    }
+
+    #[test]
+    fn the_example_file_spells_the_defaults_it_does_not_change() {
+        let text = include_str!("../../deploy/server.example.toml");
+        let example = ServerConfig::from_toml(text, Path::new("deploy/server.example.toml")).unwrap();
+        let file: toml::Table = toml::from_str(text).unwrap();
+        // What the example sets on purpose: a token to replace, a fingerprint file, two ONNX Runtime threads, a
+        // metrics listener on loopback.
+        let on_purpose = ["tokens", "fingerprint_file", "intra_threads", "metrics_listen"];
+        let mut defaults = ServerConfig::default();
+        defaults.auth.tokens = example.auth.tokens.clone();
+        let defaults = defaults.resolve().unwrap();
+        let table = resolved_defaults();
+        let mut compared = 0;
+        for (section, keys) in &file {
+            for (key, value) in keys.as_table().unwrap() {
+                if on_purpose.contains(&key.as_str()) {
+                    continue;
+                }
+                // The file's spelling of the key, as the table's argument id.
+                let id = match (section.as_str(), key.as_str()) {
+                    ("refine", "enabled") => "refine",
+                    (_, k) => k,
+                };
+                let spelled = match value {
+                    toml::Value::String(v) => v.clone(),
+                    toml::Value::Array(a) => a.iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(","),
+                    v => v.to_string(),
+                };
+                match table.iter().find(|(k, _)| *k == id) {
+                    Some((_, d)) => assert_eq!(&spelled, d, "[{section}] {key}"),
+                    // Values the docs give in words: compared as resolved.
+                    None if id == "max_frame_rate" => {
+                        assert_eq!(spelled, defaults.max_frame_rate.to_string(), "[limits] max_frame_rate");
+                    }
+                    None => panic!("[{section}] {key} = {spelled}: not a default the table knows"),
+                }
+                compared += 1;
+            }
+        }
+        assert!(compared >= 15, "only {compared} values compared: the file lost its sections?");
+    }
+
+    #[test]
+    fn a_config_file_that_is_not_a_file_is_refused_with_its_kind() {
+        let dir = std::env::temp_dir();
+        let e = ServerConfig::parse_and_merge(["x", "-c", dir.to_str().unwrap()], read_config_file).unwrap_err();
+        // The structure is kept: a caller can match the kind, and the words name the file and its role.
         assert!(
-            e.starts_with("reading tokens file /nonexistent/holoface-tokens"),
-            "{e}"
+            matches!(&e, ConfigError::Read(FileError::NotAFile { path, .. }) if *path == dir),
+            "{e:?}"
         );
-        assert!(!e.contains("config file"), "{e}");
+        assert_eq!(e.to_string(), format!("config file {} is a directory, not a regular file", dir.display()));
     }
 
     #[test]
