@@ -526,185 +526,79 @@ impl ServerConfig {
         Ok((cfg.resolve()?, log))
     }
 
-    /// Applies defaults and checks ranges. Reads `auth.tokens_file` if set.
+    /// Applies defaults and checks ranges (the one place the defaults are written: the field docs and
+    /// `deploy/server.example.toml` are tested against it). Reads `auth.tokens_file` if set.
     pub fn resolve(self) -> Result<Settings, ConfigError> {
-        let invalid = |m: String| ConfigError::Invalid(m);
-        let q = self.quic;
-        let tls = match (q.cert, q.key) {
-            (Some(cert), Some(key)) => TlsSource::Files { cert, key },
-            (None, None) => TlsSource::SelfSigned {
-                names: q
-                    .self_signed_names
-                    .unwrap_or_else(|| vec!["localhost".to_owned()]),
-            },
-            _ => return Err(invalid("quic.cert and quic.key must be given together".into())),
-        };
-        let listen = match q.listen {
-            Some(a) => a,
-            None => DEFAULT_LISTEN
-                .parse()
-                .map_err(|e| invalid(format!("default listen address: {e}")))?,
-        };
+        let quic = resolve_quic(self.quic)?;
         let (tokens, allow_anonymous) = resolve_tokens(self.auth)?;
-        // Zero and too-small durations are refused, not silently raised: an operator who wrote 0 meant
-        // something (off? immediate?) that the server cannot do.
-        let idle_timeout_ms = q.idle_timeout_ms.unwrap_or(10_000);
-        if idle_timeout_ms < MIN_IDLE_TIMEOUT_MS {
-            return Err(invalid(format!(
-                "quic.idle_timeout_ms = {idle_timeout_ms}: must be at least {MIN_IDLE_TIMEOUT_MS} (a shorter idle \
-                 timeout closes healthy connections between keep-alives)"
-            )));
-        }
-        if idle_timeout_ms > MAX_TIMEOUT_MS {
-            return Err(invalid(format!(
-                "quic.idle_timeout_ms = {idle_timeout_ms}: at most {MAX_TIMEOUT_MS} (an hour; a dead headset \
-                 would hold its place that long)"
-            )));
-        }
-        let hello_timeout_ms = q.hello_timeout_ms.unwrap_or(5_000);
-        if !(1..=MAX_TIMEOUT_MS).contains(&hello_timeout_ms) {
-            return Err(invalid(format!(
-                "quic.hello_timeout_ms = {hello_timeout_ms}: allowed 1..={MAX_TIMEOUT_MS}"
-            )));
-        }
-        let max_frame_age_ms = self.limits.max_frame_age_ms.unwrap_or(100);
-        if max_frame_age_ms == 0 {
-            return Err(invalid(
-                "limits.max_frame_age_ms = 0: must be at least 1 (0 would expire every frame)".into(),
-            ));
-        }
-        if u64::from(max_frame_age_ms) > MAX_FRAME_AGE_MS {
-            return Err(invalid(format!(
-                "limits.max_frame_age_ms = {max_frame_age_ms}: at most {MAX_FRAME_AGE_MS} (an answer that late \
-                 is of no use to a headset)"
-            )));
-        }
-        let shutdown_timeout_ms = self.limits.shutdown_timeout_ms.unwrap_or(5_000);
-        if shutdown_timeout_ms > MAX_TIMEOUT_MS {
-            return Err(invalid(format!(
-                "limits.shutdown_timeout_ms = {shutdown_timeout_ms}: at most {MAX_TIMEOUT_MS}"
-            )));
-        }
-        let per_client_queue = self.batch.per_client_queue.unwrap_or(1).max(1);
-        if per_client_queue > MAX_PER_CLIENT_QUEUE {
-            return Err(invalid(format!(
-                "batch.per_client_queue = {per_client_queue}: at most {MAX_PER_CLIENT_QUEUE} (a newer crop \
-                 supersedes an older one; a long queue only holds stale frames)"
-            )));
-        }
-        let max_batch = self.batch.max_batch.unwrap_or(8);
-        if !(1..=256).contains(&max_batch) {
-            return Err(invalid(format!("batch.max_batch = {max_batch}, allowed 1..=256")));
-        }
-        let policy = match (
-            self.batch.policy.unwrap_or(BatchPolicyName::WorkConserving),
-            self.batch.max_wait_us,
-        ) {
-            (BatchPolicyName::WorkConserving, None) => BatchPolicy::WorkConserving,
-            (BatchPolicyName::WorkConserving, Some(us)) => {
-                return Err(invalid(format!(
-                    "batch.max_wait_us = {us} applies only to batch.policy = \"max-wait\" \
-                     (the default policy, work-conserving, never waits)"
-                )));
-            }
-            (BatchPolicyName::MaxWait, us) => {
-                let us = us.unwrap_or(2_000);
-                // A batch that waits as long as a frame may live answers nothing: every frame expires first.
-                if us >= u64::from(max_frame_age_ms) * 1_000 {
-                    return Err(invalid(format!(
-                        "batch.max_wait_us = {us} is not shorter than limits.max_frame_age_ms = {max_frame_age_ms} \
-                         ({} us): every frame would expire waiting for its batch and none would be answered; \
-                         choose a max_wait_us well under the frame age",
-                        u64::from(max_frame_age_ms) * 1_000
-                    )));
-                }
-                BatchPolicy::MaxWait(Duration::from_micros(us))
-            }
-        };
-        let max_clients = self.limits.max_clients.unwrap_or(64);
-        if !(1..=MAX_CLIENTS).contains(&max_clients) {
-            return Err(invalid(format!(
-                "limits.max_clients = {max_clients}: allowed 1..={MAX_CLIENTS} (one server answers far fewer \
-                 headsets; each holds a QUIC connection and a share of the engine)"
-            )));
-        }
-        if let Some(p) = self.limits.max_pending
-            && !(1..=MAX_CLIENTS).contains(&p)
-        {
-            return Err(invalid(format!(
-                "limits.max_pending = {p}: allowed 1..={MAX_CLIENTS}"
-            )));
-        }
-        let max_in_flight = self.limits.max_in_flight.unwrap_or(8).max(1);
+        let limits = resolve_limits(&self.limits)?;
+        let (max_batch, policy, per_client_queue) = resolve_batch(&self.batch, limits.max_frame_age)?;
         if let Some(addr) = self.internal.metrics_listen
             && !is_internal_addr(addr.ip())
         {
-            return Err(invalid(format!(
+            return Err(ConfigError::Invalid(format!(
                 "internal.metrics_listen {addr} must be a loopback or private address"
             )));
         }
-        let provider = resolve_provider(&self.engine)?;
-        let ort_dylib = self
-            .engine
-            .ort_dylib
-            .unwrap_or_else(holoface_inference::default_ort_dylib);
-        let engine_instances = self.engine.instances.unwrap_or(1);
+        let engine = self.engine;
+        let provider = resolve_provider(&engine)?;
+        let engine_instances = engine.instances.unwrap_or(1);
         if !(1..=64).contains(&engine_instances) {
-            return Err(invalid(format!(
+            return Err(ConfigError::Invalid(format!(
                 "engine.instances {engine_instances} must be within 1..=64"
             )));
         }
-        let intra_threads = self
-            .engine
+        let intra_threads = engine
             .intra_threads
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from))
             .max(1);
         if intra_threads > MAX_INTRA_THREADS {
-            return Err(invalid(format!(
+            return Err(ConfigError::Invalid(format!(
                 "engine.intra_threads = {intra_threads}: at most {MAX_INTRA_THREADS}"
             )));
         }
         Ok(Settings {
-            listen,
-            tls,
-            fingerprint_file: q.fingerprint_file,
-            idle_timeout: Duration::from_millis(idle_timeout_ms),
-            hello_timeout: Duration::from_millis(hello_timeout_ms),
-            reply_channel: q.reply_channel.unwrap_or(ReplyMode::Datagram).into(),
+            listen: quic.listen,
+            tls: quic.tls,
+            fingerprint_file: quic.fingerprint_file,
+            idle_timeout: quic.idle_timeout,
+            hello_timeout: quic.hello_timeout,
+            reply_channel: quic.reply_channel,
             tokens,
             allow_anonymous,
-            max_clients,
-            max_pending: self.limits.max_pending.unwrap_or(max_clients.max(16)),
-            max_in_flight,
-            max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
-            shutdown_timeout: Duration::from_millis(shutdown_timeout_ms),
-            // What one headset needs at most: every face it may have in flight, at 30 fps.
-            max_frame_rate: self
-                .limits
-                .max_frame_rate
-                .unwrap_or(u32::from(max_in_flight) * HEADSET_FPS),
+            max_clients: limits.max_clients,
+            max_pending: limits.max_pending,
+            max_in_flight: limits.max_in_flight,
+            max_frame_age: limits.max_frame_age,
+            shutdown_timeout: limits.shutdown_timeout,
+            max_frame_rate: limits.max_frame_rate,
             batch: BatcherConfig {
                 max_batch,
                 policy,
                 per_client_queue,
-                max_queued: max_clients.saturating_mul(usize::from(max_in_flight)).max(1),
+                max_queued: limits
+                    .max_clients
+                    .saturating_mul(usize::from(limits.max_in_flight))
+                    .max(1),
             },
             engine: OnnxOptions {
-                model: self.engine.model.unwrap_or_else(default_model),
-                ort_dylib,
+                model: engine.model.unwrap_or_else(default_model),
+                ort_dylib: engine
+                    .ort_dylib
+                    .unwrap_or_else(holoface_inference::default_ort_dylib),
                 intra_threads,
                 max_batch,
                 provider,
-                spin: self.engine.spin.unwrap_or(false),
+                spin: engine.spin.unwrap_or(false),
             },
             engine_instances,
-            precision: self.engine.precision.unwrap_or(PrecisionName::Auto).into(),
-            int8_model: self.engine.int8_model.unwrap_or_else(default_int8_model),
+            precision: engine.precision.unwrap_or(PrecisionName::Auto).into(),
+            int8_model: engine.int8_model.unwrap_or_else(default_int8_model),
             refine_model: match (self.refine.enabled.unwrap_or(true), self.refine.model) {
                 (true, model) => Some(model.unwrap_or_else(default_refine_model)),
                 (false, None) => None,
                 (false, Some(m)) => {
-                    return Err(invalid(format!(
+                    return Err(ConfigError::Invalid(format!(
                         "refine.model = {} is set but refine.enabled = false: drop one of them",
                         m.display()
                     )));
@@ -713,6 +607,164 @@ impl ServerConfig {
             metrics_listen: self.internal.metrics_listen,
         })
     }
+}
+
+/// `[quic]` resolved.
+struct QuicSettings {
+    listen: SocketAddr,
+    tls: TlsSource,
+    fingerprint_file: Option<PathBuf>,
+    idle_timeout: Duration,
+    hello_timeout: Duration,
+    reply_channel: ReplyChannel,
+}
+
+fn resolve_quic(q: QuicConfig) -> Result<QuicSettings, ConfigError> {
+    let invalid = |m: String| ConfigError::Invalid(m);
+    let tls = match (q.cert, q.key) {
+        (Some(cert), Some(key)) => TlsSource::Files { cert, key },
+        (None, None) => TlsSource::SelfSigned {
+            names: q
+                .self_signed_names
+                .unwrap_or_else(|| vec!["localhost".to_owned()]),
+        },
+        _ => return Err(invalid("quic.cert and quic.key must be given together".into())),
+    };
+    let listen = match q.listen {
+        Some(a) => a,
+        None => DEFAULT_LISTEN
+            .parse()
+            .map_err(|e| invalid(format!("default listen address: {e}")))?,
+    };
+    // Zero and too-small durations are refused, not silently raised: an operator who wrote 0 meant
+    // something (off? immediate?) that the server cannot do.
+    let idle_timeout_ms = q.idle_timeout_ms.unwrap_or(10_000);
+    if idle_timeout_ms < MIN_IDLE_TIMEOUT_MS {
+        return Err(invalid(format!(
+            "quic.idle_timeout_ms = {idle_timeout_ms}: must be at least {MIN_IDLE_TIMEOUT_MS} (a shorter idle \
+             timeout closes healthy connections between keep-alives)"
+        )));
+    }
+    if idle_timeout_ms > MAX_TIMEOUT_MS {
+        return Err(invalid(format!(
+            "quic.idle_timeout_ms = {idle_timeout_ms}: at most {MAX_TIMEOUT_MS} (an hour; a dead headset \
+             would hold its place that long)"
+        )));
+    }
+    let hello_timeout_ms = q.hello_timeout_ms.unwrap_or(5_000);
+    if !(1..=MAX_TIMEOUT_MS).contains(&hello_timeout_ms) {
+        return Err(invalid(format!(
+            "quic.hello_timeout_ms = {hello_timeout_ms}: allowed 1..={MAX_TIMEOUT_MS}"
+        )));
+    }
+    Ok(QuicSettings {
+        listen,
+        tls,
+        fingerprint_file: q.fingerprint_file,
+        idle_timeout: Duration::from_millis(idle_timeout_ms),
+        hello_timeout: Duration::from_millis(hello_timeout_ms),
+        reply_channel: q.reply_channel.unwrap_or(ReplyMode::Datagram).into(),
+    })
+}
+
+/// `[limits]` resolved.
+struct Limits {
+    max_clients: usize,
+    max_pending: usize,
+    max_in_flight: u16,
+    max_frame_age: Duration,
+    shutdown_timeout: Duration,
+    max_frame_rate: u32,
+}
+
+fn resolve_limits(l: &LimitsConfig) -> Result<Limits, ConfigError> {
+    let invalid = |m: String| ConfigError::Invalid(m);
+    let max_frame_age_ms = l.max_frame_age_ms.unwrap_or(100);
+    if max_frame_age_ms == 0 {
+        return Err(invalid(
+            "limits.max_frame_age_ms = 0: must be at least 1 (0 would expire every frame)".into(),
+        ));
+    }
+    if u64::from(max_frame_age_ms) > MAX_FRAME_AGE_MS {
+        return Err(invalid(format!(
+            "limits.max_frame_age_ms = {max_frame_age_ms}: at most {MAX_FRAME_AGE_MS} (an answer that late \
+             is of no use to a headset)"
+        )));
+    }
+    let shutdown_timeout_ms = l.shutdown_timeout_ms.unwrap_or(5_000);
+    if shutdown_timeout_ms > MAX_TIMEOUT_MS {
+        return Err(invalid(format!(
+            "limits.shutdown_timeout_ms = {shutdown_timeout_ms}: at most {MAX_TIMEOUT_MS}"
+        )));
+    }
+    let max_clients = l.max_clients.unwrap_or(64);
+    if !(1..=MAX_CLIENTS).contains(&max_clients) {
+        return Err(invalid(format!(
+            "limits.max_clients = {max_clients}: allowed 1..={MAX_CLIENTS} (one server answers far fewer \
+             headsets; each holds a QUIC connection and a share of the engine)"
+        )));
+    }
+    if let Some(p) = l.max_pending
+        && !(1..=MAX_CLIENTS).contains(&p)
+    {
+        return Err(invalid(format!(
+            "limits.max_pending = {p}: allowed 1..={MAX_CLIENTS}"
+        )));
+    }
+    let max_in_flight = l.max_in_flight.unwrap_or(8).max(1);
+    Ok(Limits {
+        max_clients,
+        max_pending: l.max_pending.unwrap_or(max_clients.max(16)),
+        max_in_flight,
+        max_frame_age: Duration::from_millis(u64::from(max_frame_age_ms)),
+        shutdown_timeout: Duration::from_millis(shutdown_timeout_ms),
+        // What one headset needs at most: every face it may have in flight, at 30 fps.
+        max_frame_rate: l.max_frame_rate.unwrap_or(u32::from(max_in_flight) * HEADSET_FPS),
+    })
+}
+
+/// `[batch]` resolved: the largest batch, the policy and the per-client queue. A batch may not wait as long as
+/// a frame may live (`max_frame_age`).
+fn resolve_batch(
+    b: &BatchConfig,
+    max_frame_age: Duration,
+) -> Result<(usize, BatchPolicy, usize), ConfigError> {
+    let invalid = |m: String| ConfigError::Invalid(m);
+    let per_client_queue = b.per_client_queue.unwrap_or(1).max(1);
+    if per_client_queue > MAX_PER_CLIENT_QUEUE {
+        return Err(invalid(format!(
+            "batch.per_client_queue = {per_client_queue}: at most {MAX_PER_CLIENT_QUEUE} (a newer crop \
+             supersedes an older one; a long queue only holds stale frames)"
+        )));
+    }
+    let max_batch = b.max_batch.unwrap_or(8);
+    if !(1..=256).contains(&max_batch) {
+        return Err(invalid(format!("batch.max_batch = {max_batch}, allowed 1..=256")));
+    }
+    let age_us = max_frame_age.as_micros() as u64;
+    let policy = match (b.policy.unwrap_or(BatchPolicyName::WorkConserving), b.max_wait_us) {
+        (BatchPolicyName::WorkConserving, None) => BatchPolicy::WorkConserving,
+        (BatchPolicyName::WorkConserving, Some(us)) => {
+            return Err(invalid(format!(
+                "batch.max_wait_us = {us} applies only to batch.policy = \"max-wait\" \
+                 (the default policy, work-conserving, never waits)"
+            )));
+        }
+        (BatchPolicyName::MaxWait, us) => {
+            let us = us.unwrap_or(2_000);
+            // A batch that waits as long as a frame may live answers nothing: every frame expires first.
+            if us >= age_us {
+                return Err(invalid(format!(
+                    "batch.max_wait_us = {us} is not shorter than limits.max_frame_age_ms = {} ({age_us} us): \
+                     every frame would expire waiting for its batch and none would be answered; choose a \
+                     max_wait_us well under the frame age",
+                    age_us / 1_000
+                )));
+            }
+            BatchPolicy::MaxWait(Duration::from_micros(us))
+        }
+    };
+    Ok((max_batch, policy, per_client_queue))
 }
 
 /// The access tokens (inline and from `auth.tokens_file`) and whether anonymous clients are allowed.
@@ -1254,7 +1306,10 @@ mod tests {
     /// table that the docs' "[default: ...]" and deploy/server.example.toml are checked against.
     fn resolved_defaults() -> Vec<(&'static str, String)> {
         let s = resolved(|_| {});
-        let wait = match resolved(|c| c.batch.policy = Some(BatchPolicyName::MaxWait)).batch.policy {
+        let wait = match resolved(|c| c.batch.policy = Some(BatchPolicyName::MaxWait))
+            .batch
+            .policy
+        {
             BatchPolicy::MaxWait(d) => d.as_micros().to_string(),
             BatchPolicy::WorkConserving => "work-conserving".into(),
         };
@@ -1295,7 +1350,10 @@ mod tests {
             ("spin", s.engine.spin.to_string()),
             ("instances", s.engine_instances.to_string()),
             ("refine", s.refine_model.is_some().to_string()),
-            ("metrics_listen", s.metrics_listen.map_or("off".into(), |a| a.to_string())),
+            (
+                "metrics_listen",
+                s.metrics_listen.map_or("off".into(), |a| a.to_string()),
+            ),
             // Applied by `LogConfig::filter_directive` (RUST_LOG overrides it), not by `resolve`.
             ("level", DEFAULT_LOG_LEVEL.into()),
         ]
@@ -1319,14 +1377,25 @@ mod tests {
         let mut checked = Vec::new();
         for arg in cmd.get_arguments() {
             let id = arg.get_id().as_str();
-            let help = arg.get_long_help().or(arg.get_help()).map(ToString::to_string).unwrap_or_default();
+            let help = arg
+                .get_long_help()
+                .or(arg.get_help())
+                .map(ToString::to_string)
+                .unwrap_or_default();
             let Some(at) = help.find("[default: ") else {
                 continue;
             };
-            let documented = help[at + 10..].split([';', ']']).next().unwrap_or_default().trim();
+            let documented = help[at + 10..]
+                .split([';', ']'])
+                .next()
+                .unwrap_or_default()
+                .trim();
             match table.iter().find(|(k, _)| *k == id) {
                 Some((_, value)) => {
-                    assert_eq!(documented, value, "--{id}: the docs say {documented}, resolve applies {value}");
+                    assert_eq!(
+                        documented, value,
+                        "--{id}: the docs say {documented}, resolve applies {value}"
+                    );
                     checked.push(id.to_owned());
                 }
                 None => assert!(
@@ -1335,7 +1404,10 @@ mod tests {
                 ),
             }
         }
-        let missing: Vec<_> = table.iter().filter(|(k, _)| !checked.iter().any(|c| c == k)).collect();
+        let missing: Vec<_> = table
+            .iter()
+            .filter(|(k, _)| !checked.iter().any(|c| c == k))
+            .collect();
         assert!(missing.is_empty(), "defaults the docs do not give: {missing:?}");
     }
 
@@ -1364,33 +1436,46 @@ mod tests {
                 };
                 let spelled = match value {
                     toml::Value::String(v) => v.clone(),
-                    toml::Value::Array(a) => a.iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(","),
+                    toml::Value::Array(a) => {
+                        a.iter().filter_map(|v| v.as_str()).collect::<Vec<_>>().join(",")
+                    }
                     v => v.to_string(),
                 };
                 match table.iter().find(|(k, _)| *k == id) {
                     Some((_, d)) => assert_eq!(&spelled, d, "[{section}] {key}"),
                     // Values the docs give in words: compared as resolved.
                     None if id == "max_frame_rate" => {
-                        assert_eq!(spelled, defaults.max_frame_rate.to_string(), "[limits] max_frame_rate");
+                        assert_eq!(
+                            spelled,
+                            defaults.max_frame_rate.to_string(),
+                            "[limits] max_frame_rate"
+                        );
                     }
                     None => panic!("[{section}] {key} = {spelled}: not a default the table knows"),
                 }
                 compared += 1;
             }
         }
-        assert!(compared >= 15, "only {compared} values compared: the file lost its sections?");
+        assert!(
+            compared >= 15,
+            "only {compared} values compared: the file lost its sections?"
+        );
     }
 
     #[test]
     fn a_config_file_that_is_not_a_file_is_refused_with_its_kind() {
         let dir = std::env::temp_dir();
-        let e = ServerConfig::parse_and_merge(["x", "-c", dir.to_str().unwrap()], read_config_file).unwrap_err();
+        let e =
+            ServerConfig::parse_and_merge(["x", "-c", dir.to_str().unwrap()], read_config_file).unwrap_err();
         // The structure is kept: a caller can match the kind, and the words name the file and its role.
         assert!(
             matches!(&e, ConfigError::Read(FileError::NotAFile { path, .. }) if *path == dir),
             "{e:?}"
         );
-        assert_eq!(e.to_string(), format!("config file {} is a directory, not a regular file", dir.display()));
+        assert_eq!(
+            e.to_string(),
+            format!("config file {} is a directory, not a regular file", dir.display())
+        );
     }
 
     #[test]
