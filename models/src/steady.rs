@@ -326,30 +326,15 @@ impl<const N: usize> LandmarkFilter<N> {
         source: Source,
         moved: &Similarity2,
     ) -> [Point2; N] {
-        let params_of = |precise: bool| {
-            if precise {
-                self.params.precise
-            } else {
-                self.params.noisy
-            }
+        let params = if source.precise {
+            self.params.precise
+        } else {
+            self.params.noisy
         };
-        let (precise, source) = (source.precise, source.id);
-        let Some(sim) = Similarity2::fit(&self.reference, raw).filter(|s| {
-            s.scale() > 1e-9 && s.a.is_finite() && s.b.is_finite() && s.tx.is_finite() && s.ty.is_finite()
-        }) else {
+        let Some((sim, face)) = self.in_face_frame(raw) else {
             self.state = None;
             return *raw;
         };
-        let Some(inv) = sim.inverse() else {
-            self.state = None;
-            return *raw;
-        };
-        let mut face = [Point2::default(); N];
-        inv.apply_all(raw, &mut face);
-        if face.iter().any(|p| !(p.x.is_finite() && p.y.is_finite())) {
-            self.state = None;
-            return *raw;
-        }
         let scale = sim.scale();
         let rigid_raw = |angle: f64| [sim.tx / scale, sim.ty / scale, scale.ln(), angle];
         let dt = self
@@ -359,74 +344,19 @@ impl<const N: usize> LandmarkFilter<N> {
             .map(|s| (timestamp_us - s.timestamp_us) as f64 * 1e-6)
             .filter(|&dt| dt <= self.params.max_gap_s);
         let (Some(dt), Some(st)) = (dt, self.state.as_mut()) else {
-            let r = rigid_raw(sim.angle());
-            self.state = Some(State {
+            self.state = Some(State::start(
                 timestamp_us,
-                source,
-                last_params: params_of(precise),
-                blend_from: params_of(precise),
-                shape: std::array::from_fn(|i| {
-                    [
-                        OneEuro::start(f64::from(face[i].x)),
-                        OneEuro::start(f64::from(face[i].y)),
-                    ]
-                }),
-                rigid: r.map(OneEuro::start),
-                last_angle: r[3],
-                blend_shape: [[(0.0, 0.0); 2]; N],
-                bias_rigid: [0.0; RIGID],
-                since_switch_s: 0.0,
-                fade_left_s: 0.0,
-                fade_total_s: 0.0,
-            });
+                source.id,
+                params,
+                &face,
+                rigid_raw(sim.angle()),
+            ));
             return *raw;
         };
-        // The camera's own motion since the last frame moves the filtered placement with it.
-        if *moved != Similarity2::IDENTITY
-            && moved.scale() > 1e-9
-            && [moved.a, moved.b, moved.tx, moved.ty]
-                .iter()
-                .all(|v| v.is_finite())
-        {
-            let (s0, a0) = (st.rigid[2].x.exp(), st.rigid[3].x);
-            let prev = Similarity2::from_parts(s0, a0, st.rigid[0].x * s0, st.rigid[1].x * s0);
-            let now = moved.after(&prev);
-            let s1 = now.scale();
-            // Keep the angle continuous: the camera turned by `moved`'s angle.
-            let a1 = a0 + moved.angle();
-            st.rigid[0].x = now.tx / s1;
-            st.rigid[1].x = now.ty / s1;
-            st.rigid[2].x = s1.ln();
-            st.rigid[3].x = a1;
-            st.last_angle = a1;
-        }
-        // Unwrap the rotation next to the last one so the filter never sees a 2π jump.
-        let mut angle = sim.angle();
-        while angle - st.last_angle > std::f64::consts::PI {
-            angle -= std::f64::consts::TAU;
-        }
-        while angle - st.last_angle < -std::f64::consts::PI {
-            angle += std::f64::consts::TAU;
-        }
-        st.last_angle = angle;
-        let r = rigid_raw(angle);
-        if source != st.source {
-            st.source = source;
-            st.blend_from = stronger(&st.last_params, &params_of(precise));
-            // The new source's offset from where the filters' inputs were going: its answers are moved back onto
-            // that path, then let go along the blend, so that nothing jumps and nothing stops. A switch during a
-            // blend starts a new one from there (the old offset belonged to the source that no longer answers).
-            if self.params.switch_fade_s > 0.0 {
-                for ((b, f), now) in st.bias_rigid.iter_mut().zip(&st.rigid).zip(r) {
-                    *b = now - (f.x + f.dx * dt);
-                }
-                for (b, f) in st.blend_shape.iter_mut().zip(&st.shape) {
-                    *b = [(f[0].next_input(dt), f[0].dx), (f[1].next_input(dt), f[1].dx)];
-                }
-                st.since_switch_s = 0.0;
-                st.fade_left_s = self.params.switch_fade_s;
-                st.fade_total_s = self.params.switch_fade_s;
-            }
+        st.follow_camera(moved);
+        let r = rigid_raw(st.unwrap_angle(sim.angle()));
+        if source.id != st.source {
+            st.switch_to(source.id, &params, &r, dt, self.params.switch_fade_s);
         } else {
             st.fade_left_s = (st.fade_left_s - dt).max(0.0);
             st.since_switch_s += dt;
@@ -436,9 +366,9 @@ impl<const N: usize> LandmarkFilter<N> {
         // new: the precise source's light filter does not let the blend through at once after a noisy one, and a
         // noisy source gets its strong filter from its first answer.
         let p = if w > 0.0 {
-            mix(&params_of(precise), &st.blend_from, w)
+            mix(&params, &st.blend_from, w)
         } else {
-            params_of(precise)
+            params
         };
         st.last_params = p;
         let mut rf = [0.0; RIGID];
@@ -447,17 +377,126 @@ impl<const N: usize> LandmarkFilter<N> {
         }
         let (s, a) = (rf[2].exp(), rf[3]);
         let placed = Similarity2::from_parts(s, a, rf[0] * s, rf[1] * s);
+        let shape = st.step_shape(&face, w, dt, &p);
+        let mut out = [Point2::default(); N];
+        placed.apply_all(&shape, &mut out);
+        st.timestamp_us = timestamp_us;
+        out
+    }
+
+    /// The similarity placing the reference on `raw`, and `raw` in the face's own frame; `None` for a
+    /// degenerate or non-finite shape.
+    fn in_face_frame(&self, raw: &[Point2; N]) -> Option<(Similarity2, [Point2; N])> {
+        let sim = Similarity2::fit(&self.reference, raw).filter(|s| {
+            s.scale() > 1e-9 && s.a.is_finite() && s.b.is_finite() && s.tx.is_finite() && s.ty.is_finite()
+        })?;
+        let inv = sim.inverse()?;
+        let mut face = [Point2::default(); N];
+        inv.apply_all(raw, &mut face);
+        face.iter()
+            .all(|p| p.x.is_finite() && p.y.is_finite())
+            .then_some((sim, face))
+    }
+}
+
+impl<const N: usize> State<N> {
+    /// A filter at rest on `face` (the face's frame) placed by `rigid`.
+    fn start(
+        timestamp_us: u64,
+        source: u8,
+        params: FilterParams,
+        face: &[Point2; N],
+        rigid: [f64; RIGID],
+    ) -> Self {
+        Self {
+            timestamp_us,
+            source,
+            last_params: params,
+            blend_from: params,
+            shape: std::array::from_fn(|i| {
+                [
+                    OneEuro::start(f64::from(face[i].x)),
+                    OneEuro::start(f64::from(face[i].y)),
+                ]
+            }),
+            rigid: rigid.map(OneEuro::start),
+            last_angle: rigid[3],
+            blend_shape: [[(0.0, 0.0); 2]; N],
+            bias_rigid: [0.0; RIGID],
+            since_switch_s: 0.0,
+            fade_left_s: 0.0,
+            fade_total_s: 0.0,
+        }
+    }
+
+    /// Moves the filtered placement with the camera's own motion since the last frame.
+    fn follow_camera(&mut self, moved: &Similarity2) {
+        if *moved == Similarity2::IDENTITY
+            || moved.scale() <= 1e-9
+            || ![moved.a, moved.b, moved.tx, moved.ty]
+                .iter()
+                .all(|v| v.is_finite())
+        {
+            return;
+        }
+        let (s0, a0) = (self.rigid[2].x.exp(), self.rigid[3].x);
+        let prev = Similarity2::from_parts(s0, a0, self.rigid[0].x * s0, self.rigid[1].x * s0);
+        let now = moved.after(&prev);
+        let s1 = now.scale();
+        // Keep the angle continuous: the camera turned by `moved`'s angle.
+        let a1 = a0 + moved.angle();
+        self.rigid[0].x = now.tx / s1;
+        self.rigid[1].x = now.ty / s1;
+        self.rigid[2].x = s1.ln();
+        self.rigid[3].x = a1;
+        self.last_angle = a1;
+    }
+
+    /// `angle` unwrapped next to the last one, so the filter never sees a 2π jump (and remembered).
+    fn unwrap_angle(&mut self, mut angle: f64) -> f64 {
+        while angle - self.last_angle > std::f64::consts::PI {
+            angle -= std::f64::consts::TAU;
+        }
+        while angle - self.last_angle < -std::f64::consts::PI {
+            angle += std::f64::consts::TAU;
+        }
+        self.last_angle = angle;
+        angle
+    }
+
+    /// A change of source to `source` (whose settings are `params`, whose placement is `r`): the blend starts.
+    fn switch_to(&mut self, source: u8, params: &FilterParams, r: &[f64; RIGID], dt: f64, fade_s: f64) {
+        self.source = source;
+        self.blend_from = stronger(&self.last_params, params);
+        // The new source's offset from where the filters' inputs were going: its answers are moved back onto that
+        // path, then let go along the blend, so that nothing jumps and nothing stops. A switch during a blend
+        // starts a new one from there (the old offset belonged to the source that no longer answers).
+        if fade_s > 0.0 {
+            for ((b, f), now) in self.bias_rigid.iter_mut().zip(&self.rigid).zip(r) {
+                *b = now - (f.x + f.dx * dt);
+            }
+            for (b, f) in self.blend_shape.iter_mut().zip(&self.shape) {
+                *b = [(f[0].next_input(dt), f[0].dx), (f[1].next_input(dt), f[1].dx)];
+            }
+            self.since_switch_s = 0.0;
+            self.fade_left_s = fade_s;
+            self.fade_total_s = fade_s;
+        }
+    }
+
+    /// One step of the shape's filters. Their input: the new source's answer (`face`), crossfaded from the old
+    /// source's path (continued at its speed) by `w` along the blend; so the new source's own frame-to-frame
+    /// noise also comes in gradually.
+    fn step_shape(&mut self, face: &[Point2; N], w: f64, dt: f64, p: &FilterParams) -> [Point2; N] {
         let mut shape = [Point2::default(); N];
-        // The shape's input: the new source's answer, crossfaded from the old source's path (continued at its
-        // speed) along the blend; so the new source's own frame-to-frame noise also comes in gradually.
         if w > 0.0 {
-            let since = st.since_switch_s;
+            let since = self.since_switch_s;
             let blend =
                 |(at, speed): (f64, f64), now: f32| w * (at + speed * since) + (1.0 - w) * f64::from(now);
             for ((shown, f), (b, now)) in shape
                 .iter_mut()
-                .zip(&mut st.shape)
-                .zip(st.blend_shape.iter().zip(&face))
+                .zip(&mut self.shape)
+                .zip(self.blend_shape.iter().zip(face))
             {
                 *shown = Point2::new(
                     f[0].step(blend(b[0], now.x), dt, &p.shape) as f32,
@@ -465,17 +504,14 @@ impl<const N: usize> LandmarkFilter<N> {
                 );
             }
         } else {
-            for ((shown, f), now) in shape.iter_mut().zip(&mut st.shape).zip(&face) {
+            for ((shown, f), now) in shape.iter_mut().zip(&mut self.shape).zip(face) {
                 *shown = Point2::new(
                     f[0].step(f64::from(now.x), dt, &p.shape) as f32,
                     f[1].step(f64::from(now.y), dt, &p.shape) as f32,
                 );
             }
         }
-        let mut out = [Point2::default(); N];
-        placed.apply_all(&shape, &mut out);
-        st.timestamp_us = timestamp_us;
-        out
+        shape
     }
 }
 
