@@ -227,6 +227,82 @@ pub(crate) fn monitor(
     }
 }
 
+/// What the measured window adds up to.
+struct Summary {
+    secs: f64,
+    dropped: u64,
+    lost: u64,
+    throughput: f64,
+    drop_rate: f64,
+    answered_fraction: f64,
+    /// RSS growth over the window, %.
+    growth: Option<f64>,
+    /// Latency p50, p99, p999, ms.
+    p50: f64,
+    p99: f64,
+    p999: f64,
+}
+
+impl Summary {
+    fn of(s: &Stats, duration: Duration, rss: (Option<u64>, Option<u64>)) -> Self {
+        let secs = duration.as_secs_f64();
+        let dropped: u64 = s.totals.dropped.values().sum();
+        let lost = s.totals.sent.saturating_sub(s.totals.answered + dropped);
+        let p = |q: f64| s.total.value_at_quantile(q) as f64 / 1e3;
+        Self {
+            secs,
+            dropped,
+            lost,
+            throughput: s.totals.answered as f64 / secs,
+            drop_rate: (dropped + lost) as f64 / s.totals.sent.max(1) as f64,
+            answered_fraction: answered_fraction(s.totals.answered, s.totals.sent, s.totals.unsent),
+            growth: match rss {
+                (Some(a), Some(b)) if a > 0 => Some(100.0 * (b as f64 - a as f64) / a as f64),
+                _ => None,
+            },
+            p50: p(0.5),
+            p99: p(0.99),
+            p999: p(0.999),
+        }
+    }
+}
+
+/// The service levels `args` set that the run broke, in words.
+fn broken_slos(args: &Args, s: &Stats, m: &Summary) -> Vec<String> {
+    let (dropped, lost) = (m.dropped, m.lost);
+    let mut broken = Vec::new();
+    if let Some(limit) = args.max_p99_ms.filter(|&limit| m.p99 > limit) {
+        broken.push(format!("p99 {:.2} ms > {limit} ms", m.p99));
+    }
+    if args.min_answered > 0.0 && m.answered_fraction < args.min_answered {
+        broken.push(format!(
+            "answered {:.3} of the frames < {} ({dropped} dropped by the server, {lost} sent frames got no answer, \
+             {} could not be sent while the server was unreachable)",
+            m.answered_fraction, args.min_answered, s.totals.unsent
+        ));
+    }
+    if s.totals.answered == 0 && s.totals.sent + s.totals.unsent > 0 {
+        broken.push(format!(
+            "no frame was answered ({} sent, {dropped} dropped by the server, {} unsent)",
+            s.totals.sent, s.totals.unsent
+        ));
+    }
+    if let Some(limit) = args.max_drop_rate.filter(|&limit| m.drop_rate > limit) {
+        broken.push(format!("drop rate {:.4} > {limit}", m.drop_rate));
+    }
+    if let Some(limit) = args.min_throughput.filter(|&limit| m.throughput < limit) {
+        broken.push(format!("throughput {:.1}/s < {limit}/s", m.throughput));
+    }
+    if let Some(limit) = args.max_rss_growth_pct {
+        match m.growth {
+            Some(g) if g > limit => broken.push(format!("RSS grew {g:.2} % > {limit} %")),
+            None => broken.push("RSS growth SLO set but RSS could not be sampled".to_owned()),
+            _ => {}
+        }
+    }
+    broken
+}
+
 /// Totals over the measured window, the SLO verdict (`Ok(false)`: broken), the JSON results and the plot.
 pub(crate) fn finish(
     args: &Args,
@@ -243,13 +319,8 @@ pub(crate) fn finish(
         stopped_by,
     } = measured;
     let s = stats.lock().unwrap_or_else(PoisonError::into_inner);
-    let secs = duration.as_secs_f64();
-    let dropped: u64 = s.totals.dropped.values().sum();
-    let lost = s.totals.sent.saturating_sub(s.totals.answered + dropped);
-    let p = |q: f64| s.total.value_at_quantile(q) as f64 / 1e3;
-    let throughput = s.totals.answered as f64 / secs;
-    let drop_rate = (dropped + lost) as f64 / s.totals.sent.max(1) as f64;
-    let answered_fraction = answered_fraction(s.totals.answered, s.totals.sent, s.totals.unsent);
+    let m = Summary::of(&s, duration, (rss_start, rss_end));
+    let (secs, dropped, lost) = (m.secs, m.dropped, m.lost);
     let outages: Vec<serde_json::Value> = s
         .outages
         .iter()
@@ -262,40 +333,7 @@ pub(crate) fn finish(
             })
         })
         .collect();
-    let growth = match (rss_start, rss_end) {
-        (Some(a), Some(b)) if a > 0 => Some(100.0 * (b as f64 - a as f64) / a as f64),
-        _ => None,
-    };
-    let mut broken = Vec::new();
-    if let Some(m) = args.max_p99_ms.filter(|&m| p(0.99) > m) {
-        broken.push(format!("p99 {:.2} ms > {m} ms", p(0.99)));
-    }
-    if args.min_answered > 0.0 && answered_fraction < args.min_answered {
-        broken.push(format!(
-            "answered {answered_fraction:.3} of the frames < {} ({dropped} dropped by the server, {lost} sent frames \
-             got no answer, {} could not be sent while the server was unreachable)",
-            args.min_answered, s.totals.unsent
-        ));
-    }
-    if s.totals.answered == 0 && s.totals.sent + s.totals.unsent > 0 {
-        broken.push(format!(
-            "no frame was answered ({} sent, {dropped} dropped by the server, {} unsent)",
-            s.totals.sent, s.totals.unsent
-        ));
-    }
-    if let Some(m) = args.max_drop_rate.filter(|&m| drop_rate > m) {
-        broken.push(format!("drop rate {drop_rate:.4} > {m}"));
-    }
-    if let Some(m) = args.min_throughput.filter(|&m| throughput < m) {
-        broken.push(format!("throughput {throughput:.1}/s < {m}/s"));
-    }
-    if let Some(m) = args.max_rss_growth_pct {
-        match growth {
-            Some(g) if g > m => broken.push(format!("RSS grew {g:.2} % > {m} %")),
-            None => broken.push("RSS growth SLO set but RSS could not be sampled".to_owned()),
-            _ => {}
-        }
-    }
+    let broken = broken_slos(args, &s, &m);
     let report = json!({
         "config": {
             "clients": args.clients, "fps": args.fps, "duration_s": args.duration_s, "warmup_s": args.warmup_s,
@@ -304,13 +342,13 @@ pub(crate) fn finish(
         },
         "totals": {
             "sent": s.totals.sent, "answered": s.totals.answered, "dropped": s.totals.dropped,
-            "unanswered": lost, "deadline_misses": s.totals.misses, "throughput_per_s": throughput,
-            "drop_rate": drop_rate, "headsets_told_goaway": s.goaways,
-            "unsent": s.totals.unsent, "answered_fraction": answered_fraction,
-            "latency_ms": {"p50": p(0.5), "p99": p(0.99), "p999": p(0.999), "max": s.total.max() as f64 / 1e3,
+            "unanswered": lost, "deadline_misses": s.totals.misses, "throughput_per_s": m.throughput,
+            "drop_rate": m.drop_rate, "headsets_told_goaway": s.goaways,
+            "unsent": s.totals.unsent, "answered_fraction": m.answered_fraction,
+            "latency_ms": {"p50": m.p50, "p99": m.p99, "p999": m.p999, "max": s.total.max() as f64 / 1e3,
                            "mean": s.total.mean() / 1e3},
         },
-        "rss_kib": {"start": rss_start, "end": rss_end, "growth_pct": growth},
+        "rss_kib": {"start": rss_start, "end": rss_end, "growth_pct": m.growth},
         "timeline": timeline,
         "outages": outages,
         "slo": {"broken": broken},
@@ -325,43 +363,19 @@ pub(crate) fn finish(
         );
     }
     println!(
-        "total: {} sent, {} unsent, {} answered ({throughput:.1}/s), {dropped} dropped, {lost} unanswered, {} \
-         deadline misses; latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",
+        "total: {} sent, {} unsent, {} answered ({:.1}/s), {dropped} dropped, {lost} unanswered, {} deadline \
+         misses; latency p50 {:.2} p99 {:.2} p999 {:.2} ms; RSS growth {}",
         s.totals.sent,
         s.totals.unsent,
         s.totals.answered,
+        m.throughput,
         s.totals.misses,
-        p(0.5),
-        p(0.99),
-        p(0.999),
-        growth.map_or("n/a".to_owned(), |g| format!("{g:.2} %"))
+        m.p50,
+        m.p99,
+        m.p999,
+        m.growth.map_or("n/a".to_owned(), |g| format!("{g:.2} %"))
     );
-    for path in [&args.out, &args.plot] {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        }
-    }
-    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
-    let series = |key: &str, label: &str| Series {
-        label: label.to_owned(),
-        points: report["timeline"]
-            .as_array()
-            .into_iter()
-            .flatten()
-            .filter_map(|r| Some((r["t_s"].as_f64()?, r[key].as_f64()?)))
-            .collect(),
-    };
-    let png = series_plot_png(
-        &[
-            series("p50_ms", "p50"),
-            series("p99_ms", "p99"),
-            series("p999_ms", "p999"),
-        ],
-        "time s",
-        "latency ms",
-    );
-    holoface_sources::output::write_atomic(&args.plot, png)?;
-    println!("wrote {} and {}", args.out.display(), args.plot.display());
+    write_report(args, &report)?;
     if s.goaways > 0 {
         println!(
             "{} of {} headsets stopped early on the server's Goaway",
@@ -386,6 +400,37 @@ pub(crate) fn finish(
         eprintln!("SLO broken: {b}");
     }
     Ok(broken.is_empty())
+}
+
+/// Writes the JSON results to `--out` and the latency plot over time to `--plot`.
+fn write_report(args: &Args, report: &serde_json::Value) -> anyhow::Result<()> {
+    for path in [&args.out, &args.plot] {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
+    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(report)?)?;
+    let series = |key: &str, label: &str| Series {
+        label: label.to_owned(),
+        points: report["timeline"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|r| Some((r["t_s"].as_f64()?, r[key].as_f64()?)))
+            .collect(),
+    };
+    let png = series_plot_png(
+        &[
+            series("p50_ms", "p50"),
+            series("p99_ms", "p99"),
+            series("p999_ms", "p999"),
+        ],
+        "time s",
+        "latency ms",
+    );
+    holoface_sources::output::write_atomic(&args.plot, png)?;
+    println!("wrote {} and {}", args.out.display(), args.plot.display());
+    Ok(())
 }
 
 #[cfg(test)]
