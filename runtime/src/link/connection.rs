@@ -313,6 +313,12 @@ pub struct Established {
 /// The control stream: the server sends `Goaway`/`Error` on it.
 #[derive(Debug)]
 pub struct Control {
+    /// The sending half, held for as long as the link lives: dropping it would finish the stream. Only tests
+    /// write on it after the hello (`test-util`).
+    #[cfg_attr(
+        not(feature = "test-util"),
+        expect(dead_code, reason = "held open, written by tests only")
+    )]
     send: SendStream,
     recv: RecvStream,
     buf: BytesMut,
@@ -343,7 +349,8 @@ impl Control {
     }
 
     /// Writes raw bytes on the control stream (clients send nothing after the hello; for tests that
-    /// misbehave on purpose).
+    /// misbehave on purpose, with the `test-util` feature: never in a headset app's build).
+    #[cfg(feature = "test-util")]
     pub async fn write_bytes(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         self.send.write_all(bytes).await?;
         Ok(())
