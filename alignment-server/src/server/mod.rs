@@ -385,21 +385,11 @@ impl AlignmentServer {
         let model = engines[0].info().clone();
         let (stop_tx, stop_rx) = watch::channel(false);
 
-        // Engine threads, one per instance, fed by the scheduler; each reports its index when done.
-        let (done_tx, done_rx) = mpsc::unbounded_channel::<usize>();
-        let mut job_txs = Vec::with_capacity(engines.len());
-        let mut engine_threads = Vec::with_capacity(engines.len());
-        for (index, engine) in engines.into_iter().enumerate() {
-            let (job_tx, job_rx) = std::sync::mpsc::sync_channel::<Batch<FrameJob>>(1);
-            let (done_tx, engine_metrics) = (done_tx.clone(), Arc::clone(&metrics));
-            let thread = std::thread::Builder::new()
-                .name(format!("holoface-engine-{index}"))
-                .spawn(move || engine_loop(engine, index, &job_rx, &done_tx, &engine_metrics))
-                .map_err(io_err("starting an engine thread"))?;
-            job_txs.push(job_tx);
-            engine_threads.push(thread);
-        }
-        drop(done_tx);
+        let EngineThreads {
+            jobs: job_txs,
+            threads: engine_threads,
+            done: done_rx,
+        } = start_engines(engines, &metrics)?;
 
         let sched_capacity = settings
             .max_clients
@@ -433,29 +423,7 @@ impl AlignmentServer {
             admission,
             log_throttle: Arc::default(),
         });
-        // The tail of a flood of bad clients is summed up even when no close follows it, and at shutdown.
-        let log_flush = {
-            let (throttle, mut stop) = (Arc::clone(&shared.log_throttle), shared.stop.clone());
-            tokio::spawn(async move {
-                let mut tick = tokio::time::interval(log_throttle::WINDOW);
-                loop {
-                    let stopping = tokio::select! {
-                        _ = tick.tick() => false,
-                        _ = stop.changed() => true,
-                    };
-                    let mut throttle = throttle.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                    let ended = if stopping {
-                        throttle.drain()
-                    } else {
-                        throttle.flush(std::time::Instant::now())
-                    };
-                    ended.into_iter().for_each(log_suppressed);
-                    if stopping {
-                        break;
-                    }
-                }
-            })
-        };
+        let log_flush = spawn_log_flush(&shared);
         metrics.ready.store(true, Ordering::Relaxed);
         notify_systemd_ready();
         info!(
@@ -464,33 +432,7 @@ impl AlignmentServer {
             "alignment server ready; clients pin this certificate SHA-256 fingerprint"
         );
 
-        let mut conns = JoinSet::new();
-        tokio::pin!(shutdown);
-        loop {
-            tokio::select! {
-                () = &mut shutdown => break,
-                incoming = endpoint.accept() => match incoming {
-                    Some(incoming) => {
-                        let admit = shared
-                            .admission
-                            .on_incoming(incoming.remote_address_validated(), incoming.may_retry());
-                        match admit {
-                            Admit::Retry => {
-                                if let Err(e) = incoming.retry() {
-                                    debug!(error = %e, "retry failed; dropping the attempt");
-                                }
-                            }
-                            Admit::Accept => {
-                                let slot = shared.admission.enter();
-                                conns.spawn(connection(incoming, slot, Arc::clone(&shared)));
-                            }
-                        }
-                    }
-                    None => break,
-                },
-                Some(_) = conns.join_next(), if !conns.is_empty() => {}
-            }
-        }
+        let mut conns = accept_until(&endpoint, &shared, shutdown).await;
 
         info!(
             clients = conns.len(),
@@ -537,6 +479,96 @@ impl AlignmentServer {
         info!("shutdown complete");
         Ok(())
     }
+}
+
+/// The engine threads, one per instance, fed by the scheduler through their job senders; each reports its
+/// index on `done` when it is done with a batch.
+struct EngineThreads {
+    jobs: Vec<std::sync::mpsc::SyncSender<Batch<FrameJob>>>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+    done: mpsc::UnboundedReceiver<usize>,
+}
+
+fn start_engines(
+    engines: Vec<Box<dyn InferenceEngine>>,
+    metrics: &Arc<Metrics>,
+) -> Result<EngineThreads, ServerError> {
+    let (done_tx, done) = mpsc::unbounded_channel::<usize>();
+    let mut jobs = Vec::with_capacity(engines.len());
+    let mut threads = Vec::with_capacity(engines.len());
+    for (index, engine) in engines.into_iter().enumerate() {
+        let (job_tx, job_rx) = std::sync::mpsc::sync_channel::<Batch<FrameJob>>(1);
+        let (done_tx, engine_metrics) = (done_tx.clone(), Arc::clone(metrics));
+        let thread = std::thread::Builder::new()
+            .name(format!("holoface-engine-{index}"))
+            .spawn(move || engine_loop(engine, index, &job_rx, &done_tx, &engine_metrics))
+            .map_err(io_err("starting an engine thread"))?;
+        jobs.push(job_tx);
+        threads.push(thread);
+    }
+    Ok(EngineThreads { jobs, threads, done })
+}
+
+/// The tail of a flood of bad clients is summed up every window even when no close follows it, and at
+/// shutdown.
+fn spawn_log_flush(shared: &Shared) -> tokio::task::JoinHandle<()> {
+    let (throttle, mut stop) = (Arc::clone(&shared.log_throttle), shared.stop.clone());
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(log_throttle::WINDOW);
+        loop {
+            let stopping = tokio::select! {
+                _ = tick.tick() => false,
+                _ = stop.changed() => true,
+            };
+            let mut throttle = throttle.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let ended = if stopping {
+                throttle.drain()
+            } else {
+                throttle.flush(std::time::Instant::now())
+            };
+            ended.into_iter().for_each(log_suppressed);
+            if stopping {
+                break;
+            }
+        }
+    })
+}
+
+/// Accepts clients (or asks them to retry, as admission says) until `shutdown` resolves or the endpoint
+/// closes; returns the connections still running.
+async fn accept_until(
+    endpoint: &quinn::Endpoint,
+    shared: &Arc<Shared>,
+    shutdown: impl Future<Output = ()>,
+) -> JoinSet<()> {
+    let mut conns = JoinSet::new();
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            () = &mut shutdown => break,
+            incoming = endpoint.accept() => match incoming {
+                Some(incoming) => {
+                    let admit = shared
+                        .admission
+                        .on_incoming(incoming.remote_address_validated(), incoming.may_retry());
+                    match admit {
+                        Admit::Retry => {
+                            if let Err(e) = incoming.retry() {
+                                debug!(error = %e, "retry failed; dropping the attempt");
+                            }
+                        }
+                        Admit::Accept => {
+                            let slot = shared.admission.enter();
+                            conns.spawn(connection(incoming, slot, Arc::clone(shared)));
+                        }
+                    }
+                }
+                None => break,
+            },
+            Some(_) = conns.join_next(), if !conns.is_empty() => {}
+        }
+    }
+    conns
 }
 
 /// Waits for the engine threads (the scheduler owned their job senders; they end with them); a panicked one
