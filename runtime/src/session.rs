@@ -509,6 +509,64 @@ impl TrackerSession {
         FrameFaces { faces, outcomes }
     }
 
+    /// The landmarks to show for alignment `a` of candidate `c` (steadied by the track's filter, or a new
+    /// filter for a new face), and the filter to keep with the track; the fit sees the steadied landmarks.
+    fn steadied(
+        &mut self,
+        frame: &Frame<'_>,
+        c: &Candidate,
+        index: Option<usize>,
+        a: &Alignment,
+    ) -> ([Point2; 68], Option<LandmarkFilter<68>>) {
+        let mut steady = index.and_then(|i| self.tracks[i].steady.take()).or_else(|| {
+            self.opts
+                .steady
+                .params()
+                .and_then(|p| LandmarkFilter::new(&self.mean, OUTER_EYE_CORNERS, p).ok())
+        });
+        // The headset's own motion since the track's last frame, as the image sees it: the similarity
+        // between the track's landmarks and the candidate's start (those landmarks moved with the headset).
+        let moved = index
+            .filter(|_| c.source == InitSource::Tracking)
+            .and_then(|i| Similarity2::fit(&self.tracks[i].landmarks, &c.init))
+            .unwrap_or(Similarity2::IDENTITY);
+        let shown = steady.as_mut().map_or(a.landmarks, |f| {
+            let source = Source {
+                id: a.answered_by as u8,
+                precise: a.answered_by != crate::align::AnsweredBy::Krfws,
+            };
+            f.filter(&a.landmarks, frame.timestamp_us, source, &moved)
+        });
+        (shown, steady)
+    }
+
+    /// Takes track `index` out (its predictor stepped to `position` at `timestamp_us`), or starts a new
+    /// face's: its id, predictor, last attributes and denoiser.
+    fn take_track(
+        &mut self,
+        index: Option<usize>,
+        timestamp_us: u64,
+        position: Vec3,
+    ) -> (u32, PositionPredictor, Attributes, Denoiser) {
+        match index.map(|i| self.tracks.remove(i)) {
+            Some(mut t) => {
+                let dt = timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;
+                t.predictor.step(dt, position);
+                (t.id, t.predictor, t.attributes, t.denoiser)
+            }
+            None => {
+                let id = self.next_id;
+                self.next_id = self.next_id.wrapping_add(1);
+                (
+                    id,
+                    PositionPredictor::new(position, self.opts.kalman),
+                    Attributes::default(),
+                    Denoiser::default(),
+                )
+            }
+        }
+    }
+
     fn complete_one(
         &mut self,
         frame: &Frame<'_>,
@@ -531,26 +589,7 @@ impl TrackerSession {
             return no_face(c.track, NoFaceReason::Rejected);
         }
         let warm = index.map(|i| self.tracks[i].fit);
-        // The track's landmark filter, or a new one for a new face; the fit sees the steadied landmarks.
-        let mut steady = index.and_then(|i| self.tracks[i].steady.take()).or_else(|| {
-            self.opts
-                .steady
-                .params()
-                .and_then(|p| LandmarkFilter::new(&self.mean, OUTER_EYE_CORNERS, p).ok())
-        });
-        // The headset's own motion since the track's last frame, as the image sees it: the similarity
-        // between the track's landmarks and the candidate's start (those landmarks moved with the headset).
-        let moved = index
-            .filter(|_| c.source == InitSource::Tracking)
-            .and_then(|i| Similarity2::fit(&self.tracks[i].landmarks, &c.init))
-            .unwrap_or(Similarity2::IDENTITY);
-        let shown = steady.as_mut().map_or(a.landmarks, |f| {
-            let source = Source {
-                id: a.answered_by as u8,
-                precise: a.answered_by != crate::align::AnsweredBy::Krfws,
-            };
-            f.filter(&a.landmarks, frame.timestamp_us, source, &moved)
-        });
+        let (shown, steady) = self.steadied(frame, c, index, &a);
         let opts = if warm.is_some() {
             self.opts.fit
         } else {
@@ -582,23 +621,8 @@ impl TrackerSession {
             Some(turn),
             dt,
         );
-        let (id, predictor, prev_attr, mut denoiser) = match index.map(|i| self.tracks.remove(i)) {
-            Some(mut t) => {
-                let dt = frame.timestamp_us.saturating_sub(t.timestamp_us) as f64 * 1e-6;
-                t.predictor.step(dt, world.position);
-                (t.id, t.predictor, t.attributes, t.denoiser)
-            }
-            None => {
-                let id = self.next_id;
-                self.next_id = self.next_id.wrapping_add(1);
-                (
-                    id,
-                    PositionPredictor::new(world.position, self.opts.kalman),
-                    Attributes::default(),
-                    Denoiser::default(),
-                )
-            }
-        };
+        let (id, predictor, prev_attr, mut denoiser) =
+            self.take_track(index, frame.timestamp_us, world.position);
         let predicted_position = predictor.predict(self.opts.lookahead_s);
         let display = denoiser.apply(predicted_position, world.rotation);
         let attributes = self.opts.attributes.update(&blendshapes, prev_attr);
