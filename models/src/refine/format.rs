@@ -201,69 +201,9 @@ impl RefineCascade {
         for p in &mut mean {
             *p = Point2::new(r.f32("mean shape")?, r.f32("mean shape")?);
         }
-        let n_splits = (1usize << depth) - 1;
-        let n_leaves = 1usize << depth;
-        let tree_bytes = n_splits * 8 + n_leaves * (4 + SHAPE_DIM);
         let mut stages = Vec::with_capacity(n_stages);
         for si in 0..n_stages {
-            let n_feat = usize::from(r.u16("feature count")?);
-            if !(2..=MAX_FEATURES).contains(&n_feat) {
-                return Err(bad(format!("stage {si}: {n_feat} features (2..={MAX_FEATURES})")));
-            }
-            let n_trees = r.u32("tree count")? as usize;
-            if !(1..=MAX_TREES).contains(&n_trees) {
-                return Err(bad(format!("stage {si}: {n_trees} trees (1..={MAX_TREES})")));
-            }
-            if n_feat * 9 + n_trees * tree_bytes > r.left() {
-                return Err(bad(format!(
-                    "stage {si}: {n_trees} trees of depth {depth} need more bytes than the file has"
-                )));
-            }
-            let anchors = r.take(n_feat, "anchors")?.to_vec();
-            if let Some(a) = anchors.iter().find(|&&a| usize::from(a) >= REFINE_LANDMARKS) {
-                return Err(bad(format!(
-                    "stage {si}: anchor landmark {a} (< {REFINE_LANDMARKS})"
-                )));
-            }
-            let mut offsets = Vec::with_capacity(n_feat);
-            for _ in 0..n_feat {
-                offsets.push([r.f32("offset")?, r.f32("offset")?]);
-            }
-            let mut trees = Vec::with_capacity(n_trees);
-            for ti in 0..n_trees {
-                let mut splits = Vec::with_capacity(n_splits);
-                for _ in 0..n_splits {
-                    let (u, v) = (r.u16("split")?, r.u16("split")?);
-                    let threshold = r.f32("threshold")?;
-                    if usize::from(u.max(v)) >= n_feat {
-                        return Err(bad(format!(
-                            "stage {si} tree {ti}: feature {} of {n_feat}",
-                            u.max(v)
-                        )));
-                    }
-                    splits.push(SplitTest { u, v, threshold });
-                }
-                let mut scales = Vec::with_capacity(n_leaves);
-                let mut values = Vec::with_capacity(n_leaves * SHAPE_DIM);
-                for _ in 0..n_leaves {
-                    let scale = r.f32("leaf scale")?;
-                    if scale < 0.0 {
-                        return Err(bad(format!("stage {si} tree {ti}: negative leaf scale")));
-                    }
-                    scales.push(scale);
-                    values.extend(r.take(SHAPE_DIM, "leaf")?.iter().map(|b| i8::from_le_bytes([*b])));
-                }
-                trees.push(RegressionTree {
-                    splits,
-                    scales,
-                    values,
-                });
-            }
-            stages.push(RefineStage {
-                anchors,
-                offsets,
-                trees,
-            });
+            stages.push(read_stage(&mut r, si, depth)?);
         }
         if r.left() != 0 {
             return Err(bad(format!("{} bytes after the last stage", r.left())));
@@ -279,6 +219,82 @@ impl RefineCascade {
             sampling,
         })
     }
+}
+
+/// Stage `si` of a cascade of trees of `depth`, read and checked.
+fn read_stage(r: &mut Reader<'_>, si: usize, depth: usize) -> Result<RefineStage, RefineError> {
+    let n_splits = (1usize << depth) - 1;
+    let n_leaves = 1usize << depth;
+    let tree_bytes = n_splits * 8 + n_leaves * (4 + SHAPE_DIM);
+    let n_feat = usize::from(r.u16("feature count")?);
+    if !(2..=MAX_FEATURES).contains(&n_feat) {
+        return Err(bad(format!("stage {si}: {n_feat} features (2..={MAX_FEATURES})")));
+    }
+    let n_trees = r.u32("tree count")? as usize;
+    if !(1..=MAX_TREES).contains(&n_trees) {
+        return Err(bad(format!("stage {si}: {n_trees} trees (1..={MAX_TREES})")));
+    }
+    if n_feat * 9 + n_trees * tree_bytes > r.left() {
+        return Err(bad(format!(
+            "stage {si}: {n_trees} trees of depth {depth} need more bytes than the file has"
+        )));
+    }
+    let anchors = r.take(n_feat, "anchors")?.to_vec();
+    if let Some(a) = anchors.iter().find(|&&a| usize::from(a) >= REFINE_LANDMARKS) {
+        return Err(bad(format!(
+            "stage {si}: anchor landmark {a} (< {REFINE_LANDMARKS})"
+        )));
+    }
+    let mut offsets = Vec::with_capacity(n_feat);
+    for _ in 0..n_feat {
+        offsets.push([r.f32("offset")?, r.f32("offset")?]);
+    }
+    let mut trees = Vec::with_capacity(n_trees);
+    for ti in 0..n_trees {
+        trees.push(read_tree(r, (si, ti), n_feat, depth)?);
+    }
+    Ok(RefineStage {
+        anchors,
+        offsets,
+        trees,
+    })
+}
+
+/// Tree `ti` of stage `si` (`at`), over `n_feat` features, of `depth`, read and checked.
+fn read_tree(
+    r: &mut Reader<'_>,
+    (si, ti): (usize, usize),
+    n_feat: usize,
+    depth: usize,
+) -> Result<RegressionTree, RefineError> {
+    let (n_splits, n_leaves) = ((1usize << depth) - 1, 1usize << depth);
+    let mut splits = Vec::with_capacity(n_splits);
+    for _ in 0..n_splits {
+        let (u, v) = (r.u16("split")?, r.u16("split")?);
+        let threshold = r.f32("threshold")?;
+        if usize::from(u.max(v)) >= n_feat {
+            return Err(bad(format!(
+                "stage {si} tree {ti}: feature {} of {n_feat}",
+                u.max(v)
+            )));
+        }
+        splits.push(SplitTest { u, v, threshold });
+    }
+    let mut scales = Vec::with_capacity(n_leaves);
+    let mut values = Vec::with_capacity(n_leaves * SHAPE_DIM);
+    for _ in 0..n_leaves {
+        let scale = r.f32("leaf scale")?;
+        if scale < 0.0 {
+            return Err(bad(format!("stage {si} tree {ti}: negative leaf scale")));
+        }
+        scales.push(scale);
+        values.extend(r.take(SHAPE_DIM, "leaf")?.iter().map(|b| i8::from_le_bytes([*b])));
+    }
+    Ok(RegressionTree {
+        splits,
+        scales,
+        values,
+    })
 }
 
 #[cfg(test)]
