@@ -476,6 +476,56 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
+    /// The normal equations JᵀJ δ = −Jᵀr at `rm` (the rotation of `cur`) and `cur` (analytic Jacobian, the weight
+    /// prior on the diagonal). Parameters: δω (left-multiplied rotation increment), δt, δw.
+    fn normal_equations(&self, rm: &Mat3, cur: &FitResult) -> ([[f64; NP]; NP], [f64; NP]) {
+        let (model, k, landmarks, inv_norm, prior) = (self.model, self.k, self.lm, self.inv_norm, self.prior);
+        let rm = *rm;
+        let mut jtj = [[0.0f64; NP]; NP];
+        let mut jtr = [0.0f64; NP];
+        for (j, &(i, _)) in CORRESPONDENCES.iter().enumerate() {
+            let x = model.point(j, &cur.weights.0);
+            let rx = rm * x;
+            let p = rx + cur.translation;
+            let iz = 1.0 / p.z;
+            let u = (k.fx * p.x * iz + k.cx - f64::from(landmarks[i].x)) * inv_norm;
+            let v = (k.fy * p.y * iz + k.cy - f64::from(landmarks[i].y)) * inv_norm;
+            // d(u,v)/dp
+            let du = Vec3::new(k.fx * iz, 0.0, -k.fx * p.x * iz * iz).scale(inv_norm);
+            let dv = Vec3::new(0.0, k.fy * iz, -k.fy * p.y * iz * iz).scale(inv_norm);
+            let mut ju = [0.0; NP];
+            let mut jv = [0.0; NP];
+            // dp/dω = −[R x]×  ⇒  row·dp/dω = (R x) × row
+            let cu = rx.cross(du);
+            let cv = rx.cross(dv);
+            ju[..3].copy_from_slice(&cu.to_array());
+            jv[..3].copy_from_slice(&cv.to_array());
+            ju[3..6].copy_from_slice(&du.to_array());
+            jv[3..6].copy_from_slice(&dv.to_array());
+            for un in 0..N_UNITS {
+                let d = rm * model.units[un][j];
+                ju[6 + un] = du.dot(d);
+                jv[6 + un] = dv.dot(d);
+            }
+            for a in 0..NP {
+                jtr[a] += ju[a] * u + jv[a] * v;
+                for b in a..NP {
+                    jtj[a][b] += ju[a] * ju[b] + jv[a] * jv[b];
+                }
+            }
+        }
+        for un in 0..N_UNITS {
+            jtj[6 + un][6 + un] += prior;
+            jtr[6 + un] += prior * cur.weights.0[un];
+        }
+        for a in 0..NP {
+            for b in 0..a {
+                jtj[a][b] = jtj[b][a];
+            }
+        }
+        (jtj, jtr)
+    }
+
     /// Cost (normalised squared reprojection error plus the weight prior); `None` behind the camera.
     fn cost(&self, r: &Mat3, t: Vec3, w: &[f64; N_UNITS]) -> Option<f64> {
         let (k, lm, inv_norm) = (self.k, self.lm, self.inv_norm);
@@ -545,49 +595,7 @@ pub fn fit(
     let mut iterations = 0;
     for _ in 0..opts.max_iterations {
         iterations += 1;
-        // Normal equations JᵀJ δ = −Jᵀr. Parameters: δω (left-multiplied rotation increment), δt, δw.
-        let mut jtj = [[0.0f64; NP]; NP];
-        let mut jtr = [0.0f64; NP];
-        for (j, &(i, _)) in CORRESPONDENCES.iter().enumerate() {
-            let x = model.point(j, &cur.weights.0);
-            let rx = rm * x;
-            let p = rx + cur.translation;
-            let iz = 1.0 / p.z;
-            let u = (k.fx * p.x * iz + k.cx - f64::from(landmarks[i].x)) * inv_norm;
-            let v = (k.fy * p.y * iz + k.cy - f64::from(landmarks[i].y)) * inv_norm;
-            // d(u,v)/dp
-            let du = Vec3::new(k.fx * iz, 0.0, -k.fx * p.x * iz * iz).scale(inv_norm);
-            let dv = Vec3::new(0.0, k.fy * iz, -k.fy * p.y * iz * iz).scale(inv_norm);
-            let mut ju = [0.0; NP];
-            let mut jv = [0.0; NP];
-            // dp/dω = −[R x]×  ⇒  row·dp/dω = (R x) × row
-            let cu = rx.cross(du);
-            let cv = rx.cross(dv);
-            ju[..3].copy_from_slice(&cu.to_array());
-            jv[..3].copy_from_slice(&cv.to_array());
-            ju[3..6].copy_from_slice(&du.to_array());
-            jv[3..6].copy_from_slice(&dv.to_array());
-            for un in 0..N_UNITS {
-                let d = rm * model.units[un][j];
-                ju[6 + un] = du.dot(d);
-                jv[6 + un] = dv.dot(d);
-            }
-            for a in 0..NP {
-                jtr[a] += ju[a] * u + jv[a] * v;
-                for b in a..NP {
-                    jtj[a][b] += ju[a] * ju[b] + jv[a] * jv[b];
-                }
-            }
-        }
-        for un in 0..N_UNITS {
-            jtj[6 + un][6 + un] += prior;
-            jtr[6 + un] += prior * cur.weights.0[un];
-        }
-        for a in 0..NP {
-            for b in 0..a {
-                jtj[a][b] = jtj[b][a];
-            }
-        }
+        let (jtj, jtr) = problem.normal_equations(&rm, &cur);
         let mut improved = false;
         for _ in 0..8 {
             let mut m = jtj;
