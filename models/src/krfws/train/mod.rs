@@ -301,13 +301,8 @@ fn par_for_each<T: Send, S>(
     });
 }
 
-/// Trains the cascade (no failure detector yet: call [`train_failure`]). `faces` are the training faces
-/// (mirrors are added here).
-pub fn train_cascade(
-    faces: &[TrainFace],
-    cfg: &TrainConfig,
-    progress: &dyn Progress,
-) -> Result<(Krfws, TrainReport), TrainError> {
+/// Refuses a training run that cannot work: no faces, or settings out of range.
+fn validate(faces: &[TrainFace], cfg: &TrainConfig) -> Result<(), TrainError> {
     if faces.is_empty() {
         return Err(TrainError::NoFaces);
     }
@@ -326,13 +321,12 @@ pub fn train_cascade(
     if faces.iter().any(|f| !(0.0..=1e3).contains(&f.lid_weight)) {
         return Err(TrainError::Config("lid weights must be in 0..=1000"));
     }
-    let mut all: Vec<TrainFace> = Vec::with_capacity(faces.len() * 2);
-    for f in faces {
-        all.push(f.clone());
-        all.push(mirror_face(f));
-    }
-    let mean = super::default_mean_shape();
-    let proto = Krfws::new(mean, Vec::new(), empty_failure());
+    Ok(())
+}
+
+/// Every training face's starting shapes: the mean shape on its box, then perturbations of it (the seed's
+/// streams per face and start).
+fn starting_shapes(all: &[TrainFace], proto: &Krfws, cfg: &TrainConfig) -> Vec<Sample> {
     let mut samples = Vec::with_capacity(all.len() * cfg.perturbations);
     for (fi, f) in all.iter().enumerate() {
         let base = proto.init_from_box(&gt_box(&f.landmarks));
@@ -351,13 +345,183 @@ pub fn train_cascade(
             samples.push(Sample { face: fi, shape });
         }
     }
+    samples
+}
+
+/// One stage's forests (landmarks distributed over threads, assembled in landmark order) trained on `pool`:
+/// the trees, every sample's leaf codes (`N_POINTS * trees` per sample) and the number of leaves; `None` when
+/// a worker failed.
+fn stage_forests(
+    data: &forest::StageData,
+    pool: &[u32],
+    si: usize,
+    cfg: &TrainConfig,
+    progress: &dyn Progress,
+) -> Option<(Vec<Tree>, Vec<u32>, u32)> {
+    // Forests, landmarks distributed over threads, assembled in landmark order.
+    progress.begin(&format!("stage {} forests", si + 1), N_POINTS as u64);
+    let next = AtomicUsize::new(0);
+    let mut results: Vec<(usize, Vec<Tree>, Vec<u32>)> = std::thread::scope(|sc| {
+        let handles: Vec<_> = (0..cfg.threads.clamp(1, 64))
+            .map(|_| {
+                sc.spawn(|| {
+                    let mut out = Vec::new();
+                    loop {
+                        let l = next.fetch_add(1, Ordering::Relaxed);
+                        if l >= N_POINTS {
+                            break;
+                        }
+                        let (t, lv) = train_forest(data, pool, l, si, cfg);
+                        out.push((l, t, lv));
+                        progress.inc(1);
+                    }
+                    out
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap_or_default())
+            .collect()
+    });
+    results.sort_by_key(|r| r.0);
+    if results.len() != N_POINTS {
+        return None;
+    }
+    let mut trees = Vec::with_capacity(N_POINTS * cfg.trees);
+    let mut offsets = Vec::with_capacity(N_POINTS * cfg.trees);
+    let mut total = 0u32;
+    for (_, ts, _) in &results {
+        for t in ts {
+            offsets.push(total);
+            total += t.n_leaves;
+        }
+    }
+    let per = N_POINTS * cfg.trees;
+    let n = data.sims.len();
+    let mut codes = vec![0u32; n * per];
+    for (l, ts, lv) in &mut results {
+        for i in 0..n {
+            for t in 0..cfg.trees {
+                codes[i * per + *l * cfg.trees + t] = offsets[*l * cfg.trees + t] + lv[i * cfg.trees + t];
+            }
+        }
+        trees.append(ts);
+    }
+    Some((trees, codes, total))
+}
+
+/// A stage's sparse regression problem: every sample's `per` leaf codes into `leaves` leaves, and its targets.
+struct RidgeFit<'a> {
+    codes: &'a [u32],
+    per: usize,
+    leaves: usize,
+    targets: &'a [f32],
+}
+
+/// The ridge factor of `cfg.ridge` whose regression, fitted without the `held` samples, predicts them best
+/// (squared error, the lid coordinates weighed by each sample's `weights` when `weighted`), and each factor's
+/// held-out error.
+fn choose_ridge(
+    fit: &RidgeFit<'_>,
+    held: &[bool],
+    weights: &[f32],
+    weighted: bool,
+    population: f64,
+    cfg: &TrainConfig,
+) -> (f64, Vec<f64>) {
+    let per = fit.per;
+    let lids = lid_columns();
+    let mut mses = Vec::new();
+    let mut chosen = cfg.ridge[0];
+    let (mut tc, mut ty, mut tw, mut hc, mut hy, mut hw) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
+    for (i, (&w, &held)) in weights.iter().zip(held).enumerate() {
+        let (c, y) = (
+            &fit.codes[i * per..(i + 1) * per],
+            &fit.targets[i * DELTA_DIM..(i + 1) * DELTA_DIM],
+        );
+        if held {
+            hc.extend_from_slice(c);
+            hy.extend_from_slice(y);
+            hw.push(w);
+        } else {
+            tc.extend_from_slice(c);
+            ty.extend_from_slice(y);
+            tw.push(w);
+        }
+    }
+    let tw = weighted.then_some(tw.as_slice());
+    let mut best = f64::INFINITY;
+    for &r in &cfg.ridge {
+        let (w, _) = ridge_sparse(
+            &tc,
+            per,
+            fit.leaves,
+            &ty,
+            tw,
+            Solve {
+                lambda: r * population,
+                tol: 1e-6,
+                threads: cfg.threads,
+            },
+        );
+        let mut err = 0.0f64;
+        for ((c, y), &wi) in hc.chunks_exact(per).zip(hy.chunks_exact(DELTA_DIM)).zip(&hw) {
+            let mut pred = [0.0f64; DELTA_DIM];
+            for &leaf in c {
+                for (p, v) in pred.iter_mut().zip(&w[leaf as usize * DELTA_DIM..]) {
+                    *p += f64::from(*v);
+                }
+            }
+            err += pred
+                .iter()
+                .zip(y)
+                .zip(&lids)
+                .map(|((p, t), &lid)| {
+                    let w = if lid { f64::from(wi) } else { 1.0 };
+                    w * (p - f64::from(*t)).powi(2)
+                })
+                .sum::<f64>();
+        }
+        let mse = err / (hy.len().max(1)) as f64;
+        mses.push(mse);
+        if mse < best {
+            best = mse;
+            chosen = r;
+        }
+    }
+    (chosen, mses)
+}
+
+/// Trains the cascade (no failure detector yet: call [`train_failure`]). `faces` are the training faces
+/// (mirrors are added here).
+pub fn train_cascade(
+    faces: &[TrainFace],
+    cfg: &TrainConfig,
+    progress: &dyn Progress,
+) -> Result<(Krfws, TrainReport), TrainError> {
+    validate(faces, cfg)?;
+    let mut all: Vec<TrainFace> = Vec::with_capacity(faces.len() * 2);
+    for f in faces {
+        all.push(f.clone());
+        all.push(mirror_face(f));
+    }
+    let mean = super::default_mean_shape();
+    let proto = Krfws::new(mean, Vec::new(), empty_failure());
+    let mut samples = starting_shapes(&all, &proto, cfg);
     let n = samples.len();
     // Per-sample lid weights, only when some face weighs its lids differently (else the plain solve).
     let lid_weights: Option<Vec<f32>> = all
         .iter()
         .any(|f| f.lid_weight != 1.0)
         .then(|| samples.iter().map(|s| all[s.face].lid_weight).collect());
-    let lids = lid_columns();
     let mut report = TrainReport {
         samples: n,
         ..TrainReport::default()
@@ -379,126 +543,26 @@ pub fn train_cascade(
         let select = cfg.ridge.len() > 1;
         let held = |i: usize| select && (samples[i].face / 2) % 10 == 9;
         let pool: Vec<u32> = (0..n).filter(|&i| !held(i)).map(|i| i as u32).collect();
-        // Forests, landmarks distributed over threads, assembled in landmark order.
-        progress.begin(&format!("stage {} forests", si + 1), N_POINTS as u64);
-        let next = AtomicUsize::new(0);
-        let mut results: Vec<(usize, Vec<Tree>, Vec<u32>)> = std::thread::scope(|sc| {
-            let handles: Vec<_> = (0..cfg.threads.clamp(1, 64))
-                .map(|_| {
-                    sc.spawn(|| {
-                        let mut out = Vec::new();
-                        loop {
-                            let l = next.fetch_add(1, Ordering::Relaxed);
-                            if l >= N_POINTS {
-                                break;
-                            }
-                            let (t, lv) = train_forest(&data, &pool, l, si, cfg);
-                            out.push((l, t, lv));
-                            progress.inc(1);
-                        }
-                        out
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .flat_map(|h| h.join().unwrap_or_default())
-                .collect()
-        });
-        results.sort_by_key(|r| r.0);
-        if results.len() != N_POINTS {
+        let Some((trees, codes, total)) = stage_forests(&data, &pool, si, cfg, progress) else {
             return Err(TrainError::Config("a forest worker failed"));
-        }
-        let mut trees = Vec::with_capacity(N_POINTS * cfg.trees);
-        let mut offsets = Vec::with_capacity(N_POINTS * cfg.trees);
-        let mut total = 0u32;
-        for (_, ts, _) in &results {
-            for t in ts {
-                offsets.push(total);
-                total += t.n_leaves;
-            }
-        }
+        };
         let per = N_POINTS * cfg.trees;
-        let mut codes = vec![0u32; n * per];
-        for (l, ts, lv) in &mut results {
-            for i in 0..n {
-                for t in 0..cfg.trees {
-                    codes[i * per + *l * cfg.trees + t] = offsets[*l * cfg.trees + t] + lv[i * cfg.trees + t];
-                }
-            }
-            trees.append(ts);
-        }
         progress.end(&format!("{total} leaves"));
         progress.begin(&format!("stage {} regression", si + 1), 1);
         let population = (n * per) as f64 / f64::from(total.max(1));
-        let mut mses = Vec::new();
-        let mut chosen = cfg.ridge[0];
-        if select {
-            let (mut tc, mut ty, mut tw, mut hc, mut hy, mut hw) = (
-                Vec::new(),
-                Vec::new(),
-                Vec::new(),
-                Vec::new(),
-                Vec::new(),
-                Vec::new(),
-            );
-            for i in 0..n {
-                let (c, y) = (
-                    &codes[i * per..(i + 1) * per],
-                    &data.targets[i * DELTA_DIM..(i + 1) * DELTA_DIM],
-                );
-                let w = all[samples[i].face].lid_weight;
-                if held(i) {
-                    hc.extend_from_slice(c);
-                    hy.extend_from_slice(y);
-                    hw.push(w);
-                } else {
-                    tc.extend_from_slice(c);
-                    ty.extend_from_slice(y);
-                    tw.push(w);
-                }
-            }
-            let tw = lid_weights.is_some().then_some(tw.as_slice());
-            let mut best = f64::INFINITY;
-            for &r in &cfg.ridge {
-                let (w, _) = ridge_sparse(
-                    &tc,
-                    per,
-                    total as usize,
-                    &ty,
-                    tw,
-                    Solve {
-                        lambda: r * population,
-                        tol: 1e-6,
-                        threads: cfg.threads,
-                    },
-                );
-                let mut err = 0.0f64;
-                for ((c, y), &wi) in hc.chunks_exact(per).zip(hy.chunks_exact(DELTA_DIM)).zip(&hw) {
-                    let mut pred = [0.0f64; DELTA_DIM];
-                    for &leaf in c {
-                        for (p, v) in pred.iter_mut().zip(&w[leaf as usize * DELTA_DIM..]) {
-                            *p += f64::from(*v);
-                        }
-                    }
-                    err += pred
-                        .iter()
-                        .zip(y)
-                        .zip(&lids)
-                        .map(|((p, t), &lid)| {
-                            let w = if lid { f64::from(wi) } else { 1.0 };
-                            w * (p - f64::from(*t)).powi(2)
-                        })
-                        .sum::<f64>();
-                }
-                let mse = err / (hy.len().max(1)) as f64;
-                mses.push(mse);
-                if mse < best {
-                    best = mse;
-                    chosen = r;
-                }
-            }
-        }
+        let (chosen, mses) = if select {
+            let held: Vec<bool> = (0..n).map(held).collect();
+            let weights: Vec<f32> = samples.iter().map(|s| all[s.face].lid_weight).collect();
+            let fit = RidgeFit {
+                codes: &codes,
+                per,
+                leaves: total as usize,
+                targets: &data.targets,
+            };
+            choose_ridge(&fit, &held, &weights, lid_weights.is_some(), population, cfg)
+        } else {
+            (cfg.ridge[0], Vec::new())
+        };
         let lambda = chosen * population;
         let (mut w, iters) = ridge_sparse(
             &codes,
