@@ -141,51 +141,8 @@ impl TreeBuilder<'_> {
         if n < 2 * min_leaf {
             return None;
         }
-        // 2-means on the 2-D targets, initialised on the principal axis.
         let ys: Vec<[f64; 2]> = idx.iter().map(|&i| self.y(i)).collect();
-        let mean = ys.iter().fold([0.0; 2], |a, y| [a[0] + y[0], a[1] + y[1]]);
-        let mean = [mean[0] / n as f64, mean[1] / n as f64];
-        let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
-        for y in &ys {
-            let (dx, dy) = (y[0] - mean[0], y[1] - mean[1]);
-            sxx += dx * dx;
-            sxy += dx * dy;
-            syy += dy * dy;
-        }
-        let ang = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-        let e = [ang.cos(), ang.sin()];
-        let mut label: Vec<bool> = ys
-            .iter()
-            .map(|y| (y[0] - mean[0]) * e[0] + (y[1] - mean[1]) * e[1] > 0.0)
-            .collect();
-        let mut c = [[0.0f64; 2]; 2];
-        for _ in 0..10 {
-            let mut sum = [[0.0f64; 2]; 2];
-            let mut cnt = [0usize; 2];
-            for (y, &l) in ys.iter().zip(&label) {
-                let k = usize::from(l);
-                sum[k][0] += y[0];
-                sum[k][1] += y[1];
-                cnt[k] += 1;
-            }
-            if cnt[0] == 0 || cnt[1] == 0 {
-                return None;
-            }
-            for k in 0..2 {
-                c[k] = [sum[k][0] / cnt[k] as f64, sum[k][1] / cnt[k] as f64];
-            }
-            let mut changed = false;
-            for (y, l) in ys.iter().zip(label.iter_mut()) {
-                let d0 = (y[0] - c[0][0]).powi(2) + (y[1] - c[0][1]).powi(2);
-                let d1 = (y[0] - c[1][0]).powi(2) + (y[1] - c[1][1]).powi(2);
-                let nl = d1 < d0;
-                changed |= nl != *l;
-                *l = nl;
-            }
-            if !changed {
-                break;
-            }
-        }
+        let (label, c) = two_means(&ys)?;
         // Sample weights: misrouting cost (weighted) or 1 (plain).
         let u = [c[1][0] - c[0][0], c[1][1] - c[0][1]];
         let m = [0.5 * (c[0][0] + c[1][0]), 0.5 * (c[0][1] + c[1][1])];
@@ -220,31 +177,7 @@ impl TreeBuilder<'_> {
             .map(|(j, &i)| (dot144(&v, self.x(i)), i, j))
             .collect();
         proj.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        // Threshold minimising the children's squared error.
-        let (mut tx, mut ty, mut tq) = (0.0f64, 0.0f64, 0.0f64);
-        for y in &ys {
-            tx += y[0];
-            ty += y[1];
-            tq += y[0] * y[0] + y[1] * y[1];
-        }
-        let (mut lx, mut ly, mut lq) = (0.0f64, 0.0f64, 0.0f64);
-        let mut best: Option<(f64, usize)> = None;
-        for k in 1..n {
-            let y = ys[proj[k - 1].2];
-            lx += y[0];
-            ly += y[1];
-            lq += y[0] * y[0] + y[1] * y[1];
-            if k < min_leaf || n - k < min_leaf || proj[k - 1].0 >= proj[k].0 {
-                continue;
-            }
-            let (nl, nr) = (k as f64, (n - k) as f64);
-            let sse =
-                (lq - (lx * lx + ly * ly) / nl) + ((tq - lq) - ((tx - lx).powi(2) + (ty - ly).powi(2)) / nr);
-            if best.is_none_or(|(b, _)| sse < b) {
-                best = Some((sse, k));
-            }
-        }
-        let (_, k) = best?;
+        let k = best_cut(&ys, &proj, min_leaf)?;
         let threshold = 0.5 * (proj[k - 1].0 + proj[k].0);
         // The midpoint may round onto the upper value; keep the routing rule `≤ threshold` exact.
         let threshold = if threshold >= proj[k].0 {
@@ -361,4 +294,85 @@ pub(super) fn train_forest(
         trees.push(tree);
     }
     (trees, leaves)
+}
+
+/// 2-means on the 2-D targets `ys`, initialised on their principal axis: each sample's cluster and the two
+/// centres; `None` when a cluster empties.
+fn two_means(ys: &[[f64; 2]]) -> Option<(Vec<bool>, [[f64; 2]; 2])> {
+    let n = ys.len();
+    let mean = ys.iter().fold([0.0; 2], |a, y| [a[0] + y[0], a[1] + y[1]]);
+    let mean = [mean[0] / n as f64, mean[1] / n as f64];
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for y in ys {
+        let (dx, dy) = (y[0] - mean[0], y[1] - mean[1]);
+        sxx += dx * dx;
+        sxy += dx * dy;
+        syy += dy * dy;
+    }
+    let ang = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let e = [ang.cos(), ang.sin()];
+    let mut label: Vec<bool> = ys
+        .iter()
+        .map(|y| (y[0] - mean[0]) * e[0] + (y[1] - mean[1]) * e[1] > 0.0)
+        .collect();
+    let mut c = [[0.0f64; 2]; 2];
+    for _ in 0..10 {
+        let mut sum = [[0.0f64; 2]; 2];
+        let mut cnt = [0usize; 2];
+        for (y, &l) in ys.iter().zip(&label) {
+            let k = usize::from(l);
+            sum[k][0] += y[0];
+            sum[k][1] += y[1];
+            cnt[k] += 1;
+        }
+        if cnt[0] == 0 || cnt[1] == 0 {
+            return None;
+        }
+        for k in 0..2 {
+            c[k] = [sum[k][0] / cnt[k] as f64, sum[k][1] / cnt[k] as f64];
+        }
+        let mut changed = false;
+        for (y, l) in ys.iter().zip(label.iter_mut()) {
+            let d0 = (y[0] - c[0][0]).powi(2) + (y[1] - c[0][1]).powi(2);
+            let d1 = (y[0] - c[1][0]).powi(2) + (y[1] - c[1][1]).powi(2);
+            let nl = d1 < d0;
+            changed |= nl != *l;
+            *l = nl;
+        }
+        if !changed {
+            break;
+        }
+    }
+    Some((label, c))
+}
+
+/// Where to cut the samples sorted by projection (`proj`: value, sample, index into `ys`): the count on the
+/// left minimising the children's squared error, each child keeping `min_leaf` samples and the cut falling
+/// between two different values.
+fn best_cut(ys: &[[f64; 2]], proj: &[(f32, u32, usize)], min_leaf: usize) -> Option<usize> {
+    let n = ys.len();
+    let (mut tx, mut ty, mut tq) = (0.0f64, 0.0f64, 0.0f64);
+    for y in ys {
+        tx += y[0];
+        ty += y[1];
+        tq += y[0] * y[0] + y[1] * y[1];
+    }
+    let (mut lx, mut ly, mut lq) = (0.0f64, 0.0f64, 0.0f64);
+    let mut best: Option<(f64, usize)> = None;
+    for k in 1..n {
+        let y = ys[proj[k - 1].2];
+        lx += y[0];
+        ly += y[1];
+        lq += y[0] * y[0] + y[1] * y[1];
+        if k < min_leaf || n - k < min_leaf || proj[k - 1].0 >= proj[k].0 {
+            continue;
+        }
+        let (nl, nr) = (k as f64, (n - k) as f64);
+        let sse =
+            (lq - (lx * lx + ly * ly) / nl) + ((tq - lq) - ((tx - lx).powi(2) + (ty - ly).powi(2)) / nr);
+        if best.is_none_or(|(b, _)| sse < b) {
+            best = Some((sse, k));
+        }
+    }
+    best.map(|(_, k)| k)
 }

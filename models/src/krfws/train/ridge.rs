@@ -43,59 +43,8 @@ pub(super) fn ridge_sparse(
         diag[c as usize] += 1.0;
     }
     let threads = threads.clamp(1, 64);
-    // `Xᵀr`: every thread sums its own block of output columns over all samples in sample order, so the
-    // result is the same bits whatever the thread count.
-    let xt = |r: &[f64], out: &mut [f64]| {
-        let bw = K.div_ceil(threads);
-        let parts: Vec<(usize, Vec<f64>)> = std::thread::scope(|sc| {
-            let handles: Vec<_> = (0..K)
-                .step_by(bw)
-                .map(|k0| {
-                    sc.spawn(move || {
-                        let w = bw.min(K - k0);
-                        let mut part = vec![0.0f64; n_leaves * w];
-                        for (i, row) in codes.chunks_exact(per).enumerate() {
-                            let ri = &r[i * K + k0..i * K + k0 + w];
-                            for &c in row {
-                                for (o, v) in part[c as usize * w..(c as usize + 1) * w].iter_mut().zip(ri) {
-                                    *o += v;
-                                }
-                            }
-                        }
-                        (k0, part)
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-                .collect()
-        });
-        for (k0, part) in parts {
-            let w = part.len() / n_leaves.max(1);
-            for (o, src) in out.chunks_exact_mut(K).zip(part.chunks_exact(w.max(1))) {
-                o[k0..k0 + w].copy_from_slice(src);
-            }
-        }
-    };
-    // `Xp`: rows split over the threads (each row is one sample's own sum).
-    let x_mul = |p: &[f64], out: &mut [f64]| {
-        let rows = n.div_ceil(threads).max(1);
-        std::thread::scope(|sc| {
-            for (o, cs) in out.chunks_mut(rows * K).zip(codes.chunks(rows * per)) {
-                sc.spawn(move || {
-                    for (oi, row) in o.chunks_exact_mut(K).zip(cs.chunks_exact(per)) {
-                        oi.fill(0.0);
-                        for &c in row {
-                            for (o, v) in oi.iter_mut().zip(&p[c as usize * K..(c as usize + 1) * K]) {
-                                *o += v;
-                            }
-                        }
-                    }
-                });
-            }
-        });
-    };
+    let xt = |r: &[f64], out: &mut [f64]| sparse_xt(codes, per, n_leaves, threads, r, out);
+    let x_mul = |p: &[f64], out: &mut [f64]| sparse_x_mul(codes, per, n, threads, p, out);
     let mut yd: Vec<f64> = y.iter().map(|&v| f64::from(v)).collect();
     weigh(&mut yd);
     let mut b = vec![0.0; n_leaves * K];
@@ -104,15 +53,6 @@ pub(super) fn ridge_sparse(
     let mut r = b.clone();
     let mut z: Vec<f64> = r.iter().enumerate().map(|(j, v)| v / diag[j / K]).collect();
     let mut p = z.clone();
-    let col_dot = |a: &[f64], b: &[f64]| {
-        let mut s = [0.0f64; K];
-        for (ra, rb) in a.chunks_exact(K).zip(b.chunks_exact(K)) {
-            for k in 0..K {
-                s[k] += ra[k] * rb[k];
-            }
-        }
-        s
-    };
     let bnorm = col_dot(&b, &b);
     let mut rz = col_dot(&r, &z);
     let mut tmp = vec![0.0f64; n * K];
@@ -151,6 +91,76 @@ pub(super) fn ridge_sparse(
         rz = rz_new;
     }
     (x.iter().map(|&v| v as f32).collect(), iters)
+}
+
+/// `Xᵀr` for the sparse 0/1 rows `codes` (`per` leaves a sample) into `out` (`n_leaves` × [`DELTA_DIM`]): every
+/// thread sums its own block of output columns over all samples in sample order, so the result is the same
+/// bits whatever the thread count.
+fn sparse_xt(codes: &[u32], per: usize, n_leaves: usize, threads: usize, r: &[f64], out: &mut [f64]) {
+    const K: usize = DELTA_DIM;
+    let bw = K.div_ceil(threads);
+    let parts: Vec<(usize, Vec<f64>)> = std::thread::scope(|sc| {
+        let handles: Vec<_> = (0..K)
+            .step_by(bw)
+            .map(|k0| {
+                sc.spawn(move || {
+                    let w = bw.min(K - k0);
+                    let mut part = vec![0.0f64; n_leaves * w];
+                    for (i, row) in codes.chunks_exact(per).enumerate() {
+                        let ri = &r[i * K + k0..i * K + k0 + w];
+                        for &c in row {
+                            for (o, v) in part[c as usize * w..(c as usize + 1) * w].iter_mut().zip(ri) {
+                                *o += v;
+                            }
+                        }
+                    }
+                    (k0, part)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .collect()
+    });
+    for (k0, part) in parts {
+        let w = part.len() / n_leaves.max(1);
+        for (o, src) in out.chunks_exact_mut(K).zip(part.chunks_exact(w.max(1))) {
+            o[k0..k0 + w].copy_from_slice(src);
+        }
+    }
+}
+
+/// `Xp` for the sparse rows `codes` (`n` samples) into `out` (`n` × [`DELTA_DIM`]): rows split over the threads
+/// (each row is one sample's own sum).
+fn sparse_x_mul(codes: &[u32], per: usize, n: usize, threads: usize, p: &[f64], out: &mut [f64]) {
+    const K: usize = DELTA_DIM;
+    let rows = n.div_ceil(threads).max(1);
+    std::thread::scope(|sc| {
+        for (o, cs) in out.chunks_mut(rows * K).zip(codes.chunks(rows * per)) {
+            sc.spawn(move || {
+                for (oi, row) in o.chunks_exact_mut(K).zip(cs.chunks_exact(per)) {
+                    oi.fill(0.0);
+                    for &c in row {
+                        for (o, v) in oi.iter_mut().zip(&p[c as usize * K..(c as usize + 1) * K]) {
+                            *o += v;
+                        }
+                    }
+                }
+            });
+        }
+    });
+}
+
+/// Per output column, the dot product of two sample- or leaf-major × [`DELTA_DIM`] buffers.
+fn col_dot(a: &[f64], b: &[f64]) -> [f64; DELTA_DIM] {
+    let mut s = [0.0f64; DELTA_DIM];
+    for (ra, rb) in a.chunks_exact(DELTA_DIM).zip(b.chunks_exact(DELTA_DIM)) {
+        for k in 0..DELTA_DIM {
+            s[k] += ra[k] * rb[k];
+        }
+    }
+    s
 }
 
 /// Ridge regression with intercept on dense rows (`x`: n × d) by CG on the centred normal equations.
