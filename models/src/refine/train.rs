@@ -238,6 +238,50 @@ fn goes_right(f: &[i16], s: &SplitTest) -> bool {
     f32::from(f[usize::from(s.u)] - f[usize::from(s.v)]) > s.threshold
 }
 
+/// Of a node's candidate tests (each with the sum of the residuals it sends right, `right_sums`, and how many,
+/// `right_counts`), the one whose children's summed squared means are largest (the least squared error left);
+/// `parent` is the node's residual sum over its `n_node` samples.
+fn best_test(parent: &[f64], n_node: usize, right_sums: &[f64], right_counts: &[usize]) -> usize {
+    let mut best = (f64::MIN, 0usize);
+    for (c, (right, &nr)) in right_sums.chunks_exact(SHAPE_DIM).zip(right_counts).enumerate() {
+        let nl = n_node - nr;
+        let score = if nr == 0 || nl == 0 {
+            f64::MIN / 2.0
+        } else {
+            let (mut sr, mut sl) = (0.0, 0.0);
+            for (p, r) in parent.iter().zip(right) {
+                sr += r * r;
+                sl += (p - r) * (p - r);
+            }
+            sr / nr as f64 + sl / nl as f64
+        };
+        if score > best.0 {
+            best = (score, c);
+        }
+    }
+    best.1
+}
+
+/// The leaves of a tree of `depth` from its nodes' residual sums and counts: each leaf's mean residual times
+/// the learning rate (0 for an empty leaf).
+fn leaf_means(sums: &[f64], counts: &[usize], depth: usize, learning_rate: f32) -> Vec<f32> {
+    let first_leaf = (1usize << depth) - 1;
+    let mut leaves = vec![0f32; (1 << depth) * SHAPE_DIM];
+    for (l, leaf) in leaves.chunks_exact_mut(SHAPE_DIM).enumerate() {
+        let node = first_leaf + l;
+        if counts[node] > 0 {
+            let k = f64::from(learning_rate) / counts[node] as f64;
+            for (v, s) in leaf
+                .iter_mut()
+                .zip(&sums[node * SHAPE_DIM..(node + 1) * SHAPE_DIM])
+            {
+                *v = (s * k) as f32;
+            }
+        }
+    }
+    leaves
+}
+
 /// Grows one tree on `resid` (n × [`SHAPE_DIM`]) and subtracts its leaves from the residuals.
 fn grow_tree(
     feats: &[i16],
@@ -304,27 +348,14 @@ fn grow_tree(
             let node = first + j;
             let n_node = counts[node];
             let parent = &sums[node * SHAPE_DIM..(node + 1) * SHAPE_DIM];
-            let mut best = (f64::MIN, 0usize);
-            for c in 0..c_tests {
-                let slot = j * c_tests + c;
-                let nr = cnt[slot];
-                let nl = n_node - nr;
-                let right = &acc[slot * SHAPE_DIM..(slot + 1) * SHAPE_DIM];
-                let score = if nr == 0 || nl == 0 {
-                    f64::MIN / 2.0
-                } else {
-                    let (mut sr, mut sl) = (0.0, 0.0);
-                    for (p, r) in parent.iter().zip(right) {
-                        sr += r * r;
-                        sl += (p - r) * (p - r);
-                    }
-                    sr / nr as f64 + sl / nl as f64
-                };
-                if score > best.0 {
-                    best = (score, c);
-                }
-            }
-            let slot = j * c_tests + best.1;
+            let tests = j * c_tests..(j + 1) * c_tests;
+            let slot = j * c_tests
+                + best_test(
+                    parent,
+                    n_node,
+                    &acc[tests.start * SHAPE_DIM..tests.end * SHAPE_DIM],
+                    &cnt[tests],
+                );
             splits.push(cands[slot]);
             let (l, r) = (2 * node + 1, 2 * node + 2);
             counts[r] = cnt[slot];
@@ -343,19 +374,7 @@ fn grow_tree(
         }
     }
     let first_leaf = (1usize << depth) - 1;
-    let mut leaves = vec![0f32; (1 << depth) * SHAPE_DIM];
-    for (l, leaf) in leaves.chunks_exact_mut(SHAPE_DIM).enumerate() {
-        let node = first_leaf + l;
-        if counts[node] > 0 {
-            let k = f64::from(cfg.learning_rate) / counts[node] as f64;
-            for (v, s) in leaf
-                .iter_mut()
-                .zip(&sums[node * SHAPE_DIM..(node + 1) * SHAPE_DIM])
-            {
-                *v = (s * k) as f32;
-            }
-        }
-    }
+    let leaves = leaf_means(&sums, &counts, depth, cfg.learning_rate);
     // Quantised as the file stores it; training subtracts exactly what inference will add.
     let tree = RegressionTree::new(splits, &leaves);
     let mut step = vec![0f32; SHAPE_DIM];
