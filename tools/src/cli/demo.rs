@@ -208,13 +208,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let cut_end = args.cut_at + args.cut_frames;
     let strip_at = strip_frames(args.frames, args.cut_at, cut_end);
     let mut strip = Vec::new();
-    let mut augmenter = crate::augment::Augmenter::new(
-        crate::augment::scene::Scene::parse(crate::augment::scene::DEFAULT_SCENE)?,
-        tracker.face_model().clone(),
-        SessionOptions::default().lookahead_s * 1e3,
-    );
-    let mut augmented = Vec::new();
-    let mut anchored = AnchorTrack::default();
+    let mut augmented = DemoAugment::new(tracker.face_model(), strip_at.clone())?;
     let mut records = Vec::with_capacity(args.frames);
     let mut expressions = Vec::with_capacity(args.frames);
     let mut image = GrayImage::zeros(FRAME_W, FRAME_H);
@@ -286,23 +280,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let FaceOutcome::Face(u) = &result {
             expressions.push(u.blendshapes);
         }
-        anchored.push(&augmenter, answered_by, &step.faces.faces);
-        augmenter.update(
-            frame.timestamp_us,
-            step.faces
-                .faces
-                .iter()
-                .map(crate::augment::FaceSnapshot::of)
-                .collect(),
+        augmented.frame(
+            (i, frame.timestamp_us),
+            (&image, &pose),
+            answered_by,
+            &step.faces.faces,
         );
         serde_json::to_writer(&mut log, &line)?;
         log.write_all(b"\n")?;
         if strip_at.contains(&i) {
             strip.push((i, image.clone(), landmarks, answered_by, truth));
-            let mut canvas = Canvas::new(FRAME_W, FRAME_H);
-            canvas.blit_gray(0, 0, image.as_bytes(), FRAME_W, FRAME_H, 1);
-            augmenter.draw(&mut canvas, &SCENE_CAMERA, &pose);
-            augmented.push((i, canvas, answered_by));
         }
     }
     let wall = start.elapsed().as_secs_f64();
@@ -313,8 +300,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     drop(relay);
     server.stop();
     let mut summary = summarise(&args, &records, wall, udp_tx, remote_sent, switches);
-    summary["anchored_glasses"] = anchored.report();
-    write_atomic(&args.out.join("augmented.png"), augmented_png(&augmented))?;
+    summary["anchored_glasses"] = augmented.finish(&args.out.join("augmented.png"))?;
     write_outputs(&args, &strip, summary, &expressions, &log_path)?;
     let unanswered = records.iter().filter(|r| r.answered_by.is_none()).count();
     if unanswered == records.len() {
@@ -471,27 +457,64 @@ fn strip_png(frames: &[StripFrame]) -> Vec<u8> {
     cv.to_png()
 }
 
-/// The shipped scene's glasses in the world, frame by frame, for each aligner (`None` on the other's frames):
-/// the face is a picture hanging still, so every movement of theirs is the tracker's.
-#[derive(Default)]
-struct AnchorTrack {
+/// The shipped scene on the demo: its augmenter, the frames of the strip drawn with it, and the glasses in the
+/// world frame by frame for each aligner (`None` on the other's frames): the face is a picture hanging still, so
+/// every movement of theirs is the tracker's.
+struct DemoAugment {
+    augmenter: crate::augment::Augmenter,
+    /// The frames drawn (the strip's).
+    shown: Vec<usize>,
+    frames: Vec<(usize, Canvas, Option<AnsweredBy>)>,
     remote: Vec<Option<Vec3>>,
     local: Vec<Option<Vec3>>,
 }
 
-impl AnchorTrack {
-    fn push(
+impl DemoAugment {
+    fn new(model: &holoface_models::candide::FaceModel, shown: Vec<usize>) -> anyhow::Result<Self> {
+        Ok(Self {
+            shown,
+            augmenter: crate::augment::Augmenter::new(
+                crate::augment::scene::Scene::parse(crate::augment::scene::DEFAULT_SCENE)?,
+                model.clone(),
+                SessionOptions::default().lookahead_s * 1e3,
+            ),
+            frames: Vec::new(),
+            remote: Vec::new(),
+            local: Vec::new(),
+        })
+    }
+
+    /// Frame `i` captured at `t_us` (`image`, the headset at `pose`), answered by `by` with `faces`; drawn and
+    /// kept when it is one of the strip's.
+    fn frame(
         &mut self,
-        a: &crate::augment::Augmenter,
+        (i, t_us): (usize, u64),
+        (image, pose): (&GrayImage, &Pose),
         by: Option<AnsweredBy>,
         faces: &[holoface_runtime::FaceResult],
     ) {
-        let at = faces
-            .first()
-            .map(|f| a.place(0, &crate::augment::FaceSnapshot::of(f)).translation);
+        let at = faces.first().map(|f| {
+            self.augmenter
+                .place(0, &crate::augment::FaceSnapshot::of(f))
+                .translation
+        });
         let remote = by == Some(AnsweredBy::RemoteDan);
         self.remote.push(at.filter(|_| remote));
         self.local.push(at.filter(|_| !remote));
+        self.augmenter
+            .update(t_us, faces.iter().map(crate::augment::FaceSnapshot::of).collect());
+        if self.shown.contains(&i) {
+            let mut canvas = Canvas::new(FRAME_W, FRAME_H);
+            canvas.blit_gray(0, 0, image.as_bytes(), FRAME_W, FRAME_H, 1);
+            self.augmenter.draw(&mut canvas, &SCENE_CAMERA, pose);
+            self.frames.push((i, canvas, by));
+        }
+    }
+
+    /// Writes the strip to `path`; says and returns the glasses' drift for each aligner.
+    fn finish(self, path: &std::path::Path) -> anyhow::Result<serde_json::Value> {
+        write_atomic(path, augmented_png(&self.frames))?;
+        Ok(self.report())
     }
 
     /// Says and returns the drift for each aligner.

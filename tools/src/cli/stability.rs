@@ -560,6 +560,61 @@ fn gap_closed(reports: &[Report]) -> Option<f64> {
     (krfws - remote > 1e-9).then(|| (krfws - ours) / (krfws - remote))
 }
 
+/// Prints run `r`'s switches between remote and local: how many and why, the largest jumps, each beside the
+/// never-cut run's at that frame, and the excess over it against the bar (KRFWS's median steadied jitter49).
+fn say_switches(r: &Report, reports: &[Report]) {
+    if r.switches == 0 {
+        return;
+    }
+    crate::say!(
+        "         {} remote/local switches ({} at the link's changes, {} around missed deadlines; {} where the clip itself jumps, left out); largest jump raw {}, steadied {}",
+        r.switches,
+        r.switches - r.switches_at_missed_deadlines,
+        r.switches_at_missed_deadlines,
+        r.switches_at_clip_jumps,
+        r.largest_switch_jump_raw
+            .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
+        r.largest_switch_jump_steadied
+            .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
+    );
+    let beside: Vec<String> = r
+        .switch_jumps
+        .iter()
+        .filter_map(|j| {
+            let (ours, theirs) = (j.steadied?, j.uncut_steadied?);
+            Some(format!(
+                "{}: {:.2} / {:.2} %",
+                j.frame,
+                100.0 * ours,
+                100.0 * theirs
+            ))
+        })
+        .collect();
+    if !beside.is_empty() {
+        crate::say!(
+            "         steadied jump at each switch / remote-uncut's at that frame: {}",
+            beside.join(", ")
+        );
+    }
+    if let (Some(worst), Some(median)) = (r.largest_switch_excess, r.median_switch_excess) {
+        let bar = reports
+            .iter()
+            .find(|k| k.aligner == "krfws")
+            .and_then(|k| k.steadied_jitter49)
+            .map_or(String::new(), |j| {
+                format!(
+                    "; the bar, KRFWS's median steadied jitter49: {:.2} %",
+                    100.0 * j.median
+                )
+            });
+        crate::say!(
+            "         excess over remote-uncut at a switch (its frame or the next): worst {:.2} %, median {:.2} %{bar}",
+            100.0 * worst,
+            100.0 * median
+        );
+    }
+}
+
 /// Prints the table: one line per aligner (and its switch jumps), then the peer's.
 fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option<Summary>) {
     crate::say!(
@@ -587,55 +642,7 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
             pct(r.raw_vs_peer_nme49, |s| s.mean),
             pct(r.steadied_vs_peer_nme49, |s| s.mean),
         );
-        if r.switches > 0 {
-            crate::say!(
-                "         {} remote/local switches ({} at the link's changes, {} around missed deadlines; {} where the clip itself jumps, left out); largest jump raw {}, steadied {}",
-                r.switches,
-                r.switches - r.switches_at_missed_deadlines,
-                r.switches_at_missed_deadlines,
-                r.switches_at_clip_jumps,
-                r.largest_switch_jump_raw
-                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
-                r.largest_switch_jump_steadied
-                    .map_or("-".into(), |v| format!("{:.2} %", 100.0 * v)),
-            );
-            let beside: Vec<String> = r
-                .switch_jumps
-                .iter()
-                .filter_map(|j| {
-                    let (ours, theirs) = (j.steadied?, j.uncut_steadied?);
-                    Some(format!(
-                        "{}: {:.2} / {:.2} %",
-                        j.frame,
-                        100.0 * ours,
-                        100.0 * theirs
-                    ))
-                })
-                .collect();
-            if !beside.is_empty() {
-                crate::say!(
-                    "         steadied jump at each switch / remote-uncut's at that frame: {}",
-                    beside.join(", ")
-                );
-            }
-            if let (Some(worst), Some(median)) = (r.largest_switch_excess, r.median_switch_excess) {
-                let bar = reports
-                    .iter()
-                    .find(|k| k.aligner == "krfws")
-                    .and_then(|k| k.steadied_jitter49)
-                    .map_or(String::new(), |j| {
-                        format!(
-                            "; the bar, KRFWS's median steadied jitter49: {:.2} %",
-                            100.0 * j.median
-                        )
-                    });
-                crate::say!(
-                    "         excess over remote-uncut at a switch (its frame or the next): worst {:.2} %, median {:.2} %{bar}",
-                    100.0 * worst,
-                    100.0 * median
-                );
-            }
-        }
+        say_switches(r, reports);
     }
     for r in reports {
         if let Some(c) = &r.cuts {

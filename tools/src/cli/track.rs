@@ -250,20 +250,8 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
             );
             out.push(sf.index, &canvas)?;
         }
-        if let Some((augmenter, out, jitter)) = augmented.as_mut() {
-            augmenter.update(
-                sf.timestamp_us,
-                step.faces
-                    .faces
-                    .iter()
-                    .map(crate::augment::FaceSnapshot::of)
-                    .collect(),
-            );
-            let mut canvas = crate::plot::Canvas::new(sf.image.width(), sf.image.height());
-            canvas.blit_gray(0, 0, sf.image.as_bytes(), sf.image.width(), sf.image.height(), 1);
-            augmenter.draw(&mut canvas, &sf.intrinsics, &sf.world_from_camera);
-            out.push(sf.index, &canvas)?;
-            jitter.push(augmenter, &sf, &step.faces.faces);
+        if let Some(a) = augmented.as_mut() {
+            a.frame(&sf, &step.faces.faces)?;
         }
         let line = frame_line(&sf, &step, link_state, link_cut);
         line_bytes.clear();
@@ -286,12 +274,7 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     }
     // The annotation first: when it fails, the lines of a file source are not committed either.
     let annotated = annotated.map(Frames::finish).transpose()?;
-    let augmented = augmented
-        .map(|(augmenter, out, jitter)| {
-            jitter.say(&augmenter);
-            out.finish()
-        })
-        .transpose()?;
+    let augmented = augmented.map(Augmented::finish).transpose()?;
     if !reader_gone {
         out.commit()?;
     }
@@ -389,11 +372,7 @@ fn say_summary(
 }
 
 /// The augmentation `--augment` asks for, and where it draws.
-fn open_augment(
-    args: &Args,
-    scene: &std::path::Path,
-    tracker: &FaceTracker,
-) -> anyhow::Result<(crate::augment::Augmenter, Frames, ScreenJitter)> {
+fn open_augment(args: &Args, scene: &std::path::Path, tracker: &FaceTracker) -> anyhow::Result<Augmented> {
     let scene = crate::augment::scene::Scene::load(scene)?;
     let augmenter = crate::augment::Augmenter::new(scene, tracker.face_model().clone(), args.lookahead_ms);
     let out = args.augment_out.clone().unwrap_or_else(|| {
@@ -408,11 +387,45 @@ fn open_augment(
         augmenter.delay_ms(),
         out.display()
     );
-    Ok((
+    Ok(Augmented {
         augmenter,
-        Frames::open(&out, args.input.fps, "augmented")?,
-        ScreenJitter::default(),
-    ))
+        out: Frames::open(&out, args.input.fps, "augmented")?,
+        jitter: ScreenJitter::default(),
+    })
+}
+
+/// `--augment`: the augmentation, where it draws, and the objects' jitter on screen.
+struct Augmented {
+    augmenter: crate::augment::Augmenter,
+    out: Frames,
+    jitter: ScreenJitter,
+}
+
+impl Augmented {
+    /// Draws frame `sf`, whose faces the tracker found to be `faces`.
+    fn frame(
+        &mut self,
+        sf: &holoface_runtime::OwnedFrame,
+        faces: &[holoface_runtime::FaceResult],
+    ) -> anyhow::Result<()> {
+        let a = &mut self.augmenter;
+        a.update(
+            sf.timestamp_us,
+            faces.iter().map(crate::augment::FaceSnapshot::of).collect(),
+        );
+        let mut canvas = crate::plot::Canvas::new(sf.image.width(), sf.image.height());
+        canvas.blit_gray(0, 0, sf.image.as_bytes(), sf.image.width(), sf.image.height(), 1);
+        a.draw(&mut canvas, &sf.intrinsics, &sf.world_from_camera);
+        self.out.push(sf.index, &canvas)?;
+        self.jitter.push(a, sf, faces);
+        Ok(())
+    }
+
+    /// Says the jitter and closes the output; says what was written.
+    fn finish(self) -> anyhow::Result<String> {
+        self.jitter.say(&self.augmenter);
+        self.out.finish()
+    }
 }
 
 /// Where the first face's anchored objects land in each frame (their origins projected), and its landmarks:
