@@ -463,30 +463,6 @@ extern "C" {
 #endif // __cplusplus
 
 /**
- * ARKit's name of blendshape slot `i` (`"jawOpen"`, `"eyeBlinkLeft"`, ...): a static NUL-terminated string,
- * or NULL when `i >= HF_BLENDSHAPES`.
- */
-const char *hf_blendshape_name(uint32_t i);
-
-/**
- * Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead): the Rust
- * facade's `TrackerOptions::default()` and `defaults`.
- *
- * # Safety
- * `out` is NULL or points to writable memory for one `HfOptions`.
- */
-enum HfStatus hf_options_default(struct HfOptions *out);
-
-/**
- * Fills `out` with the defaults (one face, detection every 10 frames, automatic tiles, JPEG q75 crops, the
- * landmark filter on with its default settings). Set `out->struct_size = sizeof(HfSettings)` first.
- *
- * # Safety
- * `out` is NULL or points to writable memory for one `HfSettings` whose `struct_size` is initialised.
- */
-enum HfStatus hf_settings_default(struct HfSettings *out);
-
-/**
  * Creates a tracker. On success `*out` holds the handle; free it with `hf_tracker_free`. It follows one face;
  * `hf_tracker_new_faces` follows several.
  *
@@ -649,6 +625,30 @@ enum HfStatus hf_tracker_anchor(const struct HfTracker *tracker,
                                 const double *offset_m,
                                 const double *rotation_deg,
                                 float *out_world_from_object);
+
+/**
+ * Fills `out` with the defaults (video mode, local KRFWS, 33 ms deadline, 120 ms look-ahead): the Rust
+ * facade's `TrackerOptions::default()` and `defaults`.
+ *
+ * # Safety
+ * `out` is NULL or points to writable memory for one `HfOptions`.
+ */
+enum HfStatus hf_options_default(struct HfOptions *out);
+
+/**
+ * Fills `out` with the defaults (one face, detection every 10 frames, automatic tiles, JPEG q75 crops, the
+ * landmark filter on with its default settings). Set `out->struct_size = sizeof(HfSettings)` first.
+ *
+ * # Safety
+ * `out` is NULL or points to writable memory for one `HfSettings` whose `struct_size` is initialised.
+ */
+enum HfStatus hf_settings_default(struct HfSettings *out);
+
+/**
+ * ARKit's name of blendshape slot `i` (`"jawOpen"`, `"eyeBlinkLeft"`, ...): a static NUL-terminated string,
+ * or NULL when `i >= HF_BLENDSHAPES`.
+ */
+const char *hf_blendshape_name(uint32_t i);
 
 #ifdef __cplusplus
 }  // extern "C"
