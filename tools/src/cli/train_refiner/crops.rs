@@ -1,0 +1,340 @@
+//! The refiner's training crops: starts perturbed as tracking and detection leave them, image augmentation, the
+//! wire's JPEG round trip, DAN's answers on them (batched), and the cache of those answers.
+
+use super::*;
+
+/// The wire encoding every crop goes through (the client's default).
+pub(super) const WIRE: CropCodec = CropCodec::Jpeg { quality: 75 };
+pub(super) const CACHE_MAGIC: &[u8; 8] = b"HFRDATA2";
+pub(super) const BATCH: usize = 16;
+
+/// One crop with DAN's answer on it.
+pub(super) struct Answered {
+    /// The crop after the JPEG round trip (112² bytes).
+    pub(super) crop: Vec<u8>,
+    /// DAN's landmarks, in the refiner's crop pixels.
+    pub(super) start: [Point2; 68],
+    /// Ground truth in the refiner's crop pixels.
+    pub(super) target: [Point2; 68],
+}
+
+/// Perturbs `shape` by a random similarity about its centroid: translation σ `t` of its extent,
+/// rotation σ `r_deg`, scale σ `s`.
+pub(super) fn perturb(shape: &[Point2; 68], rng: &mut Rng, t: f64, r_deg: f64, s: f64) -> [Point2; 68] {
+    let c = centroid(shape);
+    let b = Rect::bounding(shape).unwrap_or_default();
+    let angle = (rng.normal() * r_deg).to_radians();
+    let scale = (1.0 + rng.normal() * s).clamp(0.5, 1.6);
+    let (dx, dy) = (
+        rng.normal() * t * f64::from(b.width()),
+        rng.normal() * t * f64::from(b.height()),
+    );
+    let (cx, cy) = (f64::from(c.x), f64::from(c.y));
+    let rot = Similarity2::from_parts(scale, angle, 0.0, 0.0);
+    let m = Similarity2 {
+        tx: cx + dx - (rot.a * cx - rot.b * cy),
+        ty: cy + dy - (rot.b * cx + rot.a * cy),
+        ..rot
+    };
+    std::array::from_fn(|i| m.apply(shape[i]))
+}
+
+/// A tracker's start: the truth with per-point alignment noise (σ 2.5 % of the eye-corner distance,
+/// about a good tracker's error), then moved by a small similarity (the headset and head motion that
+/// motion compensation leaves).
+pub(super) fn tracker_start(gt: &[Point2; 68], rng: &mut Rng) -> [Point2; 68] {
+    let iod = f64::from(gt[36].dist(gt[45])).max(1.0);
+    let noisy: [Point2; 68] = std::array::from_fn(|i| {
+        Point2::new(
+            gt[i].x + (rng.normal() * 0.025 * iod) as f32,
+            gt[i].y + (rng.normal() * 0.025 * iod) as f32,
+        )
+    });
+    perturb(&noisy, rng, 0.03, 3.0, 0.03)
+}
+
+/// In-place box blur of a square crop (radius 1 or 2), `passes` times.
+pub(super) fn blur(px: &mut [u8], size: usize, radius: usize, passes: usize) {
+    let mut tmp = vec![0u8; px.len()];
+    for _ in 0..passes {
+        for horizontal in [true, false] {
+            for y in 0..size {
+                for x in 0..size {
+                    let (mut sum, mut n) = (0u32, 0u32);
+                    for k in x.saturating_sub(radius)..=(x + radius).min(size - 1) {
+                        let (xx, yy) = if horizontal { (k, y) } else { (y, k) };
+                        sum += u32::from(px[yy * size + xx]);
+                        n += 1;
+                    }
+                    let (ox, oy) = if horizontal { (x, y) } else { (y, x) };
+                    tmp[oy * size + ox] = ((sum + n / 2) / n) as u8;
+                }
+            }
+            px.copy_from_slice(&tmp);
+        }
+    }
+}
+
+/// The appearance changes a crop may get: blur, an occluding block, brightness/contrast.
+pub(super) fn augment(px: &mut [u8], size: usize, rng: &mut Rng) {
+    if rng.uniform() < 0.3 {
+        let gain = 0.7 + 0.6 * rng.uniform();
+        let bias = (rng.uniform() - 0.5) * 50.0;
+        for p in px.iter_mut() {
+            *p = (f64::from(*p) * gain + bias).clamp(0.0, 255.0) as u8;
+        }
+    }
+    if rng.uniform() < 0.25 {
+        blur(px, size, 1 + rng.below(2), 1 + rng.below(2));
+    }
+    if rng.uniform() < 0.2 {
+        let w = size * (15 + rng.below(25)) / 100;
+        let h = size * (15 + rng.below(25)) / 100;
+        let x0 = rng.below(size - w);
+        let y0 = rng.below(size - h);
+        let level = rng.below(256) as u8;
+        let noisy = rng.uniform() < 0.5;
+        for y in y0..y0 + h {
+            for x in x0..x0 + w {
+                px[y * size + x] = if noisy { rng.below(256) as u8 } else { level };
+            }
+        }
+    }
+}
+
+/// The JPEG q75 round trip of the wire.
+pub(super) fn wire_round_trip(px: &[u8], size: usize) -> anyhow::Result<Vec<u8>> {
+    let side = u16::try_from(size).context("crop too large")?;
+    let crop = holoface_runtime::crop_codec::encode(WIRE, px, side, side)?;
+    Ok(holoface_inference::decode_crop(&crop)?.to_vec())
+}
+
+/// A start's crop, after the wire round trip, and the annotation mapped into it.
+pub(super) struct CropJob {
+    pub(super) crop: Vec<u8>,
+    pub(super) target: [Point2; 68],
+}
+
+pub(super) fn make_crops(
+    image: &GrayView<'_>,
+    mean: &[Point2; 68],
+    init: &[Point2; 68],
+    gt: &[Point2; 68],
+    rng: Option<&mut Rng>,
+) -> anyhow::Result<CropJob> {
+    let sim = crop_from_image(init, mean)?;
+    let mut px = vec![0u8; CROP_SIZE * CROP_SIZE];
+    warp_bilinear(image, &sim, CROP_SIZE, CROP_SIZE, &mut px)?;
+    if let Some(rng) = rng {
+        // Its own stream, seeded from the start's (the recipe the shipped model was trained with).
+        augment(&mut px, CROP_SIZE, &mut Rng::new(rng.next_u64()));
+    }
+    Ok(CropJob {
+        crop: wire_round_trip(&px, CROP_SIZE)?,
+        target: std::array::from_fn(|i| sim.apply(gt[i])),
+    })
+}
+
+/// Runs DAN on queued crops in batches; keeps the accepted answers.
+pub(super) struct DanRunner {
+    pub(super) engine: OnnxEngine,
+    pub(super) batch: BatchTensor,
+    pub(super) outs: Vec<LandmarkOut>,
+    pub(super) queued: Vec<CropJob>,
+    pub(super) threshold: f32,
+    pub(super) answered: Vec<Answered>,
+    pub(super) rejected: usize,
+}
+
+impl DanRunner {
+    pub(super) fn push(&mut self, job: CropJob) -> anyhow::Result<()> {
+        self.queued.push(job);
+        if self.queued.len() == BATCH {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    pub(super) fn flush(&mut self) -> anyhow::Result<()> {
+        self.batch.clear();
+        for j in &self.queued {
+            self.batch.push(&j.crop)?;
+        }
+        self.engine.infer(&self.batch, &mut self.outs)?;
+        for (j, o) in self.queued.drain(..).zip(&self.outs) {
+            if o.problem(68).is_some() || o.face_prob < self.threshold {
+                self.rejected += 1;
+                continue;
+            }
+            self.answered.push(Answered {
+                crop: j.crop,
+                start: std::array::from_fn(|i| Point2::new(o.landmarks[i][0], o.landmarks[i][1])),
+                target: j.target,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The key the cache is valid for.
+pub(super) fn cache_key(dan_model: &Path, args: &Args, faces: usize) -> anyhow::Result<Vec<u8>> {
+    let model = std::fs::read(dan_model).with_context(|| format!("reading {}", dan_model.display()))?;
+    let mut key = Vec::new();
+    key.extend_from_slice(&crc32fast::hash(&model).to_le_bytes());
+    for v in [args.crops, faces, args.seed as usize] {
+        key.extend_from_slice(&(v as u64).to_le_bytes());
+    }
+    Ok(key)
+}
+
+/// What the teacher-labelled crops' cache is valid for: which labels, how many faces, how many crops each.
+pub(super) fn teacher_cache_key(args: &Args, teacher_faces: usize) -> anyhow::Result<Vec<u8>> {
+    let mut labels = crc32fast::Hasher::new();
+    for path in &args.teacher_labels {
+        labels.update(&std::fs::read(path).with_context(|| format!("reading {}", path.display()))?);
+    }
+    let mut key = Vec::new();
+    for v in [
+        u64::from(labels.finalize()),
+        teacher_faces as u64,
+        args.teacher_crops as u64,
+    ] {
+        key.extend_from_slice(&v.to_le_bytes());
+    }
+    Ok(key)
+}
+
+/// DAN's answers from the cache at `path` when its key matches, else from `make` (then cached).
+pub(super) fn cached_answers(
+    path: &Path,
+    key: &[u8],
+    size: usize,
+    runner: &mut DanRunner,
+    make: impl FnOnce(&mut DanRunner) -> anyhow::Result<()>,
+) -> anyhow::Result<Vec<Answered>> {
+    if let Some(a) = read_cache(path, key, size)? {
+        tracing::info!(crops = a.len(), cache = %path.display(), "DAN's answers from the cache");
+        return Ok(a);
+    }
+    runner.answered.clear();
+    make(runner)?;
+    let a = std::mem::take(&mut runner.answered);
+    write_cache(path, key, size, &a)?;
+    Ok(a)
+}
+
+pub(super) fn write_cache(path: &Path, key: &[u8], size: usize, data: &[Answered]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = path.with_extension("tmp");
+    let mut w = BufWriter::new(std::fs::File::create(&tmp)?);
+    w.write_all(CACHE_MAGIC)?;
+    w.write_all(key)?;
+    w.write_all(&(data.len() as u64).to_le_bytes())?;
+    for a in data {
+        debug_assert_eq!(a.crop.len(), size * size);
+        w.write_all(&a.crop)?;
+        for p in a.start.iter().chain(&a.target) {
+            w.write_all(&p.x.to_le_bytes())?;
+            w.write_all(&p.y.to_le_bytes())?;
+        }
+    }
+    w.flush()?;
+    drop(w);
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
+pub(super) fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec<Answered>>> {
+    let Ok(f) = std::fs::File::open(path) else {
+        return Ok(None);
+    };
+    let len = f.metadata()?.len();
+    let mut r = BufReader::new(f);
+    let mut head = vec![0u8; CACHE_MAGIC.len() + key.len() + 8];
+    if r.read_exact(&mut head).is_err() || &head[..8] != CACHE_MAGIC || &head[8..8 + key.len()] != key {
+        return Ok(None);
+    }
+    let n = u64::from_le_bytes(head[head.len() - 8..].try_into()?) as usize;
+    let rec = size * size + 2 * 68 * 8;
+    if (len as usize).saturating_sub(head.len()) != n * rec {
+        bail!("{} is truncated; delete it to regenerate", path.display());
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut pts = vec![0u8; 2 * 68 * 8];
+    for _ in 0..n {
+        let mut crop = vec![0u8; size * size];
+        r.read_exact(&mut crop)?;
+        r.read_exact(&mut pts)?;
+        let f = |i: usize| f32::from_le_bytes([pts[4 * i], pts[4 * i + 1], pts[4 * i + 2], pts[4 * i + 3]]);
+        out.push(Answered {
+            crop,
+            start: std::array::from_fn(|i| Point2::new(f(2 * i), f(2 * i + 1))),
+            target: std::array::from_fn(|i| Point2::new(f(136 + 2 * i), f(136 + 2 * i + 1))),
+        });
+    }
+    Ok(Some(out))
+}
+
+/// DAN's answers on the augmented crops of `faces` (each face and its mirror, `crops_per_face` starts each);
+/// the random streams are numbered from `first` (the teacher-labelled faces follow the annotated ones).
+pub(super) fn answer_training_crops(
+    faces: &[Sample],
+    crops_per_face: &[usize],
+    first: usize,
+    args: &Args,
+    runner: &mut DanRunner,
+    detector: &mut holoface_runtime::detect::BlazeFace,
+) -> anyhow::Result<()> {
+    let mean = dan_mean_shape();
+    for (fi, (face, &crops)) in faces.iter().zip(crops_per_face).enumerate() {
+        let fi = first + fi;
+        if crops == 0 {
+            continue;
+        }
+        let gt0 = face.landmarks.context("annotation missing")?;
+        let mirrored = face.image.mirrored();
+        for (side, (img, gt)) in [
+            (&face.image, gt0),
+            (&mirrored, mirror68(&gt0, face.image.width())),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let view = img.view();
+            let detected = initial_shape(Some(detector), &mean, &view, &gt)?;
+            let boxed = {
+                let mut out = [Point2::default(); 68];
+                fit_to_box(&mean, &Rect::bounding(&gt).context("empty annotation")?, &mut out);
+                out
+            };
+            let placed = detected.unwrap_or(boxed);
+            for k in 0..crops {
+                let mut rng = Rng::stream(args.seed, &[fi as u64, side as u64, k as u64]);
+                // Starts cycle through what a headset sends: the detector's placement, a tracker's
+                // previous landmarks (twice as often: most frames are tracked), a moved detection, a
+                // badly placed box.
+                let init = match k % 5 {
+                    0 => placed,
+                    1 | 3 => tracker_start(&gt, &mut rng),
+                    2 => perturb(&placed, &mut rng, 0.05, 5.0, 0.05),
+                    _ => perturb(&boxed, &mut rng, 0.1, 10.0, 0.1),
+                };
+                let augmented = k > 0;
+                let job = make_crops(&view, &mean, &init, &gt, augmented.then_some(&mut rng))
+                    .with_context(|| format!("cropping {}", face.name))?;
+                runner.push(job)?;
+            }
+        }
+        if (fi + 1).is_multiple_of(200) {
+            tracing::info!(
+                faces = fi + 1,
+                of = first + faces.len(),
+                crops = runner.answered.len(),
+                "DAN answered"
+            );
+        }
+    }
+    runner.flush()
+}
