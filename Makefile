@@ -221,6 +221,8 @@ deps-check:
 	scripts/feature-parity.sh
 	@# The documents a newcomer reads first name only paths that exist; ARCHITECTURE.md stays a map, not a manual.
 	python3 scripts/doc-paths.py ARCHITECTURE.md BENCHMARKS.md docs/experiments/README.md
+	@# No function over 120 lines, no file over 800 lines of non-test code (issue 67: split by job).
+	python3 scripts/code-size.py
 	@w=$$(wc -w <ARCHITECTURE.md); test $$w -le 4500 || { echo "ARCHITECTURE.md has $$w words (at most 4,500)" >&2; exit 1; }
 	@b=$$(wc -c <BENCHMARKS.md); test $$b -le 40960 || { echo "BENCHMARKS.md has $$b bytes (at most 40 KB)" >&2; exit 1; }
 
