@@ -364,19 +364,27 @@ impl FaceModel {
         p
     }
 
-    /// Full mesh vertices in the camera frame for a fit (for drawing).
-    pub fn mesh_in_camera(&self, fit: &FitResult) -> Vec<Vec3> {
-        let r = fit.rotation.to_mat3();
+    /// Full mesh vertices in the head frame under expression weights `w` (for drawing and occlusion).
+    pub fn mesh_with(&self, w: &[f64; N_UNITS]) -> Vec<Vec3> {
         self.mesh
             .iter()
             .zip(&self.mesh_units)
             .map(|(p, du)| {
                 let mut q = *p;
                 for (u, d) in du.iter().enumerate() {
-                    q = q + d.scale(fit.weights.0[u]);
+                    q = q + d.scale(w[u]);
                 }
-                r * q + fit.translation
+                q
             })
+            .collect()
+    }
+
+    /// Full mesh vertices in the camera frame for a fit (for drawing).
+    pub fn mesh_in_camera(&self, fit: &FitResult) -> Vec<Vec3> {
+        let r = fit.rotation.to_mat3();
+        self.mesh_with(&fit.weights.0)
+            .into_iter()
+            .map(|q| r * q + fit.translation)
             .collect()
     }
 }

@@ -299,13 +299,7 @@ impl Augmenter {
 
     /// The fitted CANDIDE-3 mesh in the head frame (for depth; its normals are not used).
     fn face_mesh(&self, weights: &ExpressionWeights) -> Mesh {
-        let positions: Vec<Vec3> = self
-            .model
-            .mesh
-            .iter()
-            .zip(&self.model.mesh_units)
-            .map(|(p, du)| du.iter().zip(weights.0).fold(*p, |q, (d, w)| q + d.scale(w)))
-            .collect();
+        let positions = self.model.mesh_with(&weights.0);
         Mesh {
             normals: vec![Vec3::new(0.0, 0.0, -1.0); positions.len()],
             positions,

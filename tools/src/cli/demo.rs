@@ -493,16 +493,12 @@ impl DemoAugment {
         by: Option<AnsweredBy>,
         faces: &[holoface_runtime::FaceResult],
     ) {
-        let at = faces.first().map(|f| {
-            self.augmenter
-                .place(0, &crate::augment::FaceSnapshot::of(f))
-                .translation
-        });
+        let snapshots: Vec<_> = faces.iter().map(crate::augment::FaceSnapshot::of).collect();
+        let at = snapshots.first().map(|f| self.augmenter.place(0, f).translation);
         let remote = by == Some(AnsweredBy::RemoteDan);
         self.remote.push(at.filter(|_| remote));
         self.local.push(at.filter(|_| !remote));
-        self.augmenter
-            .update(t_us, faces.iter().map(crate::augment::FaceSnapshot::of).collect());
+        self.augmenter.update(t_us, snapshots);
         if self.shown.contains(&i) {
             let mut canvas = Canvas::new(FRAME_W, FRAME_H);
             canvas.blit_gray(0, 0, image.as_bytes(), FRAME_W, FRAME_H, 1);
