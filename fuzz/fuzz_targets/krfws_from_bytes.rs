@@ -21,7 +21,8 @@ fn seal(payload: &[u8]) -> Vec<u8> {
 }
 
 fn exercise(model: &Krfws) {
-    let again = Krfws::from_bytes(&model.to_bytes()).expect("a loaded model re-serialises");
+    let bytes = model.to_bytes().expect("a loaded model is within the limit");
+    let again = Krfws::from_bytes(&bytes).expect("a loaded model re-serialises");
     assert_eq!(&again, model);
     let img = GrayImage::from_vec((0..64 * 64).map(|i| (i * 7 % 251) as u8).collect(), 64, 64)
         .expect("64x64 image");

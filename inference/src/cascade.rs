@@ -217,6 +217,7 @@ mod tests {
             sampling: Sampling::Nearest,
         }
         .to_bytes()
+        .unwrap()
     }
 
     #[test]
@@ -296,7 +297,7 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
         let mut big = RefineCascade::from_bytes(&shift_by_one()).unwrap();
         big.crop_size = 224;
-        let m = LoadedCascade::from_bytes(&big.to_bytes()).unwrap();
+        let m = LoadedCascade::from_bytes(&big.to_bytes().unwrap()).unwrap();
         let e = CascadeEngine::new(FakeEngine::new(1), m).unwrap_err().to_string();
         assert!(e.contains("224 px"), "{e}");
     }

@@ -12,6 +12,7 @@ use holoface_models::krfws::train::{self, NoProgress, TrainConfig, TrainFace, gt
 use holoface_models::krfws::{Krfws, KrfwsScratch, ModelError, N_POINTS};
 use holoface_models::rng::Rng;
 use holoface_models::shape::dan_mean_shape;
+use holoface_protocol::framing::Damage;
 use proptest::prelude::*;
 
 /// A synthetic face: dark dots at the 68 landmarks of a randomly placed mean shape on a noisy
@@ -154,48 +155,46 @@ fn init_from_previous_is_a_similarity_of_the_mean() {
 #[test]
 fn model_round_trips_through_bytes() {
     let (m, _) = model();
-    let bytes = m.to_bytes();
+    let bytes = m.to_bytes().unwrap();
     assert_eq!(&bytes[..8], &MAGIC);
     let back = Krfws::from_bytes(&bytes).unwrap();
     assert_eq!(&back, m);
-    assert_eq!(back.to_bytes(), bytes);
+    assert_eq!(back.to_bytes().unwrap(), bytes);
 }
 
 #[test]
 fn damaged_headers_are_typed_errors() {
     let (m, _) = model();
-    let bytes = m.to_bytes();
+    let bytes = m.to_bytes().unwrap();
+    let damage = |b: &[u8]| {
+        let e = Krfws::from_bytes(b).unwrap_err();
+        e.damage()
+            .cloned()
+            .unwrap_or_else(|| panic!("not the framing's error: {e}"))
+    };
     let mut bad = bytes.clone();
     bad[0] ^= 0xFF;
-    assert!(matches!(
-        Krfws::from_bytes(&bad),
-        Err(ModelError::BadMagic { .. })
-    ));
+    assert!(matches!(damage(&bad), Damage::BadMagic { .. }));
     let mut bad = bytes.clone();
     bad[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
-    assert!(matches!(
-        Krfws::from_bytes(&bad),
-        Err(ModelError::UnsupportedVersion { found, .. }) if found == FORMAT_VERSION + 1
-    ));
+    assert!(matches!(damage(&bad), Damage::UnsupportedVersion { found, .. } if found == FORMAT_VERSION + 1));
     let mut bad = bytes.clone();
     let mid = bytes.len() / 2;
     bad[mid] ^= 0x10;
-    assert!(matches!(
-        Krfws::from_bytes(&bad),
-        Err(ModelError::Checksum { .. })
-    ));
-    assert!(matches!(
-        Krfws::from_bytes(&bytes[..bytes.len() - 1]),
-        Err(ModelError::LengthMismatch { .. })
-    ));
-    assert!(matches!(
-        Krfws::from_bytes(&bytes[..5]),
-        Err(ModelError::Truncated { .. })
-    ));
-    assert!(matches!(
-        Krfws::from_bytes(&[]),
-        Err(ModelError::Truncated { .. })
-    ));
+    assert!(matches!(damage(&bad), Damage::Checksum { .. }));
+    let len = bytes.len() as u64;
+    assert_eq!(
+        damage(&bytes[..bytes.len() - 1]),
+        Damage::Truncated {
+            offset: len - 1,
+            needed: 1,
+            len: len - 1
+        }
+    );
+    assert!(matches!(damage(&bytes[..5]), Damage::Truncated { .. }));
+    assert!(matches!(damage(&[]), Damage::Truncated { .. }));
+    let text = Krfws::from_bytes(&bytes[..5]).unwrap_err().to_string();
+    assert!(text.starts_with("KRFWS model: truncated"), "{text}");
 }
 
 /// Re-seals a payload with a valid header and CRC, so the structural checks (not the CRC) are tested.
@@ -213,7 +212,7 @@ fn seal(payload: &[u8]) -> Vec<u8> {
 #[test]
 fn bad_tree_pointers_are_rejected_even_with_a_valid_checksum() {
     let (m, _) = model();
-    let bytes = m.to_bytes();
+    let bytes = m.to_bytes().unwrap();
     let payload = &bytes[16..bytes.len() - 4];
     // The first tree's first node starts after: 3 u32 + 51·2 f32 mean + scale f32 + trees u32 + 2 u32.
     let first_node = 12 + N_POINTS * 8 + 8 + 8;
@@ -238,8 +237,8 @@ fn bad_tree_pointers_are_rejected_even_with_a_valid_checksum() {
     let mut p = payload.to_vec();
     p[12 + N_POINTS * 8 + 4..12 + N_POINTS * 8 + 8].copy_from_slice(&u32::MAX.to_le_bytes());
     assert!(matches!(
-        Krfws::from_bytes(&seal(&p)),
-        Err(ModelError::OutOfRange { .. })
+        Krfws::from_bytes(&seal(&p)).unwrap_err().damage(),
+        Some(Damage::OutOfRange { .. })
     ));
 }
 
@@ -249,7 +248,7 @@ proptest! {
     #[test]
     fn truncation_is_an_error(cut in 0usize..1_000_000) {
         let (m, _) = model();
-        let bytes = m.to_bytes();
+        let bytes = m.to_bytes().unwrap();
         let cut = cut % bytes.len();
         prop_assert!(Krfws::from_bytes(&bytes[..cut]).is_err());
         // Also with a header and CRC rewritten to match the shorter payload.
@@ -261,7 +260,7 @@ proptest! {
     #[test]
     fn bit_flips_never_panic(pos in 0usize..1_000_000, bit in 0u8..8, reseal in any::<bool>()) {
         let (m, _) = model();
-        let bytes = m.to_bytes();
+        let bytes = m.to_bytes().unwrap();
         let mut payload = bytes[16..bytes.len() - 4].to_vec();
         let p = pos % payload.len();
         payload[p] ^= 1 << bit;
@@ -312,7 +311,7 @@ fn training_is_deterministic_whatever_the_thread_count() {
         &NoProgress,
     )
     .unwrap();
-    assert_eq!(a.to_bytes(), b.to_bytes());
+    assert_eq!(a.to_bytes().unwrap(), b.to_bytes().unwrap());
     let (c, _) = train::train(
         &faces,
         &TrainConfig {
@@ -323,7 +322,7 @@ fn training_is_deterministic_whatever_the_thread_count() {
         &NoProgress,
     )
     .unwrap();
-    assert_ne!(a.to_bytes(), c.to_bytes());
+    assert_ne!(a.to_bytes().unwrap(), c.to_bytes().unwrap());
 }
 
 /// Mean distance of the 8 lid points of a 51-point fit from the truth (image pixels).

@@ -30,7 +30,7 @@ fn committed_model_loads_and_round_trips() {
     let m = model();
     assert_eq!(m.stages().len(), 3);
     assert!(m.threshold().is_finite());
-    assert_eq!(Krfws::from_bytes(&m.to_bytes()).unwrap(), m);
+    assert_eq!(Krfws::from_bytes(&m.to_bytes().unwrap()).unwrap(), m);
 }
 
 /// The annotated faces; a missing folder fails the test (a golden check that did not run is not a pass).

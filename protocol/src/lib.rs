@@ -16,6 +16,8 @@
 //!   QUIC application close-code table [`CloseCode`].
 //! * [`recording`]: the recorded-stream file format ([`RecordingWriter`],
 //!   [`RecordingReader`]).
+//! * [`framing`]: the one framing (magic, version, length, payload, CRC) of
+//!   our other binary files: models, teacher labels, the training cache.
 //!
 //! # Why a hand-written codec and not serde + bincode/postcard
 //!
@@ -46,6 +48,7 @@
 
 pub mod codec;
 pub mod error;
+pub mod framing;
 pub mod limits;
 pub mod message;
 pub mod recording;

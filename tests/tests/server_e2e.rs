@@ -191,7 +191,7 @@ async fn a_missing_or_corrupt_refiner_model_is_a_clear_start_up_error() {
     for (file, expect) in [
         ("missing.bin", "not found at"),
         ("half.bin", "checksum"),
-        ("text.bin", "bad magic"),
+        ("text.bin", "not this kind of file"),
     ] {
         let mut s = settings();
         s.refine_model = Some(dir.join(file));

@@ -2,11 +2,13 @@
 //! teacher-labels` and read by the trainers (`train-refiner --teacher-labels`, `train-krfws
 //! --teacher-labels`).
 //!
-//! Layout (little-endian): magic `HFLABEL1`, `u32` header length + UTF-8 JSON header ([`LabelHeader`]: the
+//! Layout: the one framing of [`holoface_protocol::framing`] (magic `HFLABELS`, version 2, length, payload,
+//! CRC-32); the payload (little-endian) is a `u32` header length + UTF-8 JSON header ([`LabelHeader`]: the
 //! collection, the folder its images are in, the teachers and thresholds), `u32` record count, then per record
 //! `u16` name length + UTF-8 name (the image's path relative to the folder), 136 `f32` (x, y of the 68 points
-//! in the image's pixels) and one `f32` (the teachers' disagreement, NME68); last the CRC-32 of everything
-//! before it. Every length is bounded and checked before anything is allocated for it.
+//! in the image's pixels) and one `f32` (the teachers' disagreement, NME68). Every length is bounded and
+//! checked before anything is allocated for it. Version 1 (magic `HFLABEL1`, before the framing was shared)
+//! is not read: label files are remade by `make teacher-labels`, never shipped.
 //!
 //! These files hold labels of other people's photographs: they live in the git-ignored `.data/` folder and
 //! are never committed (`../shared/docs/data.md`).
@@ -15,13 +17,22 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
 use holoface_models::geometry::Point2;
+use holoface_protocol::framing::{self, FileKind, FormatError};
 use serde::{Deserialize, Serialize};
 
 use crate::data::Sample;
 
-const MAGIC: &[u8; 8] = b"HFLABEL1";
 /// Largest label file read (a 45,000-face collection is about 25 MB).
 pub const MAX_FILE_BYTES: u64 = 512 << 20;
+/// Label files in the one framing.
+pub const FILE: FileKind = FileKind {
+    name: "teacher labels",
+    magic: *b"HFLABELS",
+    oldest: 2,
+    newest: 2,
+    sized_from: 2,
+    max_payload: MAX_FILE_BYTES - 20,
+};
 const MAX_HEADER: usize = 64 << 10;
 const MAX_NAME: usize = 4096;
 const RECORD_FLOATS: usize = 137;
@@ -54,8 +65,7 @@ pub struct LabelRecord {
 pub fn to_bytes(header: &LabelHeader, records: &[LabelRecord]) -> anyhow::Result<Vec<u8>> {
     let head = serde_json::to_vec(header)?;
     ensure!(head.len() <= MAX_HEADER, "label header too large");
-    let mut out = Vec::with_capacity(16 + head.len() + records.len() * (RECORD_FLOATS * 4 + 40));
-    out.extend_from_slice(MAGIC);
+    let mut out = Vec::with_capacity(8 + head.len() + records.len() * (RECORD_FLOATS * 4 + 40));
     out.extend_from_slice(&(head.len() as u32).to_le_bytes());
     out.extend_from_slice(&head);
     out.extend_from_slice(&u32::try_from(records.len())?.to_le_bytes());
@@ -69,80 +79,37 @@ pub fn to_bytes(header: &LabelHeader, records: &[LabelRecord]) -> anyhow::Result
         }
         out.extend_from_slice(&r.disagreement.to_le_bytes());
     }
-    let crc = crc32fast::hash(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    Ok(out)
-}
-
-/// A bounds-checked reader over a byte slice.
-struct Cursor<'a>(&'a [u8]);
-
-impl<'a> Cursor<'a> {
-    fn take(&mut self, n: usize) -> anyhow::Result<&'a [u8]> {
-        ensure!(self.0.len() >= n, "truncated");
-        let (a, b) = self.0.split_at(n);
-        self.0 = b;
-        Ok(a)
-    }
-    fn u32(&mut self) -> anyhow::Result<u32> {
-        Ok(u32::from_le_bytes(self.take(4)?.try_into()?))
-    }
-    fn u16(&mut self) -> anyhow::Result<u16> {
-        Ok(u16::from_le_bytes(self.take(2)?.try_into()?))
-    }
-    fn f32(&mut self) -> anyhow::Result<f32> {
-        Ok(f32::from_le_bytes(self.take(4)?.try_into()?))
-    }
+    Ok(framing::encode(&FILE, &out)?)
 }
 
 /// Parses a label file, checking its checksum, every length and every number.
-pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<(LabelHeader, Vec<LabelRecord>)> {
-    ensure!(
-        bytes.len() >= 20 && &bytes[..8] == MAGIC,
-        "not a holoface label file (magic HFLABEL1)"
-    );
-    let (body, crc) = bytes.split_at(bytes.len() - 4);
-    ensure!(
-        crc32fast::hash(body) == u32::from_le_bytes(crc.try_into()?),
-        "checksum mismatch: the file is damaged; make it again with `make teacher-labels`"
-    );
-    let mut c = Cursor(&body[8..]);
-    let head_len = c.u32()? as usize;
-    ensure!(head_len <= MAX_HEADER, "header of {head_len} bytes");
-    let header: LabelHeader = serde_json::from_slice(c.take(head_len)?).context("label header")?;
-    let count = c.u32()? as usize;
+pub fn from_bytes(bytes: &[u8]) -> Result<(LabelHeader, Vec<LabelRecord>), FormatError> {
+    let mut r = framing::decode(&FILE, bytes)?.payload;
+    let head_len = r.count("header length", 0, MAX_HEADER as u32)? as usize;
+    let header: LabelHeader =
+        serde_json::from_slice(r.take(head_len)?).map_err(|e| r.invalid("header", e.to_string()))?;
+    let count = r.u32()? as usize;
     // Each record takes at least its points: a count the file cannot hold is refused before allocating.
-    ensure!(
-        count <= c.0.len() / (RECORD_FLOATS * 4 + 2),
-        "record count {count} exceeds the file"
-    );
+    r.need((count as u64).saturating_mul((RECORD_FLOATS * 4 + 2) as u64))?;
     let mut records = Vec::with_capacity(count);
     for i in 0..count {
-        let n = c.u16()? as usize;
-        ensure!(n <= MAX_NAME, "record {i}: name of {n} bytes");
-        let name = std::str::from_utf8(c.take(n)?)
-            .with_context(|| format!("record {i}: name is not UTF-8"))?
-            .to_owned();
-        ensure!(
-            !name.is_empty() && !Path::new(&name).is_absolute() && !name.split('/').any(|p| p == ".."),
-            "record {i}: image name {name:?} is not a path inside the collection"
-        );
-        let mut landmarks = [Point2::default(); 68];
-        for p in &mut landmarks {
-            *p = Point2::new(c.f32()?, c.f32()?);
-            ensure!(
-                p.x.is_finite() && p.y.is_finite(),
-                "record {i} ({name}): a landmark is not finite"
-            );
+        let name = r.text("image name", MAX_NAME)?.to_owned();
+        if name.is_empty() || Path::new(&name).is_absolute() || name.split('/').any(|p| p == "..") {
+            let reason = format!("record {i}: {name:?} is not a path inside the collection");
+            return Err(r.invalid("image name", reason));
         }
-        let disagreement = c.f32()?;
+        let mut landmarks = [Point2::default(); 68];
+        for (k, p) in landmarks.iter_mut().enumerate() {
+            *p = Point2::new(r.f32("landmarks", 2 * k)?, r.f32("landmarks", 2 * k + 1)?);
+        }
+        let disagreement = r.f32("disagreement", i)?;
         records.push(LabelRecord {
             name,
             landmarks,
             disagreement,
         });
     }
-    ensure!(c.0.is_empty(), "{} bytes after the last record", c.0.len());
+    r.finish()?;
     Ok((header, records))
 }
 
@@ -163,7 +130,12 @@ pub fn read(path: &Path) -> anyhow::Result<(LabelHeader, Vec<LabelRecord>)> {
         );
     }
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    from_bytes(&bytes).with_context(|| format!("parsing teacher labels {}", path.display()))
+    from_bytes(&bytes).with_context(|| {
+        format!(
+            "parsing teacher labels {} (make it again with `make teacher-labels`)",
+            path.display()
+        )
+    })
 }
 
 /// The labelled faces of a label file as training samples (images decoded; an unreadable image is an error
@@ -199,6 +171,8 @@ pub fn load_samples_where(
 
 #[cfg(test)]
 mod tests {
+    use holoface_protocol::framing::Damage;
+
     use super::*;
 
     fn sample() -> (LabelHeader, Vec<LabelRecord>) {
@@ -229,6 +203,7 @@ mod tests {
     fn damage_is_refused_with_a_reason() {
         let (h, r) = sample();
         let bytes = to_bytes(&h, &r).unwrap();
+        assert_eq!(&bytes[..8], b"HFLABELS");
         // Any flipped byte: the checksum catches it.
         for at in [0, 9, 40, bytes.len() / 2, bytes.len() - 5] {
             let mut bad = bytes.clone();
@@ -237,16 +212,17 @@ mod tests {
         }
         // Truncated anywhere.
         for n in [0, 10, bytes.len() - 1] {
-            assert!(from_bytes(&bytes[..n]).is_err());
+            assert!(matches!(
+                from_bytes(&bytes[..n]).unwrap_err().damage,
+                Damage::Truncated { .. }
+            ));
         }
         // A huge count with a valid checksum: refused before allocating.
-        let mut body = bytes[..bytes.len() - 4].to_vec();
-        let count_at = 12 + u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
+        let mut body = bytes[16..bytes.len() - 4].to_vec();
+        let count_at = 4 + u32::from_le_bytes(body[..4].try_into().unwrap()) as usize;
         body[count_at..count_at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
-        let crc = crc32fast::hash(&body);
-        body.extend_from_slice(&crc.to_le_bytes());
-        let err = from_bytes(&body).unwrap_err().to_string();
-        assert!(err.contains("exceeds the file"), "{err}");
+        let err = from_bytes(&framing::encode(&FILE, &body).unwrap()).unwrap_err();
+        assert!(matches!(err.damage, Damage::Truncated { .. }), "{err}");
     }
 
     #[test]
@@ -281,6 +257,9 @@ mod tests {
         let (h, mut r) = sample();
         r[1].name = "../../etc/passwd".into();
         let err = from_bytes(&to_bytes(&h, &r).unwrap()).unwrap_err().to_string();
-        assert!(err.contains("not a path inside"), "{err}");
+        assert!(
+            err.contains("not a path inside") && err.starts_with("teacher labels: "),
+            "{err}"
+        );
     }
 }

@@ -28,6 +28,7 @@
 //! reached exactly once, children after parents). A bad file is a [`ModelError`], never a panic.
 
 use half::f16;
+use holoface_protocol::framing::{self, Damage, FileKind, FormatError, PayloadReader};
 use thiserror::Error;
 
 use super::{DELTA_DIM, FAILURE_DIM, FailureModel, Krfws, N_POINTS, Node, Stage, Tree};
@@ -40,6 +41,15 @@ pub const MAGIC: [u8; 8] = *b"HFKRFWS\0";
 pub const FORMAT_VERSION: u32 = 1;
 /// Largest accepted payload (256 MiB).
 pub const MAX_PAYLOAD: u32 = 256 << 20;
+/// The file in the one framing ([`holoface_protocol::framing`]), whose layout is this format's v1.
+pub const FILE: FileKind = FileKind {
+    name: "KRFWS model",
+    magic: MAGIC,
+    oldest: FORMAT_VERSION,
+    newest: FORMAT_VERSION,
+    sized_from: FORMAT_VERSION,
+    max_payload: MAX_PAYLOAD as u64,
+};
 const MAX_STAGES: u32 = 8;
 const MAX_TREES: u32 = 64;
 const MAX_NODES: u32 = 4095;
@@ -48,60 +58,11 @@ const MAX_NODES: u32 = 4095;
 #[derive(Debug, Error, Clone, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum ModelError {
-    /// The file ends before a field.
-    #[error("model file truncated: {needed} bytes needed at offset {offset}, file has {len}")]
-    Truncated {
-        /// Offset of the field.
-        offset: usize,
-        /// Bytes the field needs.
-        needed: usize,
-        /// File length.
-        len: usize,
-    },
-    /// Not a KRFWS model.
-    #[error("not a KRFWS model file (magic {found:02x?})")]
-    BadMagic {
-        /// The first 8 bytes.
-        found: [u8; 8],
-    },
-    /// Written by another format version.
-    #[error("unsupported KRFWS model version {found} (this build reads {supported})")]
-    UnsupportedVersion {
-        /// Version in the file.
-        found: u32,
-        /// Version this build reads.
-        supported: u32,
-    },
-    /// The header's payload length disagrees with the file size.
-    #[error("header declares a {declared}-byte payload, the file holds {actual}")]
-    LengthMismatch {
-        /// Declared payload length.
-        declared: u64,
-        /// Payload bytes present.
-        actual: u64,
-    },
-    /// The checksum does not match (corrupted file).
-    #[error("checksum mismatch: stored {stored:#010x}, computed {computed:#010x}")]
-    Checksum {
-        /// CRC in the file.
-        stored: u32,
-        /// CRC of the bytes.
-        computed: u32,
-    },
-    /// A count or size is outside its allowed range.
-    #[error("{field} = {value} is outside {min}..={max}")]
-    OutOfRange {
-        /// Which field.
-        field: &'static str,
-        /// Its value.
-        value: u64,
-        /// Smallest allowed.
-        min: u64,
-        /// Largest allowed.
-        max: u64,
-    },
+    /// A foreign or damaged file, or a field outside its range (the framing's error).
+    #[error(transparent)]
+    Format(#[from] FormatError),
     /// A tree's structure is invalid.
-    #[error("stage {stage}, tree {tree}, node {node}: {reason}")]
+    #[error("KRFWS model: stage {stage}, tree {tree}, node {node}: {reason}")]
     BadTree {
         /// Stage index.
         stage: usize,
@@ -112,93 +73,34 @@ pub enum ModelError {
         /// What is wrong.
         reason: &'static str,
     },
-    /// A value is NaN or infinite.
-    #[error("non-finite value in {field} at index {index}")]
-    NotFinite {
-        /// Which field.
-        field: &'static str,
-        /// Index of the value.
-        index: usize,
-    },
-    /// Bytes left after the payload was parsed.
-    #[error("{count} unparsed bytes at the end of the payload")]
-    TrailingBytes {
-        /// How many.
-        count: usize,
-    },
 }
 
-struct Reader<'a> {
-    buf: &'a [u8],
-    pos: usize,
-    /// Offset of `buf[0]` in the file, for error messages.
-    base: usize,
-    file_len: usize,
+impl ModelError {
+    /// What is damaged, when the error is the framing's.
+    pub fn damage(&self) -> Option<&Damage> {
+        match self {
+            Self::Format(e) => Some(&e.damage),
+            Self::BadTree { .. } => None,
+        }
+    }
 }
 
-impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], ModelError> {
-        let end = self.pos.checked_add(n);
-        match end.and_then(|e| self.buf.get(self.pos..e)) {
-            Some(s) => {
-                self.pos += n;
-                Ok(s)
-            }
-            None => Err(ModelError::Truncated {
-                offset: self.base + self.pos,
-                needed: n,
-                len: self.file_len,
-            }),
-        }
-    }
-    fn need(&self, n: u64) -> Result<(), ModelError> {
-        let left = (self.buf.len() - self.pos.min(self.buf.len())) as u64;
-        if n > left {
-            return Err(ModelError::Truncated {
-                offset: self.base + self.pos,
-                needed: usize::try_from(n).unwrap_or(usize::MAX),
-                len: self.file_len,
-            });
-        }
-        Ok(())
-    }
-    fn u32(&mut self) -> Result<u32, ModelError> {
-        let b = self.take(4)?;
-        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-    }
-    fn i32(&mut self) -> Result<i32, ModelError> {
-        Ok(self.u32()? as i32)
-    }
-    fn f32(&mut self, field: &'static str, index: usize) -> Result<f32, ModelError> {
-        let v = f32::from_bits(self.u32()?);
+/// `n` IEEE half floats, which must be finite.
+fn f16s(
+    r: &mut PayloadReader<'_>,
+    n: usize,
+    field: &'static str,
+    out: &mut Vec<f32>,
+) -> Result<(), FormatError> {
+    let b = r.take(n.saturating_mul(2))?;
+    for (i, c) in b.chunks_exact(2).enumerate() {
+        let v = f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32();
         if !v.is_finite() {
-            return Err(ModelError::NotFinite { field, index });
+            return Err(r.error(Damage::NotFinite { field, index: i }));
         }
-        Ok(v)
+        out.push(v);
     }
-    fn f16s(&mut self, n: usize, field: &'static str, out: &mut Vec<f32>) -> Result<(), ModelError> {
-        let b = self.take(n.saturating_mul(2))?;
-        for (i, c) in b.chunks_exact(2).enumerate() {
-            let v = f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32();
-            if !v.is_finite() {
-                return Err(ModelError::NotFinite { field, index: i });
-            }
-            out.push(v);
-        }
-        Ok(())
-    }
-    fn count(&mut self, field: &'static str, min: u32, max: u32) -> Result<u32, ModelError> {
-        let v = self.u32()?;
-        if v < min || v > max {
-            return Err(ModelError::OutOfRange {
-                field,
-                value: u64::from(v),
-                min: u64::from(min),
-                max: u64::from(max),
-            });
-        }
-        Ok(v)
-    }
+    Ok(())
 }
 
 fn check_tree(tree: &Tree, stage: usize, index: usize) -> Result<(), ModelError> {
@@ -246,58 +148,17 @@ fn check_tree(tree: &Tree, stage: usize, index: usize) -> Result<(), ModelError>
 impl Krfws {
     /// Loads a model from the bytes of a `krfws.bin` file (see the module docs for the layout).
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, ModelError> {
-        let len = bytes.len();
-        let mut head = Reader {
-            buf: bytes,
-            pos: 0,
-            base: 0,
-            file_len: len,
-        };
-        let magic = head.take(8)?;
-        if magic != MAGIC {
-            let mut found = [0u8; 8];
-            found.copy_from_slice(magic);
-            return Err(ModelError::BadMagic { found });
-        }
-        let version = head.u32()?;
-        if version != FORMAT_VERSION {
-            return Err(ModelError::UnsupportedVersion {
-                found: version,
-                supported: FORMAT_VERSION,
-            });
-        }
-        let declared = head.u32()?;
-        let actual = len.saturating_sub(20) as u64;
-        if len < 20 || u64::from(declared) != actual || declared > MAX_PAYLOAD {
-            return Err(ModelError::LengthMismatch {
-                declared: u64::from(declared),
-                actual,
-            });
-        }
-        let body_end = 16 + declared as usize;
-        let crc_bytes = head_slice(bytes, body_end)?;
-        let stored = u32::from_le_bytes(crc_bytes);
-        let computed = crc32fast::hash(bytes.get(..body_end).unwrap_or_default());
-        if stored != computed {
-            return Err(ModelError::Checksum { stored, computed });
-        }
-        let mut r = Reader {
-            buf: bytes.get(16..body_end).unwrap_or_default(),
-            pos: 0,
-            base: 16,
-            file_len: len,
-        };
+        let mut r = framing::decode(&FILE, bytes)?.payload;
         let model = parse_payload(&mut r)?;
-        if r.pos != r.buf.len() {
-            return Err(ModelError::TrailingBytes {
-                count: r.buf.len() - r.pos,
-            });
-        }
+        r.finish()?;
         Ok(model)
     }
 
     /// Serialises the model (projections and `W` rounded to f16; see [`Krfws::round_to_storage`]).
-    pub fn to_bytes(&self) -> Vec<u8> {
+    ///
+    /// # Errors
+    /// The model is over the format's 256-MiB payload limit.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, ModelError> {
         let mut p = Vec::new();
         let put_u32 = |p: &mut Vec<u8>, v: u32| p.extend_from_slice(&v.to_le_bytes());
         let put_f32 = |p: &mut Vec<u8>, v: f32| p.extend_from_slice(&v.to_le_bytes());
@@ -335,14 +196,7 @@ impl Krfws {
         }
         put_f32(&mut p, self.failure.intercept);
         put_f32(&mut p, self.failure.threshold);
-        let mut out = Vec::with_capacity(p.len() + 20);
-        out.extend_from_slice(&MAGIC);
-        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-        out.extend_from_slice(&(p.len() as u32).to_le_bytes());
-        out.extend_from_slice(&p);
-        let crc = crc32fast::hash(&out);
-        out.extend_from_slice(&crc.to_le_bytes());
-        out
+        Ok(framing::encode(&FILE, &p)?)
     }
 
     /// Rounds projections and `W` to their stored (f16) precision, saturating at ±65504, so that
@@ -370,18 +224,7 @@ pub fn round_f16(v: &mut [f32]) {
     }
 }
 
-fn head_slice(bytes: &[u8], at: usize) -> Result<[u8; 4], ModelError> {
-    bytes
-        .get(at..at + 4)
-        .and_then(|s| <[u8; 4]>::try_from(s).ok())
-        .ok_or(ModelError::Truncated {
-            offset: at,
-            needed: 4,
-            len: bytes.len(),
-        })
-}
-
-fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
+fn parse_payload(r: &mut PayloadReader<'_>) -> Result<Krfws, ModelError> {
     r.count("n_points", N_POINTS as u32, N_POINTS as u32)?;
     r.count("hog_dim", HOG_DIM as u32, HOG_DIM as u32)?;
     let n_stages = r.count("n_stages", 1, MAX_STAGES)? as usize;
@@ -390,23 +233,14 @@ fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
         *m = Point2::new(r.f32("mean", 2 * i)?, r.f32("mean", 2 * i + 1)?);
     }
     if crate::geometry::Rect::bounding(&mean).is_none_or(|b| b.width() <= 0.0 || b.height() <= 0.0) {
-        return Err(ModelError::OutOfRange {
-            field: "mean shape extent",
-            value: 0,
-            min: 1,
-            max: u64::MAX,
-        });
+        return Err(r.out_of_range("mean shape extent", 0, 1, u64::MAX).into());
     }
     let mut stages = Vec::with_capacity(n_stages);
     for si in 0..n_stages {
         let scale = r.f32("scale", si)?;
         if !(0.01..=100.0).contains(&scale) {
-            return Err(ModelError::OutOfRange {
-                field: "stage scale (x1000)",
-                value: (scale.abs() * 1000.0) as u64,
-                min: 10,
-                max: 100_000,
-            });
+            let value = (scale.abs() * 1000.0) as u64;
+            return Err(r.out_of_range("stage scale (x1000)", value, 10, 100_000).into());
         }
         let tpf = r.count("trees_per_forest", 1, MAX_TREES)? as usize;
         let n_trees = N_POINTS * tpf;
@@ -428,7 +262,7 @@ fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
             for _ in 0..n_nodes {
                 let left = r.i32()?;
                 let right = r.i32()?;
-                let threshold = f32::from_bits(r.u32()?);
+                let threshold = f32::from_le_bytes(r.array()?);
                 nodes.push(Node {
                     left,
                     right,
@@ -436,7 +270,7 @@ fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
                 });
             }
             let mut projections = Vec::with_capacity(n_nodes * HOG_DIM);
-            r.f16s(n_nodes * HOG_DIM, "projections", &mut projections)?;
+            f16s(r, n_nodes * HOG_DIM, "projections", &mut projections)?;
             let tree = Tree {
                 nodes,
                 projections,
@@ -448,17 +282,15 @@ fn parse_payload(r: &mut Reader<'_>) -> Result<Krfws, ModelError> {
         }
         let declared = r.u32()?;
         if u64::from(declared) != total_leaves {
-            return Err(ModelError::OutOfRange {
-                field: "n_leaves_total",
-                value: u64::from(declared),
-                min: total_leaves,
-                max: total_leaves,
-            });
+            let value = u64::from(declared);
+            return Err(r
+                .out_of_range("n_leaves_total", value, total_leaves, total_leaves)
+                .into());
         }
         let nw = total_leaves as usize * DELTA_DIM;
         r.need(2 * nw as u64)?;
         let mut weights = Vec::with_capacity(nw);
-        r.f16s(nw, "W", &mut weights)?;
+        f16s(r, nw, "W", &mut weights)?;
         stages.push(Stage::new(&mean, scale, tpf, trees, weights));
     }
     r.need(4 * (FAILURE_DIM as u64 + 2))?;

@@ -1,28 +1,35 @@
-//! The refiner's file format (`models/assets/refiner.bin`), little-endian:
+//! The refiner's file format (`models/assets/refiner.bin`), in the one framing of
+//! [`holoface_protocol::framing`]; little-endian:
 //!
 //! ```text
 //! magic      8 bytes  "HFREFINE"
-//! version    u32      1 or 2
-//! name       u16 length + UTF-8 (at most 128 bytes)
-//! crop_size  u16      16..=1024
-//! depth      u8       1..=8
-//! starts     u8       1..=9 (refine from this many starts and take the per-coordinate median)
-//! mirror     u8       1 = also refine the mirror image and answer the mean, 0 = not
-//! sampling   u8       (version 2 only) 0 = nearest pixel, 1 = bilinear; version 1 is nearest
-//! stages     u16      1..=64
-//! mean       68 x (f32 x, f32 y)
-//! per stage:
-//!   features u16      2..=4096
-//!   trees    u32      1..=20000
-//!   anchors  features x u8 (< 68)
-//!   offsets  features x (f32, f32)
-//!   per tree: (2^depth - 1) x (u16 u, u16 v, f32 threshold), then 2^depth leaves of
-//!             (f32 scale, 136 x i8 values): increment = scale x value
+//! version    u32      1, 2 or 3
+//! length     u32      (version 3 only: the payload's length; versions 1 and 2 run to the CRC)
+//! payload:
+//!   name       u16 length + UTF-8 (at most 128 bytes)
+//!   crop_size  u16      16..=1024
+//!   depth      u8       1..=8
+//!   starts     u8       1..=9 (refine from this many starts and take the per-coordinate median)
+//!   mirror     u8       1 = also refine the mirror image and answer the mean, 0 = not
+//!   sampling   u8       (versions 2 and 3) 0 = nearest pixel, 1 = bilinear; version 1 is nearest
+//!   stages     u16      1..=64
+//!   mean       68 x (f32 x, f32 y)
+//!   per stage:
+//!     features u16      2..=4096
+//!     trees    u32      1..=20000
+//!     anchors  features x u8 (< 68)
+//!     offsets  features x (f32, f32)
+//!     per tree: (2^depth - 1) x (u16 u, u16 v, f32 threshold), then 2^depth leaves of
+//!               (f32 scale, 136 x i8 values): increment = scale x value
 //! crc32      u32      of every byte before it
 //! ```
 //!
-//! Every count is checked against its bound and against the bytes left before anything is allocated;
-//! every index and float is validated, so a damaged file is an error naming what is wrong, never a panic.
+//! This build writes version 3; versions 1 and 2 (the files of builds before the framing was shared, the
+//! shipped `refiner.bin` among them) are read as they are. Every count is checked against its bound and
+//! against the bytes left before anything is allocated; every index and float is validated, so a damaged
+//! file is a [`FormatError`] naming the field, never a panic.
+
+use holoface_protocol::framing::{self, FileKind, FormatError, PayloadReader};
 
 use super::{
     REFINE_LANDMARKS, RefineCascade, RefineError, RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest,
@@ -31,66 +38,30 @@ use crate::geometry::Point2;
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"HFREFINE";
-/// Newest format version (2: the sampling byte). A nearest-pixel model is written as version 1, so the
-/// files of older builds stay byte for byte the same.
-pub const FORMAT_VERSION: u32 = 2;
+/// Newest format version (3: the payload's length in the header; 2 added the sampling byte).
+pub const FORMAT_VERSION: u32 = 3;
+/// The file in the one framing.
+pub const FILE: FileKind = FileKind {
+    name: "refiner model",
+    magic: *MAGIC,
+    oldest: 1,
+    newest: FORMAT_VERSION,
+    sized_from: 3,
+    max_payload: 256 << 20,
+};
 const MAX_NAME: usize = 128;
-const MAX_STAGES: usize = 64;
-const MAX_FEATURES: usize = 4096;
-const MAX_TREES: usize = 20_000;
-const MAX_DEPTH: usize = 8;
-
-fn bad(msg: impl Into<String>) -> RefineError {
-    RefineError::Format(msg.into())
-}
-
-struct Reader<'a> {
-    data: &'a [u8],
-    pos: usize,
-}
-
-impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8], RefineError> {
-        let end = self.pos.checked_add(n).filter(|&e| e <= self.data.len());
-        let end = end.ok_or_else(|| bad(format!("truncated in {what} (offset {})", self.pos)))?;
-        let s = &self.data[self.pos..end];
-        self.pos = end;
-        Ok(s)
-    }
-    fn left(&self) -> usize {
-        self.data.len() - self.pos
-    }
-    fn u8(&mut self, what: &str) -> Result<u8, RefineError> {
-        Ok(self.take(1, what)?[0])
-    }
-    fn u16(&mut self, what: &str) -> Result<u16, RefineError> {
-        let b = self.take(2, what)?;
-        Ok(u16::from_le_bytes([b[0], b[1]]))
-    }
-    fn u32(&mut self, what: &str) -> Result<u32, RefineError> {
-        let b = self.take(4, what)?;
-        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-    }
-    fn f32(&mut self, what: &str) -> Result<f32, RefineError> {
-        let v = f32::from_bits(self.u32(what)?);
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(bad(format!("{what} is not finite")))
-        }
-    }
-}
+const MAX_STAGES: u16 = 64;
+const MAX_FEATURES: u16 = 4096;
+const MAX_TREES: u32 = 20_000;
+const MAX_DEPTH: u8 = 8;
 
 impl RefineCascade {
-    /// The model as file bytes.
-    pub fn to_bytes(&self) -> Vec<u8> {
+    /// The model as file bytes (the newest version).
+    ///
+    /// # Errors
+    /// The model is over the format's 256-MiB payload limit.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, RefineError> {
         let mut out = Vec::new();
-        out.extend_from_slice(MAGIC);
-        let version: u32 = match self.sampling {
-            Sampling::Nearest => 1,
-            Sampling::Bilinear => FORMAT_VERSION,
-        };
-        out.extend_from_slice(&version.to_le_bytes());
         let name = self.name.as_bytes();
         let name = &name[..name.len().min(MAX_NAME)];
         out.extend_from_slice(&(name.len() as u16).to_le_bytes());
@@ -99,9 +70,7 @@ impl RefineCascade {
         out.push(self.depth as u8);
         out.push(self.starts as u8);
         out.push(u8::from(self.mirror));
-        if version >= 2 {
-            out.push(u8::from(self.sampling == Sampling::Bilinear));
-        }
+        out.push(u8::from(self.sampling == Sampling::Bilinear));
         out.extend_from_slice(&(self.stages.len() as u16).to_le_bytes());
         for p in &self.mean {
             out.extend_from_slice(&p.x.to_le_bytes());
@@ -127,9 +96,7 @@ impl RefineCascade {
                 }
             }
         }
-        let crc = crc32fast::hash(&out);
-        out.extend_from_slice(&crc.to_le_bytes());
-        out
+        Ok(framing::encode(&FILE, &out)?)
     }
 
     /// CRC-32 of a model file's contents (its last four bytes): the model's identity in logs and metrics.
@@ -140,74 +107,30 @@ impl RefineCascade {
 
     /// Loads a model from file bytes, validating everything.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, RefineError> {
-        if bytes.len() < MAGIC.len() + 8 || &bytes[..MAGIC.len()] != MAGIC {
-            return Err(bad("not a refiner model (bad magic)"));
-        }
-        let (body, crc) = bytes.split_at(bytes.len() - 4);
-        let stored = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
-        if crc32fast::hash(body) != stored {
-            return Err(bad("checksum mismatch: the file is damaged"));
-        }
-        let mut r = Reader {
-            data: body,
-            pos: MAGIC.len(),
-        };
-        let version = r.u32("version")?;
-        if !(1..=FORMAT_VERSION).contains(&version) {
-            return Err(bad(format!(
-                "format version {version}, this build reads 1..={FORMAT_VERSION}"
-            )));
-        }
-        let name_len = usize::from(r.u16("name length")?);
-        if name_len > MAX_NAME {
-            return Err(bad(format!("name of {name_len} bytes (at most {MAX_NAME})")));
-        }
-        let name = std::str::from_utf8(r.take(name_len, "name")?)
-            .map_err(|_| bad("name is not UTF-8"))?
-            .to_owned();
-        let crop_size = usize::from(r.u16("crop size")?);
-        if !(16..=1024).contains(&crop_size) {
-            return Err(bad(format!("crop size {crop_size} (16..=1024)")));
-        }
-        let depth = usize::from(r.u8("depth")?);
-        if !(1..=MAX_DEPTH).contains(&depth) {
-            return Err(bad(format!("tree depth {depth} (1..={MAX_DEPTH})")));
-        }
-        let starts = usize::from(r.u8("starts")?);
-        if !(1..=super::START_OFFSETS.len()).contains(&starts) {
-            return Err(bad(format!(
-                "{starts} starts (1..={})",
-                super::START_OFFSETS.len()
-            )));
-        }
-        let mirror = match r.u8("mirror")? {
-            0 => false,
-            1 => true,
-            v => return Err(bad(format!("mirror flag {v} (0 or 1)"))),
-        };
-        let sampling = match version {
+        let framed = framing::decode(&FILE, bytes)?;
+        let mut r = framed.payload;
+        let name = r.text("name length", MAX_NAME)?.to_owned();
+        let crop_size = usize::from(r.u16_in("crop size", 16, 1024)?);
+        let depth = usize::from(r.u8_in("tree depth", 1, MAX_DEPTH)?);
+        let starts = usize::from(r.u8_in("starts", 1, super::START_OFFSETS.len() as u8)?);
+        let mirror = r.u8_in("mirror flag", 0, 1)? == 1;
+        let sampling = match framed.version {
             1 => Sampling::Nearest,
-            _ => match r.u8("sampling")? {
+            _ => match r.u8_in("sampling", 0, 1)? {
                 0 => Sampling::Nearest,
-                1 => Sampling::Bilinear,
-                v => return Err(bad(format!("sampling {v} (0 nearest or 1 bilinear)"))),
+                _ => Sampling::Bilinear,
             },
         };
-        let n_stages = usize::from(r.u16("stage count")?);
-        if !(1..=MAX_STAGES).contains(&n_stages) {
-            return Err(bad(format!("{n_stages} stages (1..={MAX_STAGES})")));
-        }
+        let n_stages = usize::from(r.u16_in("stage count", 1, MAX_STAGES)?);
         let mut mean = [Point2::default(); REFINE_LANDMARKS];
-        for p in &mut mean {
-            *p = Point2::new(r.f32("mean shape")?, r.f32("mean shape")?);
+        for (i, p) in mean.iter_mut().enumerate() {
+            *p = Point2::new(r.f32("mean shape", 2 * i)?, r.f32("mean shape", 2 * i + 1)?);
         }
         let mut stages = Vec::with_capacity(n_stages);
         for si in 0..n_stages {
             stages.push(read_stage(&mut r, si, depth)?);
         }
-        if r.left() != 0 {
-            return Err(bad(format!("{} bytes after the last stage", r.left())));
-        }
+        r.finish()?;
         Ok(Self {
             crop_size,
             depth,
@@ -222,32 +145,23 @@ impl RefineCascade {
 }
 
 /// Stage `si` of a cascade of trees of `depth`, read and checked.
-fn read_stage(r: &mut Reader<'_>, si: usize, depth: usize) -> Result<RefineStage, RefineError> {
+fn read_stage(r: &mut PayloadReader<'_>, si: usize, depth: usize) -> Result<RefineStage, FormatError> {
     let n_splits = (1usize << depth) - 1;
     let n_leaves = 1usize << depth;
     let tree_bytes = n_splits * 8 + n_leaves * (4 + SHAPE_DIM);
-    let n_feat = usize::from(r.u16("feature count")?);
-    if !(2..=MAX_FEATURES).contains(&n_feat) {
-        return Err(bad(format!("stage {si}: {n_feat} features (2..={MAX_FEATURES})")));
-    }
-    let n_trees = r.u32("tree count")? as usize;
-    if !(1..=MAX_TREES).contains(&n_trees) {
-        return Err(bad(format!("stage {si}: {n_trees} trees (1..={MAX_TREES})")));
-    }
-    if n_feat * 9 + n_trees * tree_bytes > r.left() {
-        return Err(bad(format!(
-            "stage {si}: {n_trees} trees of depth {depth} need more bytes than the file has"
-        )));
-    }
-    let anchors = r.take(n_feat, "anchors")?.to_vec();
-    if let Some(a) = anchors.iter().find(|&&a| usize::from(a) >= REFINE_LANDMARKS) {
-        return Err(bad(format!(
-            "stage {si}: anchor landmark {a} (< {REFINE_LANDMARKS})"
-        )));
+    let n_feat = usize::from(r.u16_in("feature count", 2, MAX_FEATURES)?);
+    let n_trees = r.count("tree count", 1, MAX_TREES)? as usize;
+    r.need((n_feat * 9 + n_trees * tree_bytes) as u64)?;
+    let anchors = r.take(n_feat)?.to_vec();
+    if let Some(&a) = anchors.iter().find(|&&a| usize::from(a) >= REFINE_LANDMARKS) {
+        return Err(r.invalid(
+            "anchors",
+            format!("stage {si}: landmark {a} (< {REFINE_LANDMARKS})"),
+        ));
     }
     let mut offsets = Vec::with_capacity(n_feat);
-    for _ in 0..n_feat {
-        offsets.push([r.f32("offset")?, r.f32("offset")?]);
+    for i in 0..n_feat {
+        offsets.push([r.f32("offset", 2 * i)?, r.f32("offset", 2 * i + 1)?]);
     }
     let mut trees = Vec::with_capacity(n_trees);
     for ti in 0..n_trees {
@@ -260,35 +174,33 @@ fn read_stage(r: &mut Reader<'_>, si: usize, depth: usize) -> Result<RefineStage
     })
 }
 
-/// Tree `ti` of stage `si` (`at`), over `n_feat` features, of `depth`, read and checked.
+/// Tree `ti` of stage `si`, over `n_feat` features, of `depth`, read and checked.
 fn read_tree(
-    r: &mut Reader<'_>,
+    r: &mut PayloadReader<'_>,
     (si, ti): (usize, usize),
     n_feat: usize,
     depth: usize,
-) -> Result<RegressionTree, RefineError> {
+) -> Result<RegressionTree, FormatError> {
     let (n_splits, n_leaves) = ((1usize << depth) - 1, 1usize << depth);
     let mut splits = Vec::with_capacity(n_splits);
-    for _ in 0..n_splits {
-        let (u, v) = (r.u16("split")?, r.u16("split")?);
-        let threshold = r.f32("threshold")?;
+    for i in 0..n_splits {
+        let (u, v) = (r.u16()?, r.u16()?);
+        let threshold = r.f32("threshold", i)?;
         if usize::from(u.max(v)) >= n_feat {
-            return Err(bad(format!(
-                "stage {si} tree {ti}: feature {} of {n_feat}",
-                u.max(v)
-            )));
+            let reason = format!("stage {si} tree {ti}: feature {} of {n_feat}", u.max(v));
+            return Err(r.invalid("split", reason));
         }
         splits.push(SplitTest { u, v, threshold });
     }
     let mut scales = Vec::with_capacity(n_leaves);
     let mut values = Vec::with_capacity(n_leaves * SHAPE_DIM);
-    for _ in 0..n_leaves {
-        let scale = r.f32("leaf scale")?;
+    for i in 0..n_leaves {
+        let scale = r.f32("leaf scale", i)?;
         if scale < 0.0 {
-            return Err(bad(format!("stage {si} tree {ti}: negative leaf scale")));
+            return Err(r.invalid("leaf scale", format!("stage {si} tree {ti}: negative")));
         }
         scales.push(scale);
-        values.extend(r.take(SHAPE_DIM, "leaf")?.iter().map(|b| i8::from_le_bytes([*b])));
+        values.extend(r.take(SHAPE_DIM)?.iter().map(|b| i8::from_le_bytes([*b])));
     }
     Ok(RegressionTree {
         splits,
@@ -300,6 +212,8 @@ fn read_tree(
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
+    use holoface_protocol::framing::Damage;
+
     use super::*;
     use crate::refine::tests::tiny;
 
@@ -311,10 +225,37 @@ mod tests {
         b
     }
 
+    /// The file as a build before the one framing wrote it: no length field, and version 1 (nearest, no
+    /// sampling byte) or 2.
+    fn legacy(v3: &[u8], version: u32) -> Vec<u8> {
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&version.to_le_bytes());
+        let payload = &v3[16..v3.len() - 4];
+        // The sampling byte follows name (2 + 4), crop size, depth, starts and mirror.
+        let sampling = 2 + 4 + 2 + 3;
+        out.extend_from_slice(&payload[..sampling]);
+        if version >= 2 {
+            out.push(payload[sampling]);
+        }
+        out.extend_from_slice(&payload[sampling + 1..]);
+        out.extend_from_slice(&[0; 4]);
+        reseal(out)
+    }
+
+    fn damage(b: &[u8]) -> Damage {
+        match RefineCascade::from_bytes(b) {
+            Err(RefineError::Format(e)) => {
+                assert_eq!(e.file, "refiner model");
+                e.damage
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
     #[test]
     fn round_trip_keeps_the_model() {
         let r = tiny(0.5, -1.25);
-        let bytes = r.to_bytes();
+        let bytes = r.to_bytes().unwrap();
         let back = RefineCascade::from_bytes(&bytes).unwrap();
         assert_eq!(back, r);
         assert_eq!(
@@ -326,17 +267,19 @@ mod tests {
     /// The layout is pinned: a one-stage, one-tree, depth-1 model with two features.
     #[test]
     fn the_byte_layout_is_pinned() {
-        let bytes = tiny(0.5, -1.25).to_bytes();
-        let head = 8 + 4 + 2 + 4 + 2 + 1 + 1 + 1 + 2;
+        let bytes = tiny(0.5, -1.25).to_bytes().unwrap();
+        let head = 16 + 2 + 4 + 2 + 1 + 1 + 1 + 1 + 2;
         assert_eq!(&bytes[..8], b"HFREFINE");
-        assert_eq!(&bytes[8..12], &1u32.to_le_bytes());
-        assert_eq!(&bytes[12..14], &4u16.to_le_bytes());
-        assert_eq!(&bytes[14..18], b"tiny");
-        assert_eq!(&bytes[18..20], &112u16.to_le_bytes());
-        assert_eq!(bytes[20], 1);
-        assert_eq!(bytes[21], 1, "one start");
-        assert_eq!(bytes[22], 0, "no mirror");
-        assert_eq!(&bytes[23..25], &1u16.to_le_bytes());
+        assert_eq!(&bytes[8..12], &3u32.to_le_bytes());
+        assert_eq!(&bytes[12..16], &((bytes.len() - 20) as u32).to_le_bytes());
+        assert_eq!(&bytes[16..18], &4u16.to_le_bytes());
+        assert_eq!(&bytes[18..22], b"tiny");
+        assert_eq!(&bytes[22..24], &112u16.to_le_bytes());
+        assert_eq!(bytes[24], 1);
+        assert_eq!(bytes[25], 1, "one start");
+        assert_eq!(bytes[26], 0, "no mirror");
+        assert_eq!(bytes[27], 0, "nearest pixel");
+        assert_eq!(&bytes[28..30], &1u16.to_le_bytes());
         let stage = head + 68 * 8;
         assert_eq!(&bytes[stage..stage + 2], &2u16.to_le_bytes());
         assert_eq!(&bytes[stage + 2..stage + 6], &1u32.to_le_bytes());
@@ -353,70 +296,87 @@ mod tests {
         assert_eq!(bytes.len(), tree + 8 + 2 * (4 + 136) + 4);
     }
 
-    /// A bilinear model is format v2: one sampling byte after the mirror flag, the rest as v1.
+    /// Files of older builds (version 1 nearest-pixel, version 2 with its sampling byte and no length
+    /// field, as the shipped `refiner.bin`) load as the same model.
     #[test]
-    fn a_bilinear_model_is_version_2_with_its_sampling_byte() {
+    fn versions_1_and_2_still_load() {
         let nearest = tiny(0.5, -1.25);
-        let mut r = nearest.clone();
-        r.sampling = Sampling::Bilinear;
-        let (v1, v2) = (nearest.to_bytes(), r.to_bytes());
-        assert_eq!(&v2[8..12], &2u32.to_le_bytes());
-        assert_eq!(v2[23], 1, "bilinear");
+        let mut bilinear = nearest.clone();
+        bilinear.sampling = Sampling::Bilinear;
+        let v1 = legacy(&nearest.to_bytes().unwrap(), 1);
+        assert_eq!(RefineCascade::from_bytes(&v1).unwrap(), nearest);
+        let v2 = legacy(&bilinear.to_bytes().unwrap(), 2);
         assert_eq!(v2.len(), v1.len() + 1);
-        assert_eq!(&v2[24..v2.len() - 4], &v1[23..v1.len() - 4]);
-        assert_eq!(RefineCascade::from_bytes(&v2).unwrap(), r);
+        assert_eq!(RefineCascade::from_bytes(&v2).unwrap(), bilinear);
         let mut bad = v2.clone();
         bad[23] = 7;
-        let err = RefineCascade::from_bytes(&reseal(bad)).unwrap_err().to_string();
-        assert!(err.contains("sampling 7"), "{err}");
+        assert!(matches!(
+            damage(&reseal(bad)),
+            Damage::OutOfRange {
+                field: "sampling",
+                value: 7,
+                ..
+            }
+        ));
     }
 
     #[test]
     fn damaged_files_are_clear_errors() {
-        let good = tiny(0.5, -1.25).to_bytes();
-        let err = |b: &[u8]| RefineCascade::from_bytes(b).unwrap_err().to_string();
-        assert!(err(b"").contains("bad magic"));
-        assert!(err(b"GARBAGE!GARBAGE!").contains("bad magic"));
+        let good = tiny(0.5, -1.25).to_bytes().unwrap();
+        assert!(matches!(damage(b""), Damage::Truncated { .. }));
+        assert!(matches!(damage(b"GARBAGE!GARBAGE!"), Damage::BadMagic { .. }));
         let mut flipped = good.clone();
         flipped[40] ^= 1;
-        assert!(err(&flipped).contains("checksum"), "{}", err(&flipped));
-        // Truncation is caught by the checksum (the last four bytes are no longer the CRC).
-        assert!(err(&good[..good.len() - 10]).contains("checksum"));
-        // A consistent checksum over inconsistent content: each check still names the problem.
-        let mut v = good.clone();
-        v[8] = 9;
-        assert!(err(&reseal(v)).contains("format version 9"));
-        let mut d = good.clone();
-        d[20] = 30;
-        assert!(err(&reseal(d)).contains("tree depth 30"));
-        let mut st = good.clone();
-        st[21] = 10;
-        assert!(err(&reseal(st)).contains("10 starts"));
-        let mut sm = good.clone();
-        sm[22] = 2;
-        assert!(err(&reseal(sm)).contains("mirror flag 2"));
-        let stage = 25 + 68 * 8;
+        assert!(matches!(damage(&flipped), Damage::Checksum { .. }));
+        assert!(matches!(
+            damage(&good[..good.len() - 10]),
+            Damage::Truncated { needed: 10, .. }
+        ));
+        // A consistent checksum over inconsistent content: each check still names the field.
+        let field = |offset: usize, value: u8| {
+            let mut b = good.clone();
+            b[offset] = value;
+            match damage(&reseal(b)) {
+                Damage::OutOfRange { field, .. } | Damage::Invalid { field, .. } => field,
+                d => panic!("{d:?}"),
+            }
+        };
+        assert!(matches!(
+            damage(&reseal({
+                let mut v = good.clone();
+                v[8] = 9;
+                v
+            })),
+            Damage::UnsupportedVersion { found: 9, .. }
+        ));
+        assert_eq!(field(24, 30), "tree depth");
+        assert_eq!(field(25, 10), "starts");
+        assert_eq!(field(26, 2), "mirror flag");
+        assert_eq!(field(27, 2), "sampling");
+        let stage = 30 + 68 * 8;
         let mut t = good.clone();
         t[stage + 2..stage + 6].copy_from_slice(&5000u32.to_le_bytes());
-        assert!(err(&reseal(t)).contains("more bytes than the file has"));
-        let mut a = good.clone();
-        a[stage + 6] = 68;
-        assert!(err(&reseal(a)).contains("anchor landmark 68"));
+        assert!(matches!(damage(&reseal(t)), Damage::Truncated { .. }));
+        assert_eq!(field(stage + 6, 68), "anchors");
         let tree = stage + 8 + 16;
-        let mut f = good.clone();
-        f[tree..tree + 2].copy_from_slice(&7u16.to_le_bytes());
-        assert!(err(&reseal(f)).contains("feature 7 of 2"));
+        assert_eq!(field(tree, 7), "split");
         let mut n = good.clone();
         n[tree + 4..tree + 8].copy_from_slice(&f32::NAN.to_le_bytes());
-        assert!(err(&reseal(n)).contains("not finite"));
+        assert!(matches!(
+            damage(&reseal(n)),
+            Damage::NotFinite {
+                field: "threshold",
+                ..
+            }
+        ));
         let mut extra = good[..good.len() - 4].to_vec();
         extra.push(0);
-        assert!(
-            err(&reseal({
-                extra.extend_from_slice(&[0; 4]);
-                extra
-            }))
-            .contains("after the last stage")
-        );
+        let len = (extra.len() - 16) as u32;
+        extra[12..16].copy_from_slice(&len.to_le_bytes());
+        extra.extend_from_slice(&[0; 4]);
+        assert!(matches!(
+            damage(&reseal(extra)),
+            Damage::TrailingBytes { count: 1 }
+        ));
     }
 }

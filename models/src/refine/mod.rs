@@ -37,8 +37,8 @@ pub const SHAPE_DIM: usize = 2 * REFINE_LANDMARKS;
 #[non_exhaustive]
 pub enum RefineError {
     /// The model file is not a refiner model or is damaged.
-    #[error("refiner model: {0}")]
-    Format(String),
+    #[error(transparent)]
+    Format(#[from] holoface_protocol::framing::FormatError),
     /// The crop is not `crop_size²` bytes.
     #[error("crop holds {len} bytes, the refiner needs {expected}")]
     CropSize {

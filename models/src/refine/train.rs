@@ -589,7 +589,7 @@ mod tests {
         }
         assert!(after < 0.6 * before, "held-out error {before} -> {after}");
         // The file round trip gives the same answers.
-        let back = RefineCascade::from_bytes(&model.to_bytes()).unwrap();
+        let back = RefineCascade::from_bytes(&model.to_bytes().unwrap()).unwrap();
         let mut a = starts[0];
         let mut b = starts[0];
         model.refine(&crops[0], &mut a, &mut scratch).unwrap();

@@ -344,7 +344,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let val_box = summary(val_faces.len(), &box_errs, &box_scores, thr);
     let val_jit = summary(val_faces.len(), &jit_errs, &jit_scores, thr);
 
-    let bytes = model.to_bytes();
+    let bytes = model.to_bytes()?;
     let back = Krfws::from_bytes(&bytes).context("re-reading the model just written")?;
     if back != model {
         bail!("model changed through to_bytes/from_bytes");

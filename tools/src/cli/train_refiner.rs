@@ -327,7 +327,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (mut refiner, stage_nme) = train_watched(&samples, &mean, size, &cfg, &val_set)?;
     let train_seconds = t1.elapsed().as_secs_f64();
     let val = final_validation(&mut refiner, &args, &val_set)?;
-    let bytes = refiner.to_bytes();
+    let bytes = refiner.to_bytes()?;
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }

@@ -1,11 +1,22 @@
 //! The refiner's training crops: starts perturbed as tracking and detection leave them, image augmentation, the
 //! wire's JPEG round trip, DAN's answers on them (batched), and the cache of those answers.
 
+use holoface_protocol::framing::{Damage, FileKind, FramedReader, FramedWriter, StreamError};
+
 use super::*;
 
 /// The wire encoding every crop goes through (the client's default).
 pub(super) const WIRE: CropCodec = CropCodec::Jpeg { quality: 75 };
-pub(super) const CACHE_MAGIC: &[u8; 8] = b"HFRDATA2";
+/// The cache of DAN's answers, in the one framing (version 3 follows the unframed `HFRDATA2`, which is made
+/// again): payload `u16` key length + key, `u64` crop count, then per crop its pixels and 2 x 68 (x, y) `f32`.
+pub(super) const CACHE: FileKind = FileKind {
+    name: "refiner training cache",
+    magic: *b"HFRDATA\0",
+    oldest: 3,
+    newest: 3,
+    sized_from: 3,
+    max_payload: u32::MAX as u64,
+};
 pub(super) const BATCH: usize = 16;
 
 /// One crop with DAN's answer on it.
@@ -228,8 +239,11 @@ pub(super) fn write_cache(path: &Path, key: &[u8], size: usize, data: &[Answered
         std::fs::create_dir_all(dir)?;
     }
     let tmp = path.with_extension("tmp");
-    let mut w = BufWriter::new(std::fs::File::create(&tmp)?);
-    w.write_all(CACHE_MAGIC)?;
+    let rec = size * size + 2 * 68 * 8;
+    let payload = 2 + key.len() + 8 + data.len() * rec;
+    let file = BufWriter::new(std::fs::File::create(&tmp)?);
+    let mut w = FramedWriter::new(file, &CACHE, payload as u64)?;
+    w.write_all(&u16::try_from(key.len())?.to_le_bytes())?;
     w.write_all(key)?;
     w.write_all(&(data.len() as u64).to_le_bytes())?;
     for a in data {
@@ -240,28 +254,58 @@ pub(super) fn write_cache(path: &Path, key: &[u8], size: usize, data: &[Answered
             w.write_all(&p.y.to_le_bytes())?;
         }
     }
-    w.flush()?;
-    drop(w);
+    w.finish()?.into_inner()?.sync_all()?;
     std::fs::rename(&tmp, path)?;
     Ok(())
 }
 
+/// The cached answers when the cache at `path` exists, is whole and was made for `key`; `None` (make them
+/// again) when it is missing, made for other settings, of an older build or damaged.
 pub(super) fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result<Option<Vec<Answered>>> {
     let Ok(f) = std::fs::File::open(path) else {
         return Ok(None);
     };
     let len = f.metadata()?.len();
-    let mut r = BufReader::new(f);
-    let mut head = vec![0u8; CACHE_MAGIC.len() + key.len() + 8];
-    if r.read_exact(&mut head).is_err() || &head[..8] != CACHE_MAGIC || &head[8..8 + key.len()] != key {
+    match read_framed_cache(BufReader::new(f), len, key, size) {
+        Ok(answers) => Ok(answers),
+        Err(StreamError::Format(e)) => {
+            tracing::warn!(cache = %path.display(), "{e}; making it again");
+            Ok(None)
+        }
+        Err(StreamError::Io(e)) => Err(anyhow::Error::new(e).context(format!("reading {}", path.display()))),
+    }
+}
+
+fn read_framed_cache(
+    file: impl Read,
+    len: u64,
+    key: &[u8],
+    size: usize,
+) -> Result<Option<Vec<Answered>>, StreamError> {
+    let mut r = FramedReader::new(file, &CACHE, len)?;
+    let mut n = [0u8; 2];
+    r.read_exact(&mut n)?;
+    let mut stored = vec![0u8; usize::from(u16::from_le_bytes(n))];
+    r.read_exact(&mut stored)?;
+    if stored != key {
         return Ok(None);
     }
-    let n = u64::from_le_bytes(head[head.len() - 8..].try_into()?) as usize;
-    let rec = size * size + 2 * 68 * 8;
-    if (len as usize).saturating_sub(head.len()) != n * rec {
-        bail!("{} is truncated; delete it to regenerate", path.display());
+    let mut n = [0u8; 8];
+    r.read_exact(&mut n)?;
+    let n = u64::from_le_bytes(n);
+    let rec = (size * size + 2 * 68 * 8) as u64;
+    if n.saturating_mul(rec) != r.left() {
+        let fits = r.left() / rec;
+        return Err(CACHE
+            .error(Damage::OutOfRange {
+                field: "crop count",
+                value: n,
+                min: fits,
+                max: fits,
+            })
+            .into());
     }
-    let mut out = Vec::with_capacity(n);
+    let mut out = Vec::with_capacity(n as usize);
     let mut pts = vec![0u8; 2 * 68 * 8];
     for _ in 0..n {
         let mut crop = vec![0u8; size * size];
@@ -274,6 +318,7 @@ pub(super) fn read_cache(path: &Path, key: &[u8], size: usize) -> anyhow::Result
             target: std::array::from_fn(|i| Point2::new(f(136 + 2 * i), f(136 + 2 * i + 1))),
         });
     }
+    r.finish()?;
     Ok(Some(out))
 }
 
@@ -337,4 +382,152 @@ pub(super) fn answer_training_crops(
         }
     }
     runner.flush()
+}
+
+/// Every framed file kind, damaged the same four ways, gives the same structured error: the kind's name and
+/// what is wrong. The shipped models still load byte for byte.
+#[cfg(test)]
+mod framed_files {
+    #![allow(clippy::unwrap_used)]
+    use holoface_models::krfws::Krfws;
+    use holoface_protocol::framing::FormatError;
+
+    use super::*;
+
+    fn shipped(name: &str) -> Vec<u8> {
+        std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../models/assets")
+                .join(name),
+        )
+        .unwrap()
+    }
+
+    fn cache_bytes() -> Vec<u8> {
+        let path = std::env::temp_dir().join(format!("holoface-cache-{}.bin", std::process::id()));
+        let answered = Answered {
+            crop: vec![7; 16],
+            start: [Point2::new(1.0, 2.0); 68],
+            target: [Point2::new(3.0, 4.0); 68],
+        };
+        write_cache(&path, b"key", 4, &[answered]).unwrap();
+        let back = read_cache(&path, b"key", 4).unwrap().unwrap();
+        assert_eq!(
+            (back.len(), back[0].crop.as_slice(), back[0].target[67]),
+            (1, &[7u8; 16][..], Point2::new(3.0, 4.0))
+        );
+        assert!(
+            read_cache(&path, b"other key", 4).unwrap().is_none(),
+            "made for other settings"
+        );
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        bytes
+    }
+
+    fn labels_bytes() -> Vec<u8> {
+        let header = crate::labels::LabelHeader {
+            collection: "lfw".into(),
+            images: "/data/lfw".into(),
+            teachers: "dlib + remote".into(),
+            settings: serde_json::json!({}),
+        };
+        let record = crate::labels::LabelRecord {
+            name: "a.jpg".into(),
+            landmarks: [Point2::new(5.0, 6.0); 68],
+            disagreement: 0.01,
+        };
+        crate::labels::to_bytes(&header, &[record]).unwrap()
+    }
+
+    /// The shipped refiner as this build writes it (version 3): the shipped file is version 2, whose header
+    /// has no length, so a truncated one is caught by its checksum instead (checked below).
+    fn refiner_v3() -> Vec<u8> {
+        let shipped = shipped("refiner.bin");
+        let e = load_refiner(&shipped[..shipped.len() - 3]).unwrap_err();
+        assert!(matches!(e.damage, Damage::Checksum { .. }), "{e}");
+        RefineCascade::from_bytes(&shipped).unwrap().to_bytes().unwrap()
+    }
+
+    type Load = fn(&[u8]) -> Result<(), FormatError>;
+
+    fn load_krfws(b: &[u8]) -> Result<(), FormatError> {
+        match Krfws::from_bytes(b) {
+            Ok(_) => Ok(()),
+            Err(holoface_models::krfws::ModelError::Format(e)) => Err(e),
+            Err(e) => panic!("not the framing's error: {e}"),
+        }
+    }
+
+    fn load_refiner(b: &[u8]) -> Result<(), FormatError> {
+        match RefineCascade::from_bytes(b) {
+            Ok(_) => Ok(()),
+            Err(holoface_models::refine::RefineError::Format(e)) => Err(e),
+            Err(e) => panic!("not the framing's error: {e}"),
+        }
+    }
+
+    fn load_labels(b: &[u8]) -> Result<(), FormatError> {
+        crate::labels::from_bytes(b).map(drop)
+    }
+
+    fn load_cache(b: &[u8]) -> Result<(), FormatError> {
+        match read_framed_cache(b, b.len() as u64, b"key", 4) {
+            Ok(Some(_)) => Ok(()),
+            Ok(None) => panic!("the key did not match"),
+            Err(StreamError::Format(e)) => Err(e),
+            Err(StreamError::Io(e)) => panic!("{e}"),
+        }
+    }
+
+    #[test]
+    fn each_kind_damaged_four_ways_is_the_same_structured_error() {
+        let kinds: [(&str, Vec<u8>, Load); 4] = [
+            ("KRFWS model", shipped("krfws.bin"), load_krfws),
+            ("refiner model", refiner_v3(), load_refiner),
+            ("teacher labels", labels_bytes(), load_labels),
+            ("refiner training cache", cache_bytes(), load_cache),
+        ];
+        for (name, good, load) in kinds {
+            load(&good).unwrap();
+            let damage = |bytes: &[u8]| {
+                let e = load(bytes).unwrap_err();
+                assert_eq!(e.file, name, "{e}");
+                e.damage
+            };
+            let len = good.len() as u64;
+            let cut = damage(&good[..good.len() - 3]);
+            assert!(
+                matches!(cut, Damage::Truncated { len: l, .. } if l == len - 3),
+                "{name}: {cut:?}"
+            );
+            let mut crc = good.clone();
+            crc[good.len() - 1] ^= 0x01;
+            assert!(matches!(damage(&crc), Damage::Checksum { .. }), "{name}");
+            let mut magic = good.clone();
+            magic[..8].copy_from_slice(b"NOTOURS!");
+            assert!(
+                matches!(damage(&magic), Damage::BadMagic { found, .. } if &found == b"NOTOURS!"),
+                "{name}"
+            );
+            let mut future = good.clone();
+            future[8..12].copy_from_slice(&99u32.to_le_bytes());
+            assert!(
+                matches!(damage(&future), Damage::UnsupportedVersion { found: 99, .. }),
+                "{name}"
+            );
+        }
+    }
+
+    /// The shipped KRFWS model is the framing's first version as it was written; the shipped refiner (format
+    /// 2, before the length field) loads to the model whose version-3 payload is its payload.
+    #[test]
+    fn shipped_models_load_byte_for_byte() {
+        let krfws = shipped("krfws.bin");
+        assert_eq!(Krfws::from_bytes(&krfws).unwrap().to_bytes().unwrap(), krfws);
+        let refiner = shipped("refiner.bin");
+        assert_eq!(&refiner[8..12], &2u32.to_le_bytes());
+        let again = RefineCascade::from_bytes(&refiner).unwrap().to_bytes().unwrap();
+        assert_eq!(&again[16..again.len() - 4], &refiner[12..refiner.len() - 4]);
+    }
 }
