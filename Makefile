@@ -17,7 +17,7 @@ ORT_VERSION := 1.31.1
 HOLOFACE_DATA ?= $(abspath ../shared/data)
 export HOLOFACE_DATA
 # The checkout's holoface data folder: what `holoface setup` installs for a user in ~/.local/share/holoface
-# (inference/src/home.rs), kept inside the checkout; the archives it downloads are kept for the next run.
+# (files/src/home.rs), kept inside the checkout; the archives it downloads are kept for the next run.
 export HOLOFACE_HOME := $(abspath .cache/holoface)
 export HOLOFACE_DOWNLOADS := $(abspath .cache/downloads)
 # CANDIDE-3 from the data set (it is not copied into the checkout); the models come from the data folder, where
@@ -188,6 +188,9 @@ deps-check:
 	  bad=$$($(CARGO) tree --locked -p $$c -e normal --prefix none | grep -oE '^(holoface-sources|openh264|mp4|ffmpeg-next|anyhow) ' | sort -u | tr -d ' ' | tr '\n' ' ' || true); \
 	  if [ -n "$$bad" ]; then echo "$$c depends on: $$bad" >&2; exit 1; fi; \
 	  echo "$$c: no holoface-sources, openh264, mp4, ffmpeg-next or anyhow"; done
+	@bad=$$($(CARGO) tree --locked -p holoface-sources -e normal --depth 1 --prefix none | grep -oE '^(holoface-inference|anyhow) ' | tr -d ' ' | tr '\n' ' ' || true); \
+	  if [ -n "$$bad" ]; then echo "holoface-sources depends on $$bad directly (it reads files through holoface-files and returns SourceError)" >&2; exit 1; fi
+	@echo "holoface-sources: no holoface-inference or anyhow"
 	@# The wheel users build stays self-contained: MP4 through OpenH264, no system FFmpeg library.
 	@if $(CARGO) tree --locked -p holoface-python -e normal --prefix none | grep -q '^ffmpeg-next '; then \
 	  echo "holoface-python (the users' wheel) links the system's FFmpeg (ffmpeg-next)" >&2; exit 1; fi

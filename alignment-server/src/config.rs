@@ -19,8 +19,8 @@ use clap::{Args, Parser, ValueEnum};
 use holoface_protocol::ReplyChannel;
 use serde::{Deserialize, Serialize};
 
+use holoface_files::{FileError, read_text_bounded};
 use holoface_inference::PrecisionChoice;
-use holoface_inference::files::{FileError, read_text_bounded};
 
 mod settings;
 pub use settings::{Settings, TlsSource};
@@ -28,21 +28,21 @@ pub use settings::{Settings, TlsSource};
 /// Default QUIC listen address.
 pub const DEFAULT_LISTEN: &str = "0.0.0.0:4433";
 /// The DAN model when `engine.model` is not set: `$HOLOFACE_DAN_MODEL`, else `dan.onnx` in the holoface data
-/// folder (`holoface setup` installs it; [`holoface_inference::home`]).
+/// folder (`holoface setup` installs it; [`holoface_files::home`]).
 pub fn default_model() -> PathBuf {
-    holoface_inference::home::DAN.default_path()
+    holoface_files::home::DAN.default_path()
 }
 
 /// The int8 DAN when `engine.int8_model` is not set: `$HOLOFACE_DAN_INT8_MODEL`, else `dan.int8.onnx` in the data
 /// folder.
 pub fn default_int8_model() -> PathBuf {
-    holoface_inference::home::DAN_INT8.default_path()
+    holoface_files::home::DAN_INT8.default_path()
 }
 
 /// The refinement cascade when `refine.model` is not set: `$HOLOFACE_REFINE_MODEL`, else `refiner.bin` in the
 /// data folder.
 pub fn default_refine_model() -> PathBuf {
-    holoface_inference::home::REFINER.default_path()
+    holoface_files::home::REFINER.default_path()
 }
 
 /// The shortest idle timeout the server accepts, ms (QUIC keep-alives from clients come every 500 ms).

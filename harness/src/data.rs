@@ -92,7 +92,7 @@ pub struct Entry {
 impl Entry {
     /// Decodes the image (bounded by the image-size limit of `holoface_sources::images`).
     pub fn image(&self) -> anyhow::Result<GrayImage> {
-        read_gray(&self.path)
+        Ok(read_gray(&self.path)?)
     }
 }
 

@@ -33,12 +33,15 @@ impl LoadedCascade {
         if path.is_dir() {
             return Err(err("is a directory, not a refiner model file".into()));
         }
-        let bytes =
-            crate::files::read_bounded(path, crate::home::REFINER.max_bytes, crate::home::REFINER.name)
-                .map_err(|e| match e {
-                    crate::files::FileError::Missing { .. } => crate::home::REFINER.missing(path).into(),
-                    other => err(other.to_string()),
-                })?;
+        let bytes = holoface_files::read_bounded(
+            path,
+            holoface_files::home::REFINER.max_bytes,
+            holoface_files::home::REFINER.name,
+        )
+        .map_err(|e| match e {
+            holoface_files::FileError::Missing { .. } => holoface_files::home::REFINER.missing(path).into(),
+            other => err(other.to_string()),
+        })?;
         crate::integrity::verify_sidecar(path, &bytes)?;
         Self::from_bytes(&bytes).map_err(|e| match e {
             EngineError::Refine(detail) => err(detail),
@@ -283,7 +286,7 @@ mod tests {
         // The front end names its own setting.
         let named = LoadedCascade::load(&dir.join("nope.bin"))
             .unwrap_err()
-            .given_by(&[(crate::home::REFINER, "refine.model")])
+            .given_by(&[(holoface_files::home::REFINER, "refine.model")])
             .to_string();
         assert!(named.contains("(the path given with refine.model)"), "{named}");
         let corrupt = dir.join("corrupt.bin");

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 pub enum EngineError {
     /// An asset (the ONNX Runtime library, the DAN model, the refiner) is not where it was looked for.
     #[error(transparent)]
-    Missing(#[from] crate::home::MissingAsset),
+    Missing(#[from] holoface_files::home::MissingAsset),
     /// A directory was given where the ONNX Runtime library belongs.
     #[error("ONNX Runtime library path {path} is a directory, not libonnxruntime.so")]
     RuntimeIsDirectory {
@@ -122,9 +122,9 @@ pub enum EngineError {
 }
 
 impl EngineError {
-    /// Names the front end's setting of a missing asset (see [`crate::home::MissingAsset::given_by`]).
+    /// Names the front end's setting of a missing asset (see [`holoface_files::home::MissingAsset::given_by`]).
     #[must_use]
-    pub fn given_by(self, options: &[(crate::home::Asset, &str)]) -> Self {
+    pub fn given_by(self, options: &[(holoface_files::home::Asset, &str)]) -> Self {
         match self {
             Self::Missing(m) => Self::Missing(m.given_by(options)),
             Self::Cascade { path, detail, .. } => Self::Cascade {
@@ -132,7 +132,7 @@ impl EngineError {
                 detail,
                 option: options
                     .iter()
-                    .find(|(a, _)| *a == crate::home::REFINER)
+                    .find(|(a, _)| *a == holoface_files::home::REFINER)
                     .map(|(_, o)| (*o).to_owned()),
             },
             other => other,

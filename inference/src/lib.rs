@@ -7,16 +7,14 @@
 //! * [`precision`]: which DAN file serves (int8 on a CPU with VNNI, else fp32), as a pure rule.
 //! * [`cascade`]: [`CascadeEngine`], an engine followed by the refinement cascade (the server's pipeline).
 //! * `fake`: `FakeEngine` under `cfg(test)` / the `test-util` feature.
-//! * [`files`]: bounded reads of the files front ends name (kind and size checked before reading).
 //! * [`integrity`]: model files checked before use (sidecar checksums, the shipped releases' checksums, a
 //!   start-up self-test of the engine on a fixed crop).
-//! * [`home`]: the holoface data folder and the assets in it (where installed binaries find them, and the
-//!   messages when they are missing).
 //! * [`runtime`]: where the ONNX Runtime library is found ([`runtime::default_ort_dylib`]) and the one
 //!   process-wide ONNX Runtime environment ([`runtime::load_runtime`]) that every session in a process shares
 //!   (the server's engines, the client's face detector).
 //!
-//! No IO besides loading the library, the model files and the bounded reads of [`files`]; no async runtime, no network.
+//! No IO besides loading the library and the model files (read through `holoface-files`' bounded reads); no
+//! async runtime, no network. The data folder and its assets are `holoface-files`' `home`.
 #![deny(missing_docs)]
 
 pub mod cascade;
@@ -26,8 +24,6 @@ pub mod crop_decode;
 pub mod error;
 #[cfg(any(test, feature = "test-util"))]
 pub mod fake;
-pub mod files;
-pub mod home;
 pub mod integrity;
 pub mod onnx;
 pub mod precision;

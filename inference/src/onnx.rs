@@ -87,7 +87,7 @@ impl OnnxEngine {
             });
         }
         if !opts.model.is_file() {
-            return Err(crate::home::DAN.missing(&opts.model).into());
+            return Err(holoface_files::home::DAN.missing(&opts.model).into());
         }
         // The file is read once, checked, and the session made from those very bytes.
         let bytes = read_model(&opts.model)?;
@@ -144,8 +144,13 @@ impl OnnxEngine {
 
 /// Reads a model file whole, refusing one too large to be a model (or not a file at all) before reading it.
 fn read_model(path: &std::path::Path) -> Result<Vec<u8>, EngineError> {
-    crate::files::read_bounded(path, crate::home::DAN.max_bytes, crate::home::DAN.name).map_err(|e| match e {
-        crate::files::FileError::Missing { .. } => crate::home::DAN.missing(path).into(),
+    holoface_files::read_bounded(
+        path,
+        holoface_files::home::DAN.max_bytes,
+        holoface_files::home::DAN.name,
+    )
+    .map_err(|e| match e {
+        holoface_files::FileError::Missing { .. } => holoface_files::home::DAN.missing(path).into(),
         other => EngineError::Damaged {
             path: path.to_path_buf(),
             detail: other.to_string(),

@@ -10,13 +10,13 @@ use std::path::{Path, PathBuf};
 use crate::error::EngineError;
 
 /// The environment variable that names the ONNX Runtime library (the `ort` crate's convention).
-pub const ORT_DYLIB_ENV: &str = crate::home::ORT_LIBRARY.env;
+pub const ORT_DYLIB_ENV: &str = holoface_files::home::ORT_LIBRARY.env;
 /// The name ONNX Runtime logs for this process's environment.
 const ENVIRONMENT_NAME: &str = "holoface";
 
 /// `$ORT_DYLIB_PATH` when set and not empty, else `libonnxruntime.so.1.31.1` in the data folder.
 pub fn default_ort_dylib() -> PathBuf {
-    crate::home::ORT_LIBRARY.default_path()
+    holoface_files::home::ORT_LIBRARY.default_path()
 }
 
 /// The process's ONNX Runtime environment and the library it came from (canonical path): ort allows one per
@@ -35,7 +35,7 @@ pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, Engin
         });
     }
     if !dylib.is_file() {
-        return Err(crate::home::ORT_LIBRARY.missing(dylib).into());
+        return Err(holoface_files::home::ORT_LIBRARY.missing(dylib).into());
     }
     let mut slot = ENVIRONMENT
         .lock()
@@ -54,7 +54,7 @@ pub fn load_runtime(dylib: &Path) -> Result<ort::environment::Environment, Engin
     // first time a missing page is touched: its ELF headers are checked against its size first.
     check_shared_library(dylib).map_err(|detail| EngineError::RuntimeLoad {
         path: dylib.to_path_buf(),
-        detail: format!("{detail}; reinstall it with `{}`", crate::home::SETUP),
+        detail: format!("{detail}; reinstall it with `{}`", holoface_files::home::SETUP),
     })?;
     let builder = ort::init_from(dylib).map_err(|e| EngineError::RuntimeLoad {
         path: dylib.to_path_buf(),
@@ -80,9 +80,9 @@ const ELF_MACHINE: u16 = if cfg!(target_arch = "x86_64") {
 /// file, and files that are far too large, before reading.
 pub fn check_shared_library(path: &Path) -> Result<(), String> {
     use std::io::{Read as _, Seek as _, SeekFrom};
-    let meta = crate::files::regular_file(path, "ONNX Runtime library").map_err(|e| e.to_string())?;
+    let meta = holoface_files::regular_file(path, "ONNX Runtime library").map_err(|e| e.to_string())?;
     let len = meta.len();
-    if len > crate::home::ORT_LIBRARY.max_bytes {
+    if len > holoface_files::home::ORT_LIBRARY.max_bytes {
         return Err(format!("{len} bytes, more than any ONNX Runtime library"));
     }
     let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;

@@ -4,14 +4,14 @@
 //!
 //! ```text
 //! offset  size  field
-//! 0       8     magic, one per kind of file (FileKind::magic)
-//! 8       4     version u32 (FileKind::oldest ..= FileKind::newest)
-//! 12      4     payload length P u32 (versions >= FileKind::sized_from)
+//! 0       8     magic, one per kind of file (Format::magic)
+//! 8       4     version u32 (Format::oldest ..= Format::newest)
+//! 12      4     payload length P u32 (versions >= Format::sized_from)
 //! 16      P     payload, the kind's own layout
 //! 16+P    4     CRC-32 (IEEE) of bytes 0 .. 16+P
 //! ```
 //!
-//! Everything is little-endian. A version older than [`FileKind::sized_from`] (files written before the
+//! Everything is little-endian. A version older than [`Format::sized_from`] (files written before the
 //! framing was shared: refiner models v1 and v2) has no length field: its payload runs from offset 12 to the
 //! CRC. The recorded stream (`.hfrec`, [`crate::recording`]) keeps its own framing: it is written frame by
 //! frame while a headset streams, so it cannot know its length up front, and a recording cut short by a
@@ -33,7 +33,7 @@ pub const CRC_LEN: usize = 4;
 
 /// One kind of framed file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FileKind {
+pub struct Format {
     /// What the file is, for errors ("KRFWS model").
     pub name: &'static str,
     /// Its first eight bytes.
@@ -52,7 +52,7 @@ pub struct FileKind {
 #[derive(Debug, Error, Clone, PartialEq, Eq)]
 #[error("{file}: {damage}")]
 pub struct FormatError {
-    /// The kind of file ([`FileKind::name`]).
+    /// The kind of file ([`Format::name`]).
     pub file: &'static str,
     /// What is wrong.
     pub damage: Damage,
@@ -144,7 +144,7 @@ pub enum Damage {
     },
 }
 
-impl FileKind {
+impl Format {
     /// An error about a file of this kind.
     pub fn error(&self, damage: Damage) -> FormatError {
         FormatError {
@@ -247,7 +247,7 @@ struct Header {
 ///
 /// # Errors
 /// [`Damage::TooLarge`]: the payload is over the kind's limit (the reader would refuse the file).
-pub fn encode(kind: &FileKind, payload: &[u8]) -> Result<Vec<u8>, FormatError> {
+pub fn encode(kind: &Format, payload: &[u8]) -> Result<Vec<u8>, FormatError> {
     let header = kind.write_header(payload.len() as u64)?;
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len() + CRC_LEN);
     out.extend_from_slice(&header);
@@ -261,7 +261,7 @@ pub fn encode(kind: &FileKind, payload: &[u8]) -> Result<Vec<u8>, FormatError> {
 ///
 /// # Errors
 /// [`FormatError`] for a foreign, truncated, over-long, future-version or damaged file.
-pub fn decode<'a>(kind: &FileKind, bytes: &'a [u8]) -> Result<Framed<'a>, FormatError> {
+pub fn decode<'a>(kind: &Format, bytes: &'a [u8]) -> Result<Framed<'a>, FormatError> {
     let file_len = bytes.len() as u64;
     let header = kind.header(&bytes[..bytes.len().min(HEADER_LEN)], file_len)?;
     let end = (header.start + header.payload_len) as usize;
@@ -460,7 +460,7 @@ impl<W: Write> FramedWriter<W> {
     /// # Errors
     /// The payload is over the kind's limit ([`io::ErrorKind::InvalidInput`] around a [`FormatError`]), or
     /// the write fails.
-    pub fn new(mut inner: W, kind: &FileKind, payload_len: u64) -> io::Result<Self> {
+    pub fn new(mut inner: W, kind: &Format, payload_len: u64) -> io::Result<Self> {
         let header = kind
             .write_header(payload_len)
             .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
@@ -527,7 +527,7 @@ pub enum StreamError {
 pub struct FramedReader<R: Read> {
     inner: R,
     crc: crc32fast::Hasher,
-    kind: FileKind,
+    kind: Format,
     version: u32,
     left: u64,
 }
@@ -538,7 +538,7 @@ impl<R: Read> FramedReader<R> {
     /// # Errors
     /// [`StreamError::Format`] for a foreign, truncated or future-version file; [`StreamError::Io`] if the
     /// read fails.
-    pub fn new(mut inner: R, kind: &FileKind, file_len: u64) -> Result<Self, StreamError> {
+    pub fn new(mut inner: R, kind: &Format, file_len: u64) -> Result<Self, StreamError> {
         let mut head = [0u8; HEADER_LEN];
         let n = (file_len.min(HEADER_LEN as u64)) as usize;
         inner.read_exact(&mut head[..n])?;
@@ -618,7 +618,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
-    const KIND: FileKind = FileKind {
+    const KIND: Format = Format {
         name: "test file",
         magic: *b"HFTEST\0\0",
         oldest: 1,

@@ -1,14 +1,14 @@
 //! Where the runtime's assets are and how they load: the ONNX Runtime library, the face detector, the KRFWS
 //! model and CANDIDE-3. Each path is, in order: given explicitly, else named by its environment variable,
 //! else its file in the holoface data folder (`$HOLOFACE_HOME`, else `$XDG_DATA_HOME/holoface`, else
-//! `~/.local/share/holoface`), which `holoface setup` fills ([`holoface_inference::home`], re-exported as
+//! `~/.local/share/holoface`), which `holoface setup` fills ([`holoface_files::home`], re-exported as
 //! [`home`]). No default is relative to the working directory; the tools' options use the same variables.
 
 use std::path::{Path, PathBuf};
 
+pub use holoface_files::home;
+pub use holoface_files::home::{Asset, HOME_ENV, MissingAsset, data_dir};
 pub use holoface_inference::ORT_DYLIB_ENV;
-pub use holoface_inference::home;
-pub use holoface_inference::home::{Asset, HOME_ENV, MissingAsset, data_dir};
 
 /// Environment variable naming the BlazeFace model.
 pub const DETECTOR_ENV: &str = home::DETECTOR.env;
@@ -83,7 +83,7 @@ impl AssetError {
 }
 
 fn read_asset(asset: &'static Asset, path: &Path) -> Result<Vec<u8>, AssetError> {
-    use holoface_inference::files::{FileError, read_bounded};
+    use holoface_files::{FileError, read_bounded};
     let bytes = read_bounded(path, asset.max_bytes, asset.name).map_err(|e| match e {
         FileError::Missing { .. } => AssetError::Missing(asset.missing(path)),
         FileError::Io { source, .. } => AssetError::Read {

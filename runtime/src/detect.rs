@@ -18,7 +18,7 @@ use thiserror::Error;
 pub enum DetectError {
     /// The model file or the ONNX Runtime library is not where it was looked for.
     #[error(transparent)]
-    Missing(#[from] holoface_inference::home::MissingAsset),
+    Missing(#[from] holoface_files::home::MissingAsset),
     /// The ONNX Runtime library does not exist or failed to load.
     #[error("{detail}")]
     Runtime {
@@ -111,7 +111,7 @@ impl BlazeFace {
     /// Runtime's intra-op thread count.
     pub fn load(model: &Path, ort_dylib: &Path, threads: usize) -> Result<Self, DetectError> {
         if !model.is_file() {
-            return Err(holoface_inference::home::DETECTOR.missing(model).into());
+            return Err(holoface_files::home::DETECTOR.missing(model).into());
         }
         let env = holoface_inference::load_runtime(ort_dylib).map_err(|e| match e {
             holoface_inference::EngineError::Missing(m) => DetectError::Missing(m),

@@ -19,8 +19,8 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+use crate::error::{Context as _, err, fail};
 use crate::{FrameSource, SourceError};
-use anyhow::{Context, anyhow, bail};
 use ff::format::Pixel;
 use ffmpeg_next as ff;
 use holoface_models::camera::Intrinsics;
@@ -134,13 +134,16 @@ impl std::fmt::Debug for FfmpegSource {
 
 impl FfmpegSource {
     /// Opens `path` and its best video stream; `intrinsics` default to a 60° horizontal field of view.
-    pub fn open(path: &Path, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
+    pub fn open(path: &Path, intrinsics: Option<Intrinsics>) -> Result<Self, SourceError> {
         init();
         let shown = path.display();
         // The file itself, so that a missing file or a device is said as such, not as FFmpeg's "I/O error".
-        holoface_inference::files::regular_file(path, "video").map_err(|e| anyhow!("{e}"))?;
+        holoface_files::regular_file(path, "video")?;
         let name = path.to_str().ok_or_else(|| {
-            anyhow!("{shown}: the video's path is not UTF-8 (FFmpeg takes UTF-8 paths); rename it")
+            err!(
+                Usage,
+                "{shown}: the video's path is not UTF-8 (FFmpeg takes UTF-8 paths); rename it"
+            )
         })?;
         // `file:` + the path: a name with a colon is not taken for another protocol.
         let url = if path.is_absolute() {
@@ -151,11 +154,11 @@ impl FfmpegSource {
         let mut options = ff::Dictionary::new();
         options.set("protocol_whitelist", "file");
         let input = ff::format::input_with_dictionary(&url, options)
-            .map_err(|e| anyhow!("{shown} is not a readable video ({e})"))?;
+            .map_err(|e| err!(Malformed, "{shown} is not a readable video ({e})"))?;
         let stream = input
             .streams()
             .best(ff::media::Type::Video)
-            .ok_or_else(|| anyhow!("{shown} has no video stream"))?;
+            .ok_or_else(|| err!(Empty, "{shown} has no video stream"))?;
         // The video stream's own length, else the container's (AV_TIME_BASE = µs); absent = not declared.
         let declared_us = {
             let own = stream.duration();
@@ -178,14 +181,15 @@ impl FfmpegSource {
         let id = params.id();
         let codec = id.name();
         let found = ff::decoder::find(id).ok_or_else(|| {
-            anyhow!(
+            err!(
+                Unsupported,
                 "{shown}: its video is {codec}, which this build's FFmpeg cannot decode; convert it with ffmpeg \
                  (for example {})",
                 pipe_hint(path)
             )
         })?;
         let mut context = ff::codec::context::Context::from_parameters(params)
-            .map_err(|e| anyhow!("{shown}: reading the {codec} stream's parameters: {e}"))?;
+            .map_err(|e| err!(Codec, "{shown}: reading the {codec} stream's parameters: {e}"))?;
         let mut threading = ff::codec::threading::Config::default();
         threading.kind = ff::codec::threading::Type::Frame;
         threading.count = THREADS;
@@ -197,7 +201,7 @@ impl FfmpegSource {
         let decoder = decoder
             .open_as_with(found, options)
             .and_then(|d| d.video())
-            .map_err(|e| anyhow!("{shown}: opening FFmpeg's {codec} decoder: {e}"))?;
+            .map_err(|e| err!(Codec, "{shown}: opening FFmpeg's {codec} decoder: {e}"))?;
         // The size the container declares, before any frame is decoded (every frame is checked again).
         check_size(path, decoder.width() as usize, decoder.height() as usize)?;
         let frame_us = if rate.numerator() > 0 && rate.denominator() > 0 {
@@ -239,7 +243,7 @@ impl FfmpegSource {
     }
 
     /// Takes every frame the decoder has ready.
-    fn receive(&mut self) -> anyhow::Result<()> {
+    fn receive(&mut self) -> Result<(), SourceError> {
         loop {
             match self.decoder.receive_frame(&mut self.frame) {
                 Ok(()) => {
@@ -257,7 +261,8 @@ impl FfmpegSource {
                     self.finished = true;
                     return Ok(());
                 }
-                Err(e) => bail!(
+                Err(e) => fail!(
+                    Malformed,
                     "decoding frame {} of {} ({}): {e}",
                     self.index + self.ready.len(),
                     self.path.display(),
@@ -268,7 +273,7 @@ impl FfmpegSource {
     }
 
     /// Feeds packets until a frame is ready or the stream ends.
-    fn fill(&mut self) -> anyhow::Result<()> {
+    fn fill(&mut self) -> Result<(), SourceError> {
         while self.ready.is_empty() && !self.finished {
             if self.drained {
                 self.receive()?;
@@ -283,14 +288,16 @@ impl FfmpegSource {
                 Err(ff::Error::Eof) => {
                     self.drained = true;
                     self.decoder.send_eof().map_err(|e| {
-                        anyhow!(
+                        err!(
+                            Malformed,
                             "ending the decode of {}: {e}; the file is damaged or cut short",
                             self.path.display()
                         )
                     })?;
                     continue;
                 }
-                Err(e) => bail!(
+                Err(e) => fail!(
+                    Malformed,
                     "{}: reading packet {} failed ({e}); the file is damaged or cut short",
                     self.path.display(),
                     self.packets_read
@@ -301,7 +308,8 @@ impl FfmpegSource {
                 continue;
             }
             self.decoder.send_packet(&self.packet).map_err(|e| {
-                anyhow!(
+                err!(
+                    Malformed,
                     "{}: the {} decoder refused packet {} ({e}); the file is damaged",
                     self.path.display(),
                     self.codec,
@@ -314,13 +322,14 @@ impl FfmpegSource {
     }
 
     /// The decoded frame's luma as a full-range grey image.
-    fn grey(&self) -> anyhow::Result<GrayImage> {
+    fn grey(&self) -> Result<GrayImage, SourceError> {
         let f = &self.frame;
         let (w, h) = (f.width() as usize, f.height() as usize);
         check_size(&self.path, w, h)?;
         let full = f.color_range() == ff::util::color::Range::JPEG;
         let luma = luma_of(f.format(), full).ok_or_else(|| {
-            anyhow!(
+            err!(
+                Unsupported,
                 "pixel format {:?} has no luma plane holoface reads; convert it with {}",
                 f.format(),
                 pipe_hint(&self.path)
@@ -350,19 +359,20 @@ impl FfmpegSource {
                 }
             }
         }
-        GrayImage::from_vec(px, w, h).map_err(|e| anyhow!("a {w}x{h} frame: {e}"))
+        GrayImage::from_vec(px, w, h).context(format!("a {w}x{h} frame"))
     }
 
     /// At the end: refuses a video that stops well before the length its container declares (more than half a
     /// second and three frames short), which is what a cut file looks like to the demuxer (it just ends).
-    fn check_complete(&self) -> anyhow::Result<()> {
+    fn check_complete(&self) -> Result<(), SourceError> {
         let (Some(declared), Some(last)) = (self.declared_us, self.last_us) else {
             return Ok(());
         };
         let got = last.saturating_add(self.frame_us);
         let slack = self.frame_us.saturating_mul(3).max(500_000);
         if got.saturating_add(slack) < declared {
-            bail!(
+            fail!(
+                Malformed,
                 "{}: the video ends at {:.2} s ({} frames) but its container declares {:.2} s: the file is cut short \
                  (an interrupted download or copy?)",
                 self.path.display(),
@@ -396,7 +406,7 @@ impl FfmpegSource {
         t
     }
 
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         self.fill()?;
         let Some((ts, image)) = self.ready.pop_front() else {
             self.check_complete()?;
@@ -416,14 +426,15 @@ impl FfmpegSource {
 
 impl FrameSource for FfmpegSource {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 
 /// Refuses a frame size outside [`MAX_SIDE`] and [`MAX_PIXELS`].
-fn check_size(path: &Path, w: usize, h: usize) -> anyhow::Result<()> {
+fn check_size(path: &Path, w: usize, h: usize) -> Result<(), SourceError> {
     if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE || w * h > MAX_PIXELS {
-        bail!(
+        fail!(
+            Unsupported,
             "{}: frame size {w}x{h} is outside what holoface reads (each side 1..={MAX_SIDE}, at most {MAX_PIXELS} \
              pixels); scale it down with ffmpeg's `-vf scale=...`",
             path.display()

@@ -3,14 +3,15 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, bail};
 use holoface_models::image::GrayImage;
+
+use crate::error::Context as _;
+pub use crate::error::MAX_IMAGE_PIXELS_ENV;
+use crate::{ImageError, SourceError};
 
 /// The largest image (or video frame) any reader decodes, in pixels: 40 megapixels takes an 8K frame (33
 /// megapixels) and keeps one decode well under 1 GiB even as 16-bit RGBA (8 bytes a pixel, 320 MB).
 pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 40_000_000;
-/// Environment variable that sets another limit (pixels).
-pub const MAX_IMAGE_PIXELS_ENV: &str = "HOLOFACE_MAX_IMAGE_PIXELS";
 
 /// The image-size limit in force: `$HOLOFACE_MAX_IMAGE_PIXELS` when it is a positive number, else
 /// [`DEFAULT_MAX_IMAGE_PIXELS`].
@@ -24,27 +25,22 @@ pub fn max_image_pixels() -> u64 {
 
 /// Refuses a `width` x `height` image over [`max_image_pixels`] before anything is allocated for it; the
 /// message gives the size and the limit (the caller's context names the file and the frame).
-pub fn check_image_size(width: u64, height: u64) -> anyhow::Result<()> {
+pub fn check_image_size(width: u64, height: u64) -> Result<(), ImageError> {
     let limit = max_image_pixels();
-    let pixels = width.saturating_mul(height);
-    if pixels > limit {
-        bail!(
-            "{width} x {height} pixels ({:.1} megapixels) is over the image-size limit of {:.1} megapixels \
-             (set {MAX_IMAGE_PIXELS_ENV} to change it)",
-            pixels as f64 / 1e6,
-            limit as f64 / 1e6
-        );
+    if width.saturating_mul(height) > limit {
+        return Err(ImageError::TooLarge { width, height, limit });
     }
     Ok(())
 }
 
 /// Image paths (`.jpg`, `.jpeg`, `.png`) under `root`, one level of subfolders deep, sorted by name.
-pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
+pub fn list_images(root: &Path) -> Result<Vec<(String, PathBuf)>, SourceError> {
     let mut out = Vec::new();
-    let mut visit = |dir: &Path, prefix: &str| -> anyhow::Result<Vec<PathBuf>> {
+    let mut visit = |dir: &Path, prefix: &str| -> Result<Vec<PathBuf>, SourceError> {
         let mut subdirs = Vec::new();
-        for entry in std::fs::read_dir(dir).with_context(|| format!("reading folder {}", dir.display()))? {
-            let path = entry?.path();
+        let folder = || format!("reading folder {}", dir.display());
+        for entry in std::fs::read_dir(dir).with_context(folder)? {
+            let path = entry.with_context(folder)?.path();
             if path.is_dir() {
                 subdirs.push(path);
                 continue;
@@ -78,7 +74,7 @@ pub fn list_images(root: &Path) -> anyhow::Result<Vec<(String, PathBuf)>> {
 /// Reads an image file as 8-bit grayscale. A file that is not a whole image (a JPEG without its end-of-image
 /// marker, a PNG cut short, an unknown format) is an error naming the file: decoders otherwise fill a
 /// truncated JPEG with grey and report success.
-pub fn read_gray(path: &Path) -> anyhow::Result<GrayImage> {
+pub fn read_gray(path: &Path) -> Result<GrayImage, SourceError> {
     // No compressed image of the largest allowed size needs more bytes than its raw 16-bit RGBA pixels:
     // a bigger file is refused before it is read into memory.
     let size = std::fs::metadata(path)
@@ -86,24 +82,22 @@ pub fn read_gray(path: &Path) -> anyhow::Result<GrayImage> {
         .len();
     let most = max_image_pixels().saturating_mul(8).saturating_add(1 << 20);
     if size > most {
-        bail!(
-            "image {} is {size} bytes, more than any image within the image-size limit can need ({most} bytes; \
-             {MAX_IMAGE_PIXELS_ENV})",
-            path.display()
-        );
+        return Err(ImageError::FileTooLarge {
+            path: path.to_path_buf(),
+            len: size,
+            most,
+        }
+        .into());
     }
     let bytes = std::fs::read(path).with_context(|| format!("reading image {}", path.display()))?;
     decode_gray(&bytes).with_context(|| format!("decoding image {}", path.display()))
 }
 
 /// Decodes a whole PNG or JPEG file held in memory as 8-bit grayscale (see [`read_gray`]).
-pub fn decode_gray(bytes: &[u8]) -> anyhow::Result<GrayImage> {
-    let format = image::guess_format(bytes).context("not a PNG or JPEG image")?;
+pub fn decode_gray(bytes: &[u8]) -> Result<GrayImage, ImageError> {
+    let format = image::guess_format(bytes).map_err(|_| ImageError::NotAnImage)?;
     if format == image::ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
-        anyhow::bail!(
-            "truncated or corrupt JPEG: no end-of-image marker after the scan data ({} bytes)",
-            bytes.len()
-        );
+        return Err(ImageError::TruncatedJpeg { len: bytes.len() });
     }
     // The header's size is checked before the decoder allocates anything for the pixels, and the decoder
     // may allocate no more than the largest allowed image needs (16-bit RGBA, 8 bytes a pixel).

@@ -7,11 +7,11 @@
 //!
 //! Every source implements this crate's [`FrameSource`] trait and hands over
 //! [`OwnedFrame`]s; the headset runtime (`holoface-runtime`) knows only that trait, so a headset app never
-//! compiles a video decoder. Constructors report errors with `anyhow` (this is a tools crate: messages name
-//! the file and the frame); [`FrameSource::next_frame`] wraps them in [`SourceError::Other`], whole chain in its
-//! message.
+//! compiles a video decoder. Every function and reader returns [`SourceError`]: what went wrong as a typed
+//! variant ([`SourceError::root`]), inside the file and the frame it happened in ([`SourceError::Context`]).
 #![deny(missing_docs)]
 
+pub mod error;
 #[cfg(feature = "ffmpeg")]
 pub mod ffmpeg;
 pub mod images;
@@ -27,7 +27,8 @@ pub mod video;
 pub mod y4m;
 
 pub mod frame_source;
-pub use frame_source::{FrameSource, SourceError};
+pub use error::{ImageError, SourceError};
+pub use frame_source::FrameSource;
 pub use holoface_runtime::OwnedFrame;
 
 /// A decoded video frame as the runtime takes it: no pose (the identity until a sidecar gives one), the given
@@ -61,9 +62,3 @@ pub(crate) fn full_range_lut() -> [u8; 256] {
     })
 }
 pub use source::open_source;
-
-/// A source's failure as the runtime's error type. The message is the whole context chain ("cam.y4m: frame 2:
-/// ..."), so that `{}` already names the file and the frame.
-fn source_error(e: anyhow::Error) -> SourceError {
-    SourceError::Other(format!("{e:#}").into())
-}

@@ -17,7 +17,8 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use crate::SourceError;
+use crate::error::Context as _;
 
 /// The temporary files of every [`Output`] alive in this process.
 static TEMPORARIES: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
@@ -109,7 +110,7 @@ impl Output {
     /// Starts writing `path` (its folder is created if missing). A symbolic link is followed: the file it
     /// points to is replaced, not the link. A destination that exists and is not a regular file (a device,
     /// a pipe) is written to directly.
-    pub fn create(path: &Path) -> anyhow::Result<Self> {
+    pub fn create(path: &Path) -> Result<Self, SourceError> {
         if let Ok(meta) = std::fs::metadata(path)
             && !meta.is_file()
         {
@@ -157,7 +158,7 @@ impl Output {
     /// Starts a journal at `path`, for a run whose source has no end (a camera): the file is created (or
     /// truncated) under its real name and written one frame at a time ([`Output::end_frame`]); `-` is standard
     /// output. Nothing is renamed or removed later: a stopped or killed run leaves every whole frame it wrote.
-    pub fn live(path: &Path) -> anyhow::Result<Self> {
+    pub fn live(path: &Path) -> Result<Self, SourceError> {
         if path == Path::new("-") {
             use std::os::fd::AsFd as _;
             let fd = std::io::stdout()
@@ -195,7 +196,7 @@ impl Output {
 
     /// Flushes, syncs and renames the file to its destination. On failure (a full disk, a destination
     /// that cannot be replaced) the temporary file is removed and the destination is untouched.
-    pub fn commit(mut self) -> anyhow::Result<()> {
+    pub fn commit(mut self) -> Result<(), SourceError> {
         let result = self.finish();
         if let Some(tmp) = &self.tmp {
             if result.is_err() {
@@ -206,7 +207,7 @@ impl Output {
         result
     }
 
-    fn finish(&mut self) -> anyhow::Result<()> {
+    fn finish(&mut self) -> Result<(), SourceError> {
         let what = || format!("writing {}", self.path.display());
         let Some(w) = self.file.take() else {
             return Ok(());
@@ -267,7 +268,7 @@ impl Drop for Output {
 }
 
 /// Writes `bytes` to `path` whole or not at all.
-pub fn write_atomic(path: &Path, bytes: impl AsRef<[u8]>) -> anyhow::Result<()> {
+pub fn write_atomic(path: &Path, bytes: impl AsRef<[u8]>) -> Result<(), SourceError> {
     let mut out = Output::create(path)?;
     out.write_all(bytes.as_ref())
         .with_context(|| format!("writing {}", path.display()))?;

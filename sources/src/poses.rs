@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, bail};
+use crate::error::{Context as _, fail};
 use holoface_models::camera::Intrinsics;
 use holoface_models::math3::Pose;
 use serde::Deserialize;
@@ -74,7 +74,7 @@ pub const MAX_SIDECAR_BYTES: u64 = 512 << 20;
 
 impl PoseSidecar {
     /// Parses sidecar text; `path` only names the file in errors.
-    pub fn parse(text: &str, path: &Path) -> anyhow::Result<Self> {
+    pub fn parse(text: &str, path: &Path) -> Result<Self, SourceError> {
         let mut entries = BTreeMap::new();
         for (i, raw) in text.lines().enumerate() {
             let line_no = i + 1;
@@ -92,13 +92,13 @@ impl PoseSidecar {
                 )
             })?;
             if let Err(why) = check_distance(&world_from_camera) {
-                bail!("{}: camera_to_world of frame {} {why}", at(), l.frame);
+                fail!(Malformed, "{}: camera_to_world of frame {} {why}", at(), l.frame);
             }
             let intrinsics = match l.intrinsics {
                 Some([fx, fy, cx, cy]) => {
                     let k = Intrinsics { fx, fy, cx, cy };
                     if let Err(why) = k.check() {
-                        bail!("{}: intrinsics of frame {}: {why}", at(), l.frame);
+                        fail!(Malformed, "{}: intrinsics of frame {}: {why}", at(), l.frame);
                     }
                     Some(k)
                 }
@@ -110,11 +110,11 @@ impl PoseSidecar {
                 timestamp_us: l.timestamp_us,
             };
             if entries.insert(l.frame, entry).is_some() {
-                bail!("{}: frame {} appears twice", at(), l.frame);
+                fail!(Malformed, "{}: frame {} appears twice", at(), l.frame);
             }
         }
         if entries.is_empty() {
-            bail!("{} holds no poses", path.display());
+            fail!(Empty, "{} holds no poses", path.display());
         }
         Ok(Self {
             path: path.to_path_buf(),
@@ -123,8 +123,8 @@ impl PoseSidecar {
     }
 
     /// Reads and parses a sidecar file.
-    pub fn load(path: &Path) -> anyhow::Result<Self> {
-        let text = holoface_inference::files::read_text_bounded(path, MAX_SIDECAR_BYTES, "pose sidecar")?;
+    pub fn load(path: &Path) -> Result<Self, SourceError> {
+        let text = holoface_files::read_text_bounded(path, MAX_SIDECAR_BYTES, "pose sidecar")?;
         Self::parse(&text, path)
     }
 
@@ -181,7 +181,7 @@ impl<S: FrameSource> WithPoses<S> {
 }
 
 impl<S: FrameSource> WithPoses<S> {
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         let Some(mut f) = self.inner.next_frame()? else {
             return Ok(None);
         };
@@ -206,7 +206,7 @@ impl<S: FrameSource> WithPoses<S> {
 
 impl<S: FrameSource> FrameSource for WithPoses<S> {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 

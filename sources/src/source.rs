@@ -8,7 +8,7 @@ use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, bail};
+use crate::error::{Context as _, fail};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
@@ -30,9 +30,9 @@ pub struct ImageSequence {
 
 impl ImageSequence {
     /// One image file as a one-frame sequence (a photograph).
-    pub fn single(path: &Path, fps: f64) -> anyhow::Result<Self> {
+    pub fn single(path: &Path, fps: f64) -> Result<Self, SourceError> {
         if !(fps.is_finite() && fps > 0.0) {
-            bail!("frame rate must be positive, got {fps}");
+            fail!(Usage, "frame rate must be positive, got {fps}");
         }
         Ok(Self {
             paths: vec![path.to_path_buf()],
@@ -43,13 +43,13 @@ impl ImageSequence {
     }
 
     /// Lists the images of `dir`.
-    pub fn open(dir: &Path, fps: f64, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
+    pub fn open(dir: &Path, fps: f64, intrinsics: Option<Intrinsics>) -> Result<Self, SourceError> {
         let paths: Vec<PathBuf> = list_images(dir)?.into_iter().map(|(_, p)| p).collect();
         if paths.is_empty() {
-            bail!("no PNG or JPEG images in {}", dir.display());
+            fail!(Empty, "no PNG or JPEG images in {}", dir.display());
         }
         if !(fps.is_finite() && fps > 0.0) {
-            bail!("frame rate must be positive, got {fps}");
+            fail!(Usage, "frame rate must be positive, got {fps}");
         }
         Ok(Self {
             paths,
@@ -61,7 +61,7 @@ impl ImageSequence {
 }
 
 impl ImageSequence {
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         let Some(path) = self.paths.get(self.next) else {
             return Ok(None);
         };
@@ -84,7 +84,7 @@ impl ImageSequence {
 
 impl FrameSource for ImageSequence {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 
@@ -101,7 +101,7 @@ pub struct RecordedStream {
 
 impl RecordedStream {
     /// Opens a recording and reads its header.
-    pub fn open(path: &Path) -> anyhow::Result<Self> {
+    pub fn open(path: &Path) -> Result<Self, SourceError> {
         let file = File::open(path).with_context(|| format!("opening recording {}", path.display()))?;
         // A recording whose writer was killed ends inside a record: its whole records are read (and the cut named).
         let reader = RecordingReader::new(BufReader::new(file))
@@ -115,7 +115,7 @@ impl RecordedStream {
             cy: f64::from(c.cy),
         };
         if let Err(why) = intrinsics.check() {
-            bail!("{}: the header's intrinsics: {why}", path.display());
+            fail!(Malformed, "{}: the header's intrinsics: {why}", path.display());
         }
         Ok(Self {
             reader,
@@ -140,7 +140,7 @@ pub fn cut_note(path: &Path, cut: holoface_protocol::recording::Cut) -> String {
 }
 
 impl RecordedStream {
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         loop {
             let rec = self
                 .reader
@@ -148,7 +148,8 @@ impl RecordedStream {
                 .with_context(|| format!("reading {}", self.path.display()))?;
             let Some(rec) = rec else {
                 if self.index == 0 && self.crops > 0 {
-                    bail!(
+                    fail!(
+                        Unsupported,
                         "{} holds {} face crops and no full frames (a `holoface record --crops` recording, made \
                          for the load tester `holoface-load`); tracking needs full frames: record without --crops",
                         self.path.display(),
@@ -178,7 +179,8 @@ impl RecordedStream {
                         format!("decoding frame {} of {}", self.index, self.path.display())
                     })?;
                     if (img.width(), img.height()) != (w, h) {
-                        bail!(
+                        fail!(
+                            Malformed,
                             "frame {} of {}: encoded image size differs from the record",
                             self.index,
                             self.path.display()
@@ -195,7 +197,12 @@ impl RecordedStream {
                 )
             })?;
             if let Err(why) = crate::poses::check_distance(&world_from_camera) {
-                bail!("frame {} of {}: {why}", self.index, self.path.display());
+                fail!(
+                    Malformed,
+                    "frame {} of {}: {why}",
+                    self.index,
+                    self.path.display()
+                );
             }
             let index = self.index;
             self.index += 1;
@@ -217,7 +224,7 @@ impl RecordedStream {
 
 impl FrameSource for RecordedStream {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 
@@ -263,14 +270,18 @@ fn is_other_video(path: &Path) -> bool {
 
 /// A video file through FFmpeg's libraries (feature `ffmpeg`).
 #[cfg(feature = "ffmpeg")]
-fn open_video(path: &Path) -> anyhow::Result<Box<dyn FrameSource>> {
+fn open_video(path: &Path) -> Result<Box<dyn FrameSource>, SourceError> {
     Ok(Box::new(crate::ffmpeg::FfmpegSource::open(path, None)?))
 }
 
 /// Never called without the `ffmpeg` feature (the caller checks it first).
 #[cfg(not(feature = "ffmpeg"))]
-fn open_video(path: &Path) -> anyhow::Result<Box<dyn FrameSource>> {
-    bail!("{}: this build reads videos without FFmpeg", path.display())
+fn open_video(path: &Path) -> Result<Box<dyn FrameSource>, SourceError> {
+    fail!(
+        Unsupported,
+        "{}: this build reads videos without FFmpeg",
+        path.display()
+    )
 }
 
 /// Whether `path` is a PNG or JPEG image, by extension.
@@ -301,7 +312,7 @@ fn is_y4m(path: &Path) -> bool {
 /// standard input: a live camera piped through ffmpeg), or a recorded stream (`.hfrec`); with a pose sidecar
 /// (see [`crate::poses`]) the frames take their camera-to-world poses from it. `fps` times the frames of an
 /// image folder and of a `.y4m` whose header has no frame rate.
-pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Result<Box<dyn FrameSource>> {
+pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> Result<Box<dyn FrameSource>, SourceError> {
     let inner: Box<dyn FrameSource> = if path.as_os_str() == "-" {
         let stdin = BufReader::new(std::io::stdin());
         Box::new(crate::y4m::Y4mSource::new(stdin, "stdin", fps, None)?)
@@ -313,7 +324,8 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
         } else if cfg!(feature = "ffmpeg") && (is_mp4(path) || is_matroska(path) || is_other_video(path)) {
             open_video(path)?
         } else if is_matroska(path) {
-            bail!(
+            fail!(
+                Unsupported,
                 "{} is a WebM/Matroska video (VP8, VP9 or AV1): this build decodes H.264 MP4 and y4m itself \
                  (the `ffmpeg` feature reads the rest); pipe other videos through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
                 path.display(),
@@ -335,20 +347,21 @@ pub fn open_source(path: &Path, fps: f64, poses: Option<&Path>) -> anyhow::Resul
         }
     } else {
         // Not a folder, not a file: say what it is (a pipe, a device, a link loop) rather than "missing".
-        match holoface_inference::files::regular_file(path, "frame source") {
-            Err(holoface_inference::files::FileError::NotAFile {
-                kind: holoface_inference::files::FileKind::NamedPipe,
+        match holoface_files::regular_file(path, "frame source") {
+            Err(holoface_files::FileError::NotAFile {
+                kind: holoface_files::FileKind::NamedPipe,
                 ..
             }) => {
-                bail!(
+                fail!(
+                    Unsupported,
                     "frame source {} is a named pipe (FIFO): stream a y4m video through standard input instead \
                  (`--source - < {}`, or `ffmpeg -i VIDEO -f yuv4mpegpipe - | holoface track --source -`)",
                     path.display(),
                     path.display()
                 )
             }
-            Err(e) => bail!("{e}"),
-            Ok(_) => bail!("frame source {} cannot be read", path.display()),
+            Err(e) => return Err(e.into()),
+            Ok(_) => fail!(Unsupported, "frame source {} cannot be read", path.display()),
         }
     };
     Ok(match poses {

@@ -22,7 +22,7 @@ use std::io::BufReader;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, anyhow, bail};
+use crate::error::{Context as _, err, fail};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 
@@ -34,11 +34,11 @@ use holoface_runtime::OwnedFrame;
 const MAX_SAMPLE_BYTES: u32 = 64 << 20;
 
 /// Runs a call into the `mp4` crate, turning its errors and panics into one error type.
-fn mp4_call<T>(what: &str, f: impl FnOnce() -> mp4::Result<T>) -> anyhow::Result<T> {
+fn mp4_call<T>(what: &str, f: impl FnOnce() -> mp4::Result<T>) -> Result<T, SourceError> {
     match catch_unwind(AssertUnwindSafe(f)) {
         Ok(Ok(v)) => Ok(v),
-        Ok(Err(e)) => Err(anyhow!("{what}: {e}")),
-        Err(_) => Err(anyhow!("{what}: malformed MP4 structure")),
+        Ok(Err(e)) => Err(err!(Malformed, "{what}: {e}")),
+        Err(_) => Err(err!(Malformed, "{what}: malformed MP4 structure")),
     }
 }
 
@@ -96,7 +96,7 @@ fn codec_name(track: &mp4::Mp4Track) -> &'static str {
 
 impl Mp4Source {
     /// Opens `path` and finds its H.264 track; `intrinsics` default to a 60° horizontal field of view.
-    pub fn open(path: &Path, intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
+    pub fn open(path: &Path, intrinsics: Option<Intrinsics>) -> Result<Self, SourceError> {
         let file = File::open(path).with_context(|| format!("opening video {}", path.display()))?;
         let size = file
             .metadata()
@@ -111,7 +111,8 @@ impl Mp4Source {
             .min_by_key(|(id, _)| **id)
             .ok_or_else(|| {
                 let found: Vec<&str> = reader.tracks().values().map(codec_name).collect();
-                anyhow!(
+                err!(
+                    Unsupported,
                     "{} has no H.264 video track (its tracks: {}); holoface decodes H.264 itself, other codecs \
                      through ffmpeg: `ffmpeg -i {} -f yuv4mpegpipe - | holoface track --source -`",
                     path.display(),
@@ -120,15 +121,13 @@ impl Mp4Source {
                 )
             })?;
         let track_id = *track_id;
-        let avc = track
-            .trak
-            .mdia
-            .minf
-            .stbl
-            .stsd
-            .avc1
-            .as_ref()
-            .ok_or_else(|| anyhow!("{}: the H.264 track has no avc1 description", path.display()))?;
+        let avc = track.trak.mdia.minf.stbl.stsd.avc1.as_ref().ok_or_else(|| {
+            err!(
+                Malformed,
+                "{}: the H.264 track has no avc1 description",
+                path.display()
+            )
+        })?;
         crate::images::check_image_size(u64::from(avc.width), u64::from(avc.height))
             .with_context(|| format!("{}: the H.264 track's frame size", path.display()))?;
         let length_size = usize::from(avc.avcc.length_size_minus_one & 3) + 1;
@@ -143,27 +142,32 @@ impl Mp4Source {
             parameter_sets.extend_from_slice(&nal.bytes);
         }
         if avc.avcc.sequence_parameter_sets.is_empty() || avc.avcc.picture_parameter_sets.is_empty() {
-            bail!("{}: the H.264 track has no SPS/PPS", path.display());
+            fail!(Malformed, "{}: the H.264 track has no SPS/PPS", path.display());
         }
         let stsz = &track.trak.mdia.minf.stbl.stsz;
         let sample_count = track.sample_count();
         let too_big = |s: u32| s > MAX_SAMPLE_BYTES || u64::from(s) > size;
         if too_big(stsz.sample_size) || stsz.sample_sizes.iter().any(|&s| too_big(s)) {
-            bail!(
+            fail!(
+                Malformed,
                 "{}: a sample claims more bytes than the file holds (corrupt sample table)",
                 path.display()
             );
         }
         let timescale = u64::from(track.timescale());
         if timescale == 0 {
-            bail!("{}: the video track has a zero timescale", path.display());
+            fail!(
+                Malformed,
+                "{}: the video track has a zero timescale",
+                path.display()
+            );
         }
         // No flush after a packet that returned no picture: the reorder buffer of B-frames must fill.
         let config =
             openh264::decoder::DecoderConfig::new().flush_after_decode(openh264::decoder::Flush::NoFlush);
         let decoder =
             openh264::decoder::Decoder::with_api_config(openh264::OpenH264API::from_source(), config)
-                .map_err(|e| anyhow!("starting the H.264 decoder: {e}"))?;
+                .map_err(|e| err!(Codec, "starting the H.264 decoder: {e}"))?;
         Ok(Self {
             path: path.to_path_buf(),
             reader,
@@ -191,7 +195,7 @@ impl Mp4Source {
 
     /// Length-prefixed NAL units (MP4) → Annex-B start codes (OpenH264), parameter sets first on sync
     /// samples so that decoding can start at any key frame.
-    fn annexb_from(&mut self, sample: &[u8], sync: bool) -> anyhow::Result<()> {
+    fn annexb_from(&mut self, sample: &[u8], sync: bool) -> Result<(), SourceError> {
         self.annexb.clear();
         if sync {
             self.annexb.extend_from_slice(&self.parameter_sets);
@@ -200,13 +204,13 @@ impl Mp4Source {
         while !rest.is_empty() {
             let (len_bytes, tail) = rest
                 .split_at_checked(self.length_size)
-                .ok_or_else(|| anyhow!("truncated NAL length"))?;
+                .ok_or_else(|| err!(Malformed, "truncated NAL length"))?;
             let len = len_bytes
                 .iter()
                 .fold(0usize, |acc, &b| (acc << 8) | usize::from(b));
             let (nal, tail) = tail
                 .split_at_checked(len)
-                .ok_or_else(|| anyhow!("NAL unit of {len} bytes overruns its sample"))?;
+                .ok_or_else(|| err!(Malformed, "NAL unit of {len} bytes overruns its sample"))?;
             self.annexb.extend_from_slice(&[0, 0, 0, 1]);
             self.annexb.extend_from_slice(nal);
             rest = tail;
@@ -214,7 +218,7 @@ impl Mp4Source {
         Ok(())
     }
 
-    fn grey_from(lut: &[u8; 256], yuv: &openh264::decoder::DecodedYUV<'_>) -> anyhow::Result<GrayImage> {
+    fn grey_from(lut: &[u8; 256], yuv: &openh264::decoder::DecodedYUV<'_>) -> Result<GrayImage, SourceError> {
         use openh264::formats::YUVSource;
         let (w, h) = yuv.dimensions();
         crate::images::check_image_size(w as u64, h as u64).context("a decoded picture")?;
@@ -224,14 +228,14 @@ impl Mp4Source {
         for row in 0..h {
             let line = y
                 .get(row * stride..row * stride + w)
-                .ok_or_else(|| anyhow!("decoded picture smaller than its stated size"))?;
+                .ok_or_else(|| err!(Codec, "decoded picture smaller than its stated size"))?;
             out.extend(line.iter().map(|&v| lut[usize::from(v)]));
         }
         Ok(GrayImage::from_vec(out, w, h)?)
     }
 
     /// Feeds samples until a picture is ready or the track ends.
-    fn fill(&mut self) -> anyhow::Result<()> {
+    fn fill(&mut self) -> Result<(), SourceError> {
         while self.ready.is_empty() && self.next_sample <= self.sample_count {
             let id = self.next_sample;
             self.next_sample += 1;
@@ -251,7 +255,7 @@ impl Mp4Source {
             let picture = self
                 .decoder
                 .decode(&self.annexb)
-                .map_err(|e| anyhow!("decoding frame {id} of {}: {e}", self.path.display()))?;
+                .map_err(|e| err!(Codec, "decoding frame {id} of {}: {e}", self.path.display()))?;
             if let Some(p) = picture {
                 let img = Self::grey_from(&self.lut, &p)?;
                 self.ready.push_back(img);
@@ -262,8 +266,9 @@ impl Mp4Source {
             let rest = self
                 .decoder
                 .flush_remaining()
-                .map_err(|e| anyhow!("flushing the decoder of {}: {e}", self.path.display()))?;
-            let imgs: anyhow::Result<Vec<_>> = rest.iter().map(|p| Self::grey_from(&self.lut, p)).collect();
+                .map_err(|e| err!(Codec, "flushing the decoder of {}: {e}", self.path.display()))?;
+            let imgs: Result<Vec<_>, SourceError> =
+                rest.iter().map(|p| Self::grey_from(&self.lut, p)).collect();
             self.ready.extend(imgs?);
         }
         Ok(())
@@ -271,7 +276,7 @@ impl Mp4Source {
 }
 
 impl Mp4Source {
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         self.fill()?;
         let Some(image) = self.ready.pop_front() else {
             return Ok(None);
@@ -293,7 +298,7 @@ impl Mp4Source {
 
 impl FrameSource for Mp4Source {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 
@@ -323,20 +328,23 @@ impl std::fmt::Debug for Mp4Writer {
 impl Mp4Writer {
     /// Creates `path` for `width`×`height` frames (even sizes) at `fps`, at a bitrate that keeps a
     /// 640×480 face sequence visually lossless for the aligners (about 4 Mbit/s).
-    pub fn create(path: &Path, width: usize, height: usize, fps: u32) -> anyhow::Result<Self> {
+    pub fn create(path: &Path, width: usize, height: usize, fps: u32) -> Result<Self, SourceError> {
         use openh264::encoder::{BitRate, EncoderConfig, FrameRate, RateControlMode};
         if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
-            bail!("video frames must have even, non-zero sizes, got {width}x{height}");
+            fail!(
+                Usage,
+                "video frames must have even, non-zero sizes, got {width}x{height}"
+            );
         }
         if fps == 0 {
-            bail!("frame rate must be positive");
+            fail!(Usage, "frame rate must be positive");
         }
         let cfg = EncoderConfig::new()
             .bitrate(BitRate::from_bps(4_000_000))
             .max_frame_rate(FrameRate::from_hz(fps as f32))
             .rate_control_mode(RateControlMode::Quality);
         let encoder = openh264::encoder::Encoder::with_api_config(openh264::OpenH264API::from_source(), cfg)
-            .map_err(|e| anyhow!("starting the H.264 encoder: {e}"))?;
+            .map_err(|e| err!(Codec, "starting the H.264 encoder: {e}"))?;
         let file = Output::create(path)?;
         Ok(Self {
             path: path.to_path_buf(),
@@ -352,9 +360,10 @@ impl Mp4Writer {
     }
 
     /// Encodes one frame (full-range grey, stored as limited-range luma with neutral chroma).
-    pub fn push(&mut self, image: &GrayImage) -> anyhow::Result<()> {
+    pub fn push(&mut self, image: &GrayImage) -> Result<(), SourceError> {
         if (image.width(), image.height()) != (self.width, self.height) {
-            bail!(
+            fail!(
+                Usage,
                 "frame is {}x{}, the video is {}x{}",
                 image.width(),
                 image.height(),
@@ -373,10 +382,11 @@ impl Mp4Writer {
     /// Encodes one colour frame: `rgb` holds rows of `stride` RGB pixels (`stride` ≥ the video's width, at
     /// least the video's height rows); the top-left `width`×`height` is encoded (BT.601, limited range,
     /// 4:2:0), so an odd-sized picture fits a video one pixel smaller.
-    pub fn push_rgb(&mut self, rgb: &[u8], stride: usize) -> anyhow::Result<()> {
+    pub fn push_rgb(&mut self, rgb: &[u8], stride: usize) -> Result<(), SourceError> {
         let (w, h) = (self.width, self.height);
         if stride < w || rgb.len() < stride * 3 * h {
-            bail!(
+            fail!(
+                Usage,
                 "RGB frame of {} bytes with stride {stride} is smaller than the {w}x{h} video",
                 rgb.len()
             );
@@ -409,13 +419,13 @@ impl Mp4Writer {
     }
 
     /// Encodes the frame in `self.yuv` (I420) and appends it to the track.
-    fn encode_current(&mut self) -> anyhow::Result<()> {
+    fn encode_current(&mut self) -> Result<(), SourceError> {
         use openh264::formats::YUVBuffer;
         let yuv = YUVBuffer::from_vec(self.yuv.clone(), self.width, self.height);
         let stream = self
             .encoder
             .encode(&yuv)
-            .map_err(|e| anyhow!("encoding frame {}: {e}", self.frames))?;
+            .map_err(|e| err!(Codec, "encoding frame {}: {e}", self.frames))?;
         let sync = matches!(stream.frame_type(), openh264::encoder::FrameType::IDR);
         let (mut sps, mut pps, mut sample) = (Vec::new(), Vec::new(), Vec::new());
         for l in 0..stream.num_layers() {
@@ -427,7 +437,7 @@ impl Mp4Writer {
                     Some(7) => sps = nal.to_vec(),
                     Some(8) => pps = nal.to_vec(),
                     Some(_) => {
-                        let len = u32::try_from(nal.len()).context("NAL unit too large")?;
+                        let len = u32::try_from(nal.len()).map_err(|_| err!(Codec, "NAL unit too large"))?;
                         sample.extend_from_slice(&len.to_be_bytes());
                         sample.extend_from_slice(nal);
                     }
@@ -437,37 +447,43 @@ impl Mp4Writer {
         }
         if self.mux.is_none() {
             if sps.is_empty() || pps.is_empty() {
-                bail!("the encoder's first frame carries no SPS/PPS");
+                fail!(Codec, "the encoder's first frame carries no SPS/PPS");
             }
-            let file = self.file.take().context("writer already finished")?;
+            let file = self
+                .file
+                .take()
+                .ok_or_else(|| err!(Usage, "writer already finished"))?;
             let mut mux = mp4::Mp4Writer::write_start(
                 file,
                 &mp4::Mp4Config {
-                    major_brand: str::parse("isom").map_err(|e| anyhow!("{e}"))?,
+                    major_brand: str::parse("isom").map_err(|e| err!(Codec, "{e}"))?,
                     minor_version: 512,
                     compatible_brands: vec![
-                        str::parse("isom").map_err(|e| anyhow!("{e}"))?,
-                        str::parse("avc1").map_err(|e| anyhow!("{e}"))?,
+                        str::parse("isom").map_err(|e| err!(Codec, "{e}"))?,
+                        str::parse("avc1").map_err(|e| err!(Codec, "{e}"))?,
                     ],
                     timescale: 1000,
                 },
             )
-            .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
+            .map_err(|e| err!(Codec, "writing {}: {e}", self.path.display()))?;
             mux.add_track(&mp4::TrackConfig {
                 track_type: mp4::TrackType::Video,
                 timescale: self.fps * 1000,
                 language: "und".into(),
                 media_conf: mp4::MediaConfig::AvcConfig(mp4::AvcConfig {
-                    width: u16::try_from(self.width).context("video too wide")?,
-                    height: u16::try_from(self.height).context("video too tall")?,
+                    width: u16::try_from(self.width).map_err(|_| err!(Usage, "video too wide"))?,
+                    height: u16::try_from(self.height).map_err(|_| err!(Usage, "video too tall"))?,
                     seq_param_set: sps,
                     pic_param_set: pps,
                 }),
             })
-            .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
+            .map_err(|e| err!(Codec, "writing {}: {e}", self.path.display()))?;
             self.mux = Some(mux);
         }
-        let mux = self.mux.as_mut().context("writer already finished")?;
+        let mux = self
+            .mux
+            .as_mut()
+            .ok_or_else(|| err!(Usage, "writer already finished"))?;
         mux.write_sample(
             1,
             &mp4::Mp4Sample {
@@ -478,19 +494,19 @@ impl Mp4Writer {
                 bytes: sample.into(),
             },
         )
-        .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
+        .map_err(|e| err!(Codec, "writing {}: {e}", self.path.display()))?;
         self.frames += 1;
         Ok(())
     }
 
     /// Writes the index (`moov`) and closes the file; returns the number of frames.
-    pub fn finish(mut self) -> anyhow::Result<u64> {
+    pub fn finish(mut self) -> Result<u64, SourceError> {
         let mut mux = self
             .mux
             .take()
-            .with_context(|| format!("{}: no frames were written", self.path.display()))?;
+            .ok_or_else(|| err!(Empty, "{}: no frames were written", self.path.display()))?;
         mux.write_end()
-            .map_err(|e| anyhow!("writing {}: {e}", self.path.display()))?;
+            .map_err(|e| err!(Codec, "writing {}: {e}", self.path.display()))?;
         mux.into_writer().commit()?;
         Ok(self.frames)
     }

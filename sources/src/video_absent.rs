@@ -5,14 +5,16 @@
 use std::convert::Infallible;
 use std::path::Path;
 
+use crate::SourceError;
+use crate::error::fail;
 use crate::{FrameSource, SourceError};
-use anyhow::bail;
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_runtime::OwnedFrame;
 
-fn absent<T>(path: &Path) -> anyhow::Result<T> {
-    bail!(
+fn absent<T>(path: &Path) -> Result<T, SourceError> {
+    fail!(
+        Unsupported,
         "{}: this build has no MP4/H.264 support (holoface-sources without its `h264` feature; \
          build the tools with their default features)",
         path.display()
@@ -27,7 +29,7 @@ pub struct Mp4Source {
 
 impl Mp4Source {
     /// Fails: this build reads no MP4.
-    pub fn open(path: &Path, _intrinsics: Option<Intrinsics>) -> anyhow::Result<Self> {
+    pub fn open(path: &Path, _intrinsics: Option<Intrinsics>) -> Result<Self, SourceError> {
         absent(path)
     }
 
@@ -51,22 +53,22 @@ pub struct Mp4Writer {
 
 impl Mp4Writer {
     /// Fails: this build writes no MP4.
-    pub fn create(path: &Path, _width: usize, _height: usize, _fps: u32) -> anyhow::Result<Self> {
+    pub fn create(path: &Path, _width: usize, _height: usize, _fps: u32) -> Result<Self, SourceError> {
         absent(path)
     }
 
     /// Never called: no value of this type exists.
-    pub fn push(&mut self, _image: &GrayImage) -> anyhow::Result<()> {
+    pub fn push(&mut self, _image: &GrayImage) -> Result<(), SourceError> {
         match self.never {}
     }
 
     /// Never called: no value of this type exists.
-    pub fn push_rgb(&mut self, _rgb: &[u8], _stride: usize) -> anyhow::Result<()> {
+    pub fn push_rgb(&mut self, _rgb: &[u8], _stride: usize) -> Result<(), SourceError> {
         match self.never {}
     }
 
     /// Never called: no value of this type exists.
-    pub fn finish(self) -> anyhow::Result<u64> {
+    pub fn finish(self) -> Result<u64, SourceError> {
         match self.never {}
     }
 }

@@ -9,7 +9,7 @@
 
 use std::io::{BufRead, Read, Write};
 
-use anyhow::{Context, bail, ensure};
+use crate::error::{Context as _, ensure, fail};
 use holoface_models::camera::Intrinsics;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Pose;
@@ -38,7 +38,7 @@ pub struct Y4mHeader {
 }
 
 /// Reads one `\n`-terminated line of at most [`MAX_HEADER`] bytes; `Ok(None)` at a clean end of the stream.
-fn read_line(r: &mut impl BufRead, what: &str) -> anyhow::Result<Option<Vec<u8>>> {
+fn read_line(r: &mut impl BufRead, what: &str) -> Result<Option<Vec<u8>>, SourceError> {
     let mut line = Vec::new();
     let n = Read::take(&mut *r, MAX_HEADER as u64 + 1)
         .read_until(b'\n', &mut line)
@@ -48,9 +48,9 @@ fn read_line(r: &mut impl BufRead, what: &str) -> anyhow::Result<Option<Vec<u8>>
     }
     if line.last() != Some(&b'\n') {
         if line.len() > MAX_HEADER {
-            bail!("{what} longer than {MAX_HEADER} bytes");
+            fail!(Malformed, "{what} longer than {MAX_HEADER} bytes");
         }
-        bail!("{what} truncated (the stream ends before its newline)");
+        fail!(Malformed, "{what} truncated (the stream ends before its newline)");
     }
     line.pop();
     Ok(Some(line))
@@ -58,11 +58,12 @@ fn read_line(r: &mut impl BufRead, what: &str) -> anyhow::Result<Option<Vec<u8>>
 
 impl Y4mHeader {
     /// Parses the stream header line (without its newline).
-    pub fn parse(line: &[u8]) -> anyhow::Result<Self> {
+    pub fn parse(line: &[u8]) -> Result<Self, SourceError> {
         let text = std::str::from_utf8(line).context("the YUV4MPEG2 header is not ASCII")?;
         let mut fields = text.split(' ').filter(|f| !f.is_empty());
         ensure!(
             fields.next().map(str::as_bytes) == Some(MAGIC),
+            Malformed,
             "not a YUV4MPEG2 stream (the header starts {:?}, expected \"YUV4MPEG2 \")",
             text.chars().take(16).collect::<String>()
         );
@@ -92,7 +93,7 @@ impl Y4mHeader {
                         n.parse().with_context(|| format!("frame rate {value:?}"))?,
                         d.parse().with_context(|| format!("frame rate {value:?}"))?,
                     );
-                    ensure!(n > 0 && d > 0, "frame rate {value} must be positive");
+                    ensure!(n > 0 && d > 0, Malformed, "frame rate {value} must be positive");
                     fps = Some((n, d));
                 }
                 "C" => colour = value,
@@ -104,6 +105,7 @@ impl Y4mHeader {
         let height = height.context("the YUV4MPEG2 header has no height (H)")?;
         ensure!(
             (1..=MAX_SIDE).contains(&width) && (1..=MAX_SIDE).contains(&height),
+            Malformed,
             "frame size {width}x{height}: each side must be within 1..={MAX_SIDE}"
         );
         crate::images::check_image_size(width as u64, height as u64).context("the YUV4MPEG2 frame size")?;
@@ -115,7 +117,8 @@ impl Y4mHeader {
             "422" => 2 * cw * height,
             "444" => 2 * width * height,
             "444alpha" => 3 * width * height,
-            c => bail!(
+            c => fail!(
+                Unsupported,
                 "colour space C{c} is not supported (8-bit mono, 420, 411, 422 or 444; ffmpeg: -pix_fmt gray)"
             ),
         };
@@ -172,13 +175,14 @@ impl<R: BufRead> Y4mSource<R> {
         name: &str,
         default_fps: f64,
         intrinsics: Option<Intrinsics>,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self, SourceError> {
         let line = read_line(&mut reader, "YUV4MPEG2 header")
             .and_then(|l| l.context("the stream is empty (no YUV4MPEG2 header)"))
             .and_then(|l| Y4mHeader::parse(&l))
             .with_context(|| format!("{name}: YUV4MPEG2 stream header"))?;
         ensure!(
             default_fps.is_finite() && default_fps > 0.0,
+            Usage,
             "frame rate {default_fps} must be positive"
         );
         // Microseconds per frame as a fraction, so long streams do not drift.
@@ -203,12 +207,13 @@ impl<R: BufRead> Y4mSource<R> {
         self.header
     }
 
-    fn read_frame(&mut self) -> anyhow::Result<Option<GrayImage>> {
+    fn read_frame(&mut self) -> Result<Option<GrayImage>, SourceError> {
         let Some(marker) = read_line(&mut self.reader, "frame header")? else {
             return Ok(None);
         };
         ensure!(
             marker.starts_with(b"FRAME") && matches!(marker.get(5), None | Some(b' ')),
+            Malformed,
             "expected a FRAME marker, got {:?}",
             String::from_utf8_lossy(&marker[..marker.len().min(16)])
         );
@@ -217,6 +222,7 @@ impl<R: BufRead> Y4mSource<R> {
         let got = read_full(&mut self.reader, &mut luma)?;
         ensure!(
             got == luma.len(),
+            Malformed,
             "truncated: the stream ends after {got} of the {} luma bytes",
             luma.len()
         );
@@ -224,6 +230,7 @@ impl<R: BufRead> Y4mSource<R> {
         let got = read_full(&mut self.reader, &mut self.skip)?;
         ensure!(
             got == self.skip.len(),
+            Malformed,
             "truncated: the stream ends after {got} of the {} chroma bytes",
             self.skip.len()
         );
@@ -232,7 +239,7 @@ impl<R: BufRead> Y4mSource<R> {
 }
 
 impl<R: BufRead> Y4mSource<R> {
-    fn read_next(&mut self) -> anyhow::Result<Option<OwnedFrame>> {
+    fn read_next(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
         if self.done {
             return Ok(None);
         }
@@ -258,7 +265,7 @@ impl<R: BufRead> Y4mSource<R> {
 
 impl<R: BufRead> FrameSource for Y4mSource<R> {
     fn next_frame(&mut self) -> Result<Option<OwnedFrame>, SourceError> {
-        self.read_next().map_err(crate::source_error)
+        self.read_next()
     }
 }
 
@@ -272,12 +279,23 @@ pub struct Y4mWriter<W: Write> {
 
 impl<W: Write> Y4mWriter<W> {
     /// Writes the stream header: `width`x`height` at `fps_num / fps_den` frames per second.
-    pub fn new(mut out: W, width: usize, height: usize, fps_num: u32, fps_den: u32) -> anyhow::Result<Self> {
+    pub fn new(
+        mut out: W,
+        width: usize,
+        height: usize,
+        fps_num: u32,
+        fps_den: u32,
+    ) -> Result<Self, SourceError> {
         ensure!(
             (1..=MAX_SIDE).contains(&width) && (1..=MAX_SIDE).contains(&height),
+            Usage,
             "frame size {width}x{height}"
         );
-        ensure!(fps_num > 0 && fps_den > 0, "frame rate {fps_num}:{fps_den}");
+        ensure!(
+            fps_num > 0 && fps_den > 0,
+            Usage,
+            "frame rate {fps_num}:{fps_den}"
+        );
         writeln!(
             out,
             "YUV4MPEG2 W{width} H{height} F{fps_num}:{fps_den} Ip A1:1 Cmono"
@@ -286,9 +304,10 @@ impl<W: Write> Y4mWriter<W> {
     }
 
     /// Appends one frame; it must have the stream's size.
-    pub fn push(&mut self, image: &GrayImage) -> anyhow::Result<()> {
+    pub fn push(&mut self, image: &GrayImage) -> Result<(), SourceError> {
         ensure!(
             (image.width(), image.height()) == (self.width, self.height),
+            Usage,
             "frame {}x{} in a {}x{} stream",
             image.width(),
             image.height(),
@@ -304,7 +323,7 @@ impl<W: Write> Y4mWriter<W> {
     }
 
     /// Flushes and returns the writer.
-    pub fn finish(mut self) -> anyhow::Result<W> {
+    pub fn finish(mut self) -> Result<W, SourceError> {
         self.out.flush()?;
         Ok(self.out)
     }
@@ -333,7 +352,7 @@ mod tests {
         wr.finish().unwrap()
     }
 
-    fn read_all(bytes: Vec<u8>) -> anyhow::Result<Vec<OwnedFrame>> {
+    fn read_all(bytes: Vec<u8>) -> Result<Vec<OwnedFrame>, SourceError> {
         let mut src = Y4mSource::new(Cursor::new(bytes), "test.y4m", 30.0, None)?;
         let mut out = Vec::new();
         while let Some(f) = src.next_frame()? {

@@ -40,7 +40,9 @@ fn pose(i: usize) -> Pose {
     }
 }
 
-fn read_all(src: &mut dyn FrameSource) -> anyhow::Result<Vec<holoface_runtime::OwnedFrame>> {
+fn read_all(
+    src: &mut dyn FrameSource,
+) -> Result<Vec<holoface_runtime::OwnedFrame>, holoface_sources::SourceError> {
     let mut out = Vec::new();
     while let Some(f) = src.next_frame()? {
         out.push(f);

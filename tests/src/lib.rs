@@ -111,7 +111,7 @@ pub fn ort_dylib_path() -> PathBuf {
         .collect();
     candidates.push(
         root.join(".cache/holoface")
-            .join(holoface_inference::home::ORT_LIBRARY.file),
+            .join(holoface_files::home::ORT_LIBRARY.file),
     );
     candidates
         .push(root.join(".venv/lib/python3.11/site-packages/onnxruntime/capi/libonnxruntime.so.1.31.1"));

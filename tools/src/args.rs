@@ -246,7 +246,11 @@ pub struct SourceArgs {
 impl SourceArgs {
     /// Opens the source.
     pub fn open(&self) -> anyhow::Result<Box<dyn holoface_sources::FrameSource>> {
-        holoface_sources::source::open_source(&self.source, self.fps, self.poses.as_deref())
+        Ok(holoface_sources::source::open_source(
+            &self.source,
+            self.fps,
+            self.poses.as_deref(),
+        )?)
     }
 
     /// Whether the frames come from standard input (a live stream).

@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail, ensure};
 use holoface_models::geometry::Point2;
-use holoface_protocol::framing::{self, FileKind, FormatError};
+use holoface_protocol::framing::{self, Format, FormatError};
 use serde::{Deserialize, Serialize};
 
 use crate::data::Sample;
@@ -25,7 +25,7 @@ use crate::data::Sample;
 /// Largest label file read (a 45,000-face collection is about 25 MB).
 pub const MAX_FILE_BYTES: u64 = 512 << 20;
 /// Label files in the one framing.
-pub const FILE: FileKind = FileKind {
+pub const FILE: Format = Format {
     name: "teacher labels",
     magic: *b"HFLABELS",
     oldest: 2,

@@ -240,10 +240,7 @@ fn installed_binaries_find_their_assets_in_the_data_folder_after_setup() {
     // (the checkout's Makefile does): then it says which one the runtime reads.
     std::fs::remove_file(data.join("candide3.wfm")).unwrap();
     let (ok, text) = output(installed(&cli, &home, &work).arg("setup"));
-    assert!(
-        ok && text.contains(holoface_inference::home::CANDIDE.setup),
-        "{text}"
-    );
+    assert!(ok && text.contains(holoface_files::home::CANDIDE.setup), "{text}");
     let (ok, text) = output(
         installed(&cli, &home, &work)
             .arg("setup")
@@ -252,7 +249,7 @@ fn installed_binaries_find_their_assets_in_the_data_folder_after_setup() {
     assert!(
         ok && text.contains("$HOLOFACE_CANDIDE")
             && text.contains(candide.to_str().unwrap())
-            && !text.contains(holoface_inference::home::CANDIDE.setup),
+            && !text.contains(holoface_files::home::CANDIDE.setup),
         "{text}"
     );
     let _ = std::fs::remove_dir_all(&root);

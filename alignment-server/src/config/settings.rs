@@ -5,7 +5,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use holoface_inference::files::read_text_bounded;
+use holoface_files::read_text_bounded;
 use holoface_inference::{OnnxOptions, PrecisionChoice, Provider};
 use holoface_protocol::ReplyChannel;
 

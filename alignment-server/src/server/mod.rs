@@ -188,17 +188,14 @@ impl AlignmentServer {
         let instances = settings.engine_instances.max(1);
         let refine_path = settings.refine_model.clone();
         // The server's own names for the files it loads, in its messages.
-        const OPTIONS: &[(holoface_inference::home::Asset, &str)] = &[
-            (holoface_inference::home::DAN, "engine.model / --model"),
+        const OPTIONS: &[(holoface_files::home::Asset, &str)] = &[
+            (holoface_files::home::DAN, "engine.model / --model"),
+            (holoface_files::home::DAN_INT8, "engine.int8_model / --int8-model"),
             (
-                holoface_inference::home::DAN_INT8,
-                "engine.int8_model / --int8-model",
-            ),
-            (
-                holoface_inference::home::ORT_LIBRARY,
+                holoface_files::home::ORT_LIBRARY,
                 "engine.ort_dylib / --ort-dylib",
             ),
-            (holoface_inference::home::REFINER, "refine.model / --refine-model"),
+            (holoface_files::home::REFINER, "refine.model / --refine-model"),
         ];
         let (decision, engines) = tokio::task::spawn_blocking(move || {
             let mut decision = decision;

@@ -28,7 +28,7 @@
 //! reached exactly once, children after parents). A bad file is a [`ModelError`], never a panic.
 
 use half::f16;
-use holoface_protocol::framing::{self, Damage, FileKind, FormatError, PayloadReader};
+use holoface_protocol::framing::{self, Damage, Format, FormatError, PayloadReader};
 use thiserror::Error;
 
 use super::{DELTA_DIM, FAILURE_DIM, FailureModel, Krfws, N_POINTS, Node, Stage, Tree};
@@ -42,7 +42,7 @@ pub const FORMAT_VERSION: u32 = 1;
 /// Largest accepted payload (256 MiB).
 pub const MAX_PAYLOAD: u32 = 256 << 20;
 /// The file in the one framing ([`holoface_protocol::framing`]), whose layout is this format's v1.
-pub const FILE: FileKind = FileKind {
+pub const FILE: Format = Format {
     name: "KRFWS model",
     magic: MAGIC,
     oldest: FORMAT_VERSION,

@@ -29,7 +29,7 @@
 //! against the bytes left before anything is allocated; every index and float is validated, so a damaged
 //! file is a [`FormatError`] naming the field, never a panic.
 
-use holoface_protocol::framing::{self, FileKind, FormatError, PayloadReader};
+use holoface_protocol::framing::{self, Format, FormatError, PayloadReader};
 
 use super::{
     REFINE_LANDMARKS, RefineCascade, RefineError, RefineStage, RegressionTree, SHAPE_DIM, Sampling, SplitTest,
@@ -41,7 +41,7 @@ pub const MAGIC: &[u8; 8] = b"HFREFINE";
 /// Newest format version (3: the payload's length in the header; 2 added the sampling byte).
 pub const FORMAT_VERSION: u32 = 3;
 /// The file in the one framing.
-pub const FILE: FileKind = FileKind {
+pub const FILE: Format = Format {
     name: "refiner model",
     magic: *MAGIC,
     oldest: 1,

@@ -256,7 +256,7 @@ impl Scene {
         if path == Path::new("default") {
             return Self::parse(DEFAULT_SCENE).context("the shipped scene");
         }
-        let bytes = holoface_inference::files::read_bounded(path, MAX_SCENE_BYTES, "scene file")?;
+        let bytes = holoface_files::read_bounded(path, MAX_SCENE_BYTES, "scene file")?;
         let text =
             String::from_utf8(bytes).map_err(|_| anyhow::anyhow!("{}: not UTF-8 text", path.display()))?;
         Self::parse(&text).with_context(|| format!("scene file {}", path.display()))

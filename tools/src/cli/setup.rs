@@ -233,7 +233,7 @@ fn record_sha256(path: &Path, sha: &str) -> anyhow::Result<()> {
     if std::fs::read_to_string(&side).is_ok_and(|t| t == text) {
         return Ok(());
     }
-    write_atomic(&side, text)
+    Ok(write_atomic(&side, text)?)
 }
 
 fn report(file: &str, what: &str, path: &Path) {
@@ -455,7 +455,7 @@ fn install_candide(from: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
         }
         return Ok(());
     };
-    let bytes = holoface_inference::files::read_bounded(from, home::CANDIDE.max_bytes, home::CANDIDE.name)?;
+    let bytes = holoface_files::read_bounded(from, home::CANDIDE.max_bytes, home::CANDIDE.name)?;
     holoface_runtime::assets::parse_face_model(&bytes, from)?;
     install(&dest, &bytes)?;
     report(home::CANDIDE.file, "installed", &dest);

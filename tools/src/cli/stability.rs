@@ -37,7 +37,7 @@ fn parse_named_peer(s: &str) -> Result<(String, PathBuf), String> {
 
 /// Reads a per-frame landmark file in the peer's format.
 fn read_peer(p: &std::path::Path) -> anyhow::Result<Vec<Landmarks>> {
-    let bytes = holoface_inference::files::read_bounded(p, 256 << 20, "peer landmarks")?;
+    let bytes = holoface_files::read_bounded(p, 256 << 20, "peer landmarks")?;
     parse_peer(&String::from_utf8_lossy(&bytes)).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
 }
 
@@ -507,10 +507,8 @@ fn write_plot(
             points: running_mean(jitter49(p)),
         });
     }
-    write_atomic(
-        plot,
-        crate::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)"),
-    )
+    let png = crate::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)");
+    Ok(write_atomic(plot, png)?)
 }
 
 /// One aligner's tracker (a remote one with its own in-process server, behind the relay that cuts the link

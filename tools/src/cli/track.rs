@@ -525,7 +525,7 @@ impl Frames {
         match self {
             Self::Pngs(dir, _) => {
                 let path = dir.join(format!("frame_{index:06}.png"));
-                write_atomic(&path, canvas.to_png())
+                Ok(write_atomic(&path, canvas.to_png())?)
             }
             Self::Video {
                 path, fps, writer, ..

@@ -1,7 +1,7 @@
 //! The refiner's training crops: starts perturbed as tracking and detection leave them, image augmentation, the
 //! wire's JPEG round trip, DAN's answers on them (batched), and the cache of those answers.
 
-use holoface_protocol::framing::{Damage, FileKind, FramedReader, FramedWriter, StreamError};
+use holoface_protocol::framing::{Damage, Format, FramedReader, FramedWriter, StreamError};
 
 use super::*;
 
@@ -9,7 +9,7 @@ use super::*;
 pub(super) const WIRE: CropCodec = CropCodec::Jpeg { quality: 75 };
 /// The cache of DAN's answers, in the one framing (version 3 follows the unframed `HFRDATA2`, which is made
 /// again): payload `u16` key length + key, `u64` crop count, then per crop its pixels and 2 x 68 (x, y) `f32`.
-pub(super) const CACHE: FileKind = FileKind {
+pub(super) const CACHE: Format = Format {
     name: "refiner training cache",
     magic: *b"HFRDATA\0",
     oldest: 3,

@@ -207,7 +207,7 @@ impl Asset {
 }
 
 /// An asset that is not where it was looked for: the one "missing asset" error of every crate (the runtime's
-/// `AssetError` and `DetectError`, [`crate::EngineError`]). The message names the asset, the path, why that
+/// `AssetError` and `DetectError`, the inference crate's `EngineError`). The message names the asset, the path, why that
 /// path (given explicitly, named by its environment variable, or the data folder's default) and the command
 /// that fixes it.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
