@@ -20,7 +20,9 @@ pub enum CropCodec {
 impl Default for CropCodec {
     /// [`crate::defaults::CROP_ENCODING`]: JPEG q75.
     fn default() -> Self {
-        Self::Jpeg { quality: 75 }
+        Self::Jpeg {
+            quality: crate::defaults::CROP_JPEG_QUALITY,
+        }
     }
 }
 

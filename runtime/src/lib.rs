@@ -47,6 +47,8 @@ pub mod defaults {
     pub const LOOKAHEAD_MS: f64 = 120.0;
     /// Crop encoding on the wire: JPEG q75, within 3.3 KB per frame at +1 % relative NME (BENCHMARKS.md).
     pub const CROP_ENCODING: &str = "jpeg:75";
+    /// The quality of [`CROP_ENCODING`] (`CropCodec::default()`; a test keeps the two equal).
+    pub const CROP_JPEG_QUALITY: u8 = 75;
     /// Faces tracked at once.
     pub const MAX_FACES: usize = 1;
     /// While some but fewer than `max_faces` faces are tracked, the detector runs every this many frames.

@@ -40,8 +40,7 @@ pub(crate) fn recording(dir: &Path) -> PathBuf {
         let crop = image::imageops::crop_imm(&photo, 150 + k, 60 + k / 2, 180, 180).to_image();
         let crop = image::imageops::resize(&crop, 112, 112, image::imageops::FilterType::Triangle);
         let wire =
-            holoface_runtime::crop_codec::encode(CropCodec::Jpeg { quality: 75 }, crop.as_raw(), 112, 112)
-                .unwrap();
+            holoface_runtime::crop_codec::encode(CropCodec::default(), crop.as_raw(), 112, 112).unwrap();
         w.write_record(&FrameRecord {
             timestamp_us: u64::from(k) * 33_333,
             camera_to_world: [

@@ -6,7 +6,9 @@ use holoface_protocol::framing::{Damage, Format, FramedReader, FramedWriter, Str
 use super::*;
 
 /// The wire encoding every crop goes through (the client's default).
-pub(super) const WIRE: CropCodec = CropCodec::Jpeg { quality: 75 };
+pub(super) const WIRE: CropCodec = CropCodec::Jpeg {
+    quality: holoface_runtime::defaults::CROP_JPEG_QUALITY,
+};
 /// The cache of DAN's answers, in the one framing (version 3 follows the unframed `HFRDATA2`, which is made
 /// again): payload `u16` key length + key, `u64` crop count, then per crop its pixels and 2 x 68 (x, y) `f32`.
 pub(super) const CACHE: Format = Format {
