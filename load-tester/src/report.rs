@@ -409,7 +409,8 @@ fn write_report(args: &Args, report: &serde_json::Value) -> anyhow::Result<()> {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         }
     }
-    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(report)?)?;
+    let temporaries = holoface_sources::output::Temporaries::new();
+    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(report)?, &temporaries)?;
     let series = |key: &str, label: &str| Series {
         label: label.to_owned(),
         points: report["timeline"]
@@ -428,7 +429,7 @@ fn write_report(args: &Args, report: &serde_json::Value) -> anyhow::Result<()> {
         "time s",
         "latency ms",
     );
-    holoface_sources::output::write_atomic(&args.plot, png)?;
+    holoface_sources::output::write_atomic(&args.plot, png, &holoface_sources::output::Temporaries::new())?;
     println!("wrote {} and {}", args.out.display(), args.plot.display());
     Ok(())
 }

@@ -63,7 +63,8 @@ pub(crate) fn install_candide(py: Python<'_>, path: PathBuf) -> PyResult<PathBuf
     py.detach(|| -> Result<(), String> {
         let bytes = std::fs::read(&path).map_err(|e| format!("reading {}: {e}", path.display()))?;
         holoface_headset_client::assets::parse_face_model(&bytes, &path).map_err(|e| e.to_string())?;
-        holoface_sources::output::write_atomic(&dest, bytes).map_err(|e| format!("{e:#}"))
+        holoface_sources::output::write_atomic(&dest, bytes, &holoface_sources::output::Temporaries::new())
+            .map_err(|e| format!("{e:#}"))
     })
     .map_err(AssetError::new_err)?;
     Ok(dest)

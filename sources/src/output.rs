@@ -20,29 +20,42 @@ use std::path::{Path, PathBuf};
 use crate::SourceError;
 use crate::error::Context as _;
 
-/// The temporary files of every [`Output`] alive in this process.
-static TEMPORARIES: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+/// The temporary files of the whole-or-nothing [`Output`]s a process has not committed yet. A signal that ends
+/// the process at once skips every destructor, so the binary makes one registry, hands it to each
+/// [`Output::create`] and to its signal handler, which removes what is left ([`Temporaries::remove_all`]); no
+/// library keeps the list in a global. Clones share one list.
+#[derive(Clone, Debug, Default)]
+pub struct Temporaries(std::sync::Arc<std::sync::Mutex<Vec<PathBuf>>>);
 
-fn temporaries() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
-    TEMPORARIES
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-fn forget(tmp: &Path) {
-    temporaries().retain(|p| p != tmp);
-}
-
-/// Removes the temporary files of every [`Output`] not yet committed (an interrupted command's); returns how
-/// many there were.
-pub fn remove_temporaries() -> usize {
-    let mut list = temporaries();
-    for p in list.iter() {
-        let _ = std::fs::remove_file(p);
+impl Temporaries {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Self::default()
     }
-    let n = list.len();
-    list.clear();
-    n
+
+    fn list(&self) -> std::sync::MutexGuard<'_, Vec<PathBuf>> {
+        self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn add(&self, tmp: &Path) {
+        self.list().push(tmp.to_path_buf());
+    }
+
+    fn forget(&self, tmp: &Path) {
+        self.list().retain(|p| p != tmp);
+    }
+
+    /// Removes the temporary files of every [`Output`] not yet committed (an interrupted command's); returns
+    /// how many there were.
+    pub fn remove_all(&self) -> usize {
+        let mut list = self.list();
+        for p in list.iter() {
+            let _ = std::fs::remove_file(p);
+        }
+        let n = list.len();
+        list.clear();
+        n
+    }
 }
 
 /// The temporary-file name of `name` written by process `pid`: visible, so that what a killed run leaves is
@@ -87,15 +100,6 @@ pub fn stale_temporaries(path: &Path) -> Vec<PathBuf> {
     found
 }
 
-/// Whether an [`Output::live`] writes to standard output: then standard output carries data only, and the
-/// commands print their human messages to standard error.
-static STDOUT_CARRIES_DATA: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Whether standard output carries a command's data (`--out -`).
-pub fn stdout_carries_data() -> bool {
-    STDOUT_CARRIES_DATA.load(std::sync::atomic::Ordering::Relaxed)
-}
-
 /// A file being written; see the module docs.
 #[derive(Debug)]
 pub struct Output {
@@ -104,13 +108,16 @@ pub struct Output {
     /// (`/dev/null`, `/dev/stdout`, a pipe), which cannot be replaced by a rename.
     tmp: Option<PathBuf>,
     file: Option<BufWriter<File>>,
+    /// Where the temporary file is registered until it is committed or dropped.
+    temporaries: Temporaries,
 }
 
 impl Output {
     /// Starts writing `path` (its folder is created if missing). A symbolic link is followed: the file it
     /// points to is replaced, not the link. A destination that exists and is not a regular file (a device,
-    /// a pipe) is written to directly.
-    pub fn create(path: &Path) -> Result<Self, SourceError> {
+    /// a pipe) is written to directly. The temporary file is registered in `temporaries` until the output is
+    /// committed or dropped.
+    pub fn create(path: &Path, temporaries: &Temporaries) -> Result<Self, SourceError> {
         if let Ok(meta) = std::fs::metadata(path)
             && !meta.is_file()
         {
@@ -122,6 +129,7 @@ impl Output {
                 path: path.to_path_buf(),
                 tmp: None,
                 file: Some(BufWriter::new(file)),
+                temporaries: Temporaries::new(),
             });
         }
         let path = &std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
@@ -140,7 +148,7 @@ impl Output {
             );
         }
         let tmp = path.with_file_name(tmp_name(name, std::process::id()));
-        temporaries().push(tmp.clone());
+        temporaries.add(&tmp);
         let file = File::create(&tmp).with_context(|| {
             format!(
                 "writing {} (its temporary file {})",
@@ -152,12 +160,14 @@ impl Output {
             path: path.to_path_buf(),
             tmp: Some(tmp),
             file: Some(BufWriter::new(file)),
+            temporaries: temporaries.clone(),
         })
     }
 
     /// Starts a journal at `path`, for a run whose source has no end (a camera): the file is created (or
     /// truncated) under its real name and written one frame at a time ([`Output::end_frame`]); `-` is standard
-    /// output. Nothing is renamed or removed later: a stopped or killed run leaves every whole frame it wrote.
+    /// output ([`Output::is_stdout`]: the command then prints its messages to standard error). Nothing is renamed
+    /// or removed later: a stopped or killed run leaves every whole frame it wrote.
     pub fn live(path: &Path) -> Result<Self, SourceError> {
         if path == Path::new("-") {
             use std::os::fd::AsFd as _;
@@ -165,11 +175,11 @@ impl Output {
                 .as_fd()
                 .try_clone_to_owned()
                 .context("standard output")?;
-            STDOUT_CARRIES_DATA.store(true, std::sync::atomic::Ordering::Relaxed);
             return Ok(Self {
                 path: path.to_path_buf(),
                 tmp: None,
                 file: Some(BufWriter::new(File::from(fd))),
+                temporaries: Temporaries::new(),
             });
         }
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -180,6 +190,7 @@ impl Output {
             path: path.to_path_buf(),
             tmp: None,
             file: Some(BufWriter::new(file)),
+            temporaries: Temporaries::new(),
         })
     }
 
@@ -187,6 +198,11 @@ impl Output {
     pub fn end_frame(&mut self, bytes: &[u8]) -> std::io::Result<()> {
         self.write_all(bytes)?;
         self.flush()
+    }
+
+    /// Whether this is a journal on standard output (`-`).
+    pub fn is_stdout(&self) -> bool {
+        self.tmp.is_none() && self.path == Path::new("-")
     }
 
     /// Where the file will be once committed.
@@ -202,7 +218,7 @@ impl Output {
             if result.is_err() {
                 let _ = std::fs::remove_file(tmp);
             }
-            forget(tmp);
+            self.temporaries.forget(tmp);
         }
         result
     }
@@ -262,14 +278,18 @@ impl Drop for Output {
             && let Some(tmp) = &self.tmp
         {
             let _ = std::fs::remove_file(tmp);
-            forget(tmp);
+            self.temporaries.forget(tmp);
         }
     }
 }
 
-/// Writes `bytes` to `path` whole or not at all.
-pub fn write_atomic(path: &Path, bytes: impl AsRef<[u8]>) -> Result<(), SourceError> {
-    let mut out = Output::create(path)?;
+/// Writes `bytes` to `path` whole or not at all (the temporary file registered in `temporaries` meanwhile).
+pub fn write_atomic(
+    path: &Path,
+    bytes: impl AsRef<[u8]>,
+    temporaries: &Temporaries,
+) -> Result<(), SourceError> {
+    let mut out = Output::create(path, temporaries)?;
     out.write_all(bytes.as_ref())
         .with_context(|| format!("writing {}", path.display()))?;
     out.commit()
@@ -280,14 +300,6 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
 
-    /// The temporary-file registry is process-wide and `remove_temporaries` empties it: the tests that create
-    /// outputs take turns, so that one test's interrupt does not remove another's file.
-    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-    fn turn() -> std::sync::MutexGuard<'static, ()> {
-        TURN.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
-
     fn dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("holoface-output-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
@@ -296,17 +308,17 @@ mod tests {
 
     #[test]
     fn a_committed_output_appears_whole_and_an_abandoned_one_not_at_all() {
-        let _turn = turn();
+        let temps = Temporaries::new();
         let d = dir("commit");
         let path = d.join("sub/out.jsonl");
-        let mut out = Output::create(&path).unwrap();
+        let mut out = Output::create(&path, &temps).unwrap();
         out.write_all(b"line 1\n").unwrap();
         assert!(!path.exists(), "nothing at the destination before the commit");
         out.commit().unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), b"line 1\n");
 
         let abandoned = d.join("sub/failed.hfrec");
-        let mut out = Output::create(&abandoned).unwrap();
+        let mut out = Output::create(&abandoned, &temps).unwrap();
         out.write_all(b"half a header").unwrap();
         drop(out);
         assert!(!abandoned.exists());
@@ -320,24 +332,24 @@ mod tests {
             "no temporary file left"
         );
 
-        write_atomic(&path, b"replaced").unwrap();
+        write_atomic(&path, b"replaced", &temps).unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), b"replaced");
 
         // A symbolic link is followed: its target is replaced, the link stays.
         let link = d.join("link.jsonl");
         std::os::unix::fs::symlink(&path, &link).unwrap();
-        write_atomic(&link, b"through the link").unwrap();
+        write_atomic(&link, b"through the link", &temps).unwrap();
         assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
         assert_eq!(std::fs::read(&path).unwrap(), b"through the link");
         // A device is written to, not replaced.
-        write_atomic(Path::new("/dev/null"), b"gone").unwrap();
+        write_atomic(Path::new("/dev/null"), b"gone", &temps).unwrap();
         assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
         std::fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]
     fn a_killed_runs_temporary_file_is_kept_and_this_runs_own_are_removed_on_interrupt() {
-        let _turn = turn();
+        let temps = Temporaries::new();
         let d = dir("interrupted");
         std::fs::create_dir_all(&d).unwrap();
         let path = d.join("o.jsonl");
@@ -347,13 +359,17 @@ mod tests {
         let live = d.join(format!("o.jsonl.partial-{}", std::process::id()));
         std::fs::write(&dead, b"half").unwrap();
         assert_eq!(stale_temporaries(&path), vec![dead.clone()]);
-        let mut out = Output::create(&path).unwrap();
+        let mut out = Output::create(&path, &temps).unwrap();
         assert!(dead.exists(), "another run's temporary file is kept");
         assert!(live.exists(), "this process's own temporary file is not stale");
         assert_eq!(stale_temporaries(&path), vec![dead.clone()], "ours is not stale");
         out.write_all(b"partial").unwrap();
         // Ctrl-C in a whole-or-nothing command: the handler removes this process's temporary files.
-        assert!(remove_temporaries() >= 1);
+        assert_eq!(
+            temps.clone().remove_all(),
+            1,
+            "the registry's clones share one list"
+        );
         assert!(!live.exists());
         drop(out);
         assert!(dead.exists());
@@ -366,10 +382,10 @@ mod tests {
 
     #[test]
     fn a_live_output_holds_every_whole_frame_under_its_name_as_it_is_written() {
-        let _turn = turn();
         let d = dir("live");
         let path = d.join("sub/live.jsonl");
         let mut out = Output::live(&path).unwrap();
+        let out_is_stdout = out.is_stdout();
         assert!(path.exists(), "under its real name from the start");
         out.end_frame(b"{\"frame\":0}\n").unwrap();
         assert_eq!(
@@ -381,15 +397,15 @@ mod tests {
         // Dropped without a commit (a stop, an error): nothing is removed.
         drop(out);
         assert_eq!(std::fs::read(&path).unwrap(), b"{\"frame\":0}\n{\"frame\":1}\n");
-        assert!(!stdout_carries_data(), "a file is not standard output");
+        assert!(!out_is_stdout, "a file is not standard output");
         std::fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]
     fn a_write_error_names_the_file() {
-        let _turn = turn();
+        let temps = Temporaries::new();
         // /dev/full: every write fails with "no space left on device", as on a full disk.
-        let mut out = Output::create(Path::new("/dev/full")).unwrap();
+        let mut out = Output::create(Path::new("/dev/full"), &temps).unwrap();
         let err = out
             .write_all(&[0u8; 1 << 16])
             .and_then(|()| out.flush())

@@ -328,7 +328,13 @@ impl std::fmt::Debug for Mp4Writer {
 impl Mp4Writer {
     /// Creates `path` for `width`×`height` frames (even sizes) at `fps`, at a bitrate that keeps a
     /// 640×480 face sequence visually lossless for the aligners (about 4 Mbit/s).
-    pub fn create(path: &Path, width: usize, height: usize, fps: u32) -> Result<Self, SourceError> {
+    pub fn create(
+        path: &Path,
+        width: usize,
+        height: usize,
+        fps: u32,
+        temporaries: &crate::output::Temporaries,
+    ) -> Result<Self, SourceError> {
         use openh264::encoder::{BitRate, EncoderConfig, FrameRate, RateControlMode};
         if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
             fail!(
@@ -345,7 +351,7 @@ impl Mp4Writer {
             .rate_control_mode(RateControlMode::Quality);
         let encoder = openh264::encoder::Encoder::with_api_config(openh264::OpenH264API::from_source(), cfg)
             .map_err(|e| err!(Codec, "starting the H.264 encoder: {e}"))?;
-        let file = Output::create(path)?;
+        let file = Output::create(path, temporaries)?;
         Ok(Self {
             path: path.to_path_buf(),
             width,

@@ -53,7 +53,13 @@ pub struct Mp4Writer {
 
 impl Mp4Writer {
     /// Fails: this build writes no MP4.
-    pub fn create(path: &Path, _width: usize, _height: usize, _fps: u32) -> Result<Self, SourceError> {
+    pub fn create(
+        path: &Path,
+        _width: usize,
+        _height: usize,
+        _fps: u32,
+        _temporaries: &crate::output::Temporaries,
+    ) -> Result<Self, SourceError> {
         absent(path)
     }
 

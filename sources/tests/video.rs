@@ -2,6 +2,7 @@
 //! sidecar, and corrupt videos or sidecars are errors that name the file (never a panic).
 #![allow(clippy::unwrap_used)]
 
+use holoface_sources::output::Temporaries;
 use std::path::Path;
 
 use holoface_models::image::GrayImage;
@@ -25,7 +26,7 @@ fn frame(i: usize, w: usize, h: usize) -> GrayImage {
 
 fn write_video(path: &Path, n: usize) -> Vec<GrayImage> {
     let frames: Vec<_> = (0..n).map(|i| frame(i, 96, 64)).collect();
-    let mut w = Mp4Writer::create(path, 96, 64, 30).unwrap();
+    let mut w = Mp4Writer::create(path, 96, 64, 30, &Temporaries::new()).unwrap();
     for f in &frames {
         w.push(f).unwrap();
     }
@@ -165,11 +166,11 @@ fn corrupt_videos_are_errors_naming_the_file() {
 #[test]
 fn bad_writer_input_is_an_error() {
     let d = tmp("writer");
-    assert!(Mp4Writer::create(&d.join("odd.mp4"), 95, 64, 30).is_err());
-    assert!(Mp4Writer::create(&d.join("zero.mp4"), 96, 64, 0).is_err());
-    let mut w = Mp4Writer::create(&d.join("size.mp4"), 96, 64, 30).unwrap();
+    assert!(Mp4Writer::create(&d.join("odd.mp4"), 95, 64, 30, &Temporaries::new()).is_err());
+    assert!(Mp4Writer::create(&d.join("zero.mp4"), 96, 64, 0, &Temporaries::new()).is_err());
+    let mut w = Mp4Writer::create(&d.join("size.mp4"), 96, 64, 30, &Temporaries::new()).unwrap();
     assert!(w.push(&frame(0, 64, 64)).is_err());
-    let w = Mp4Writer::create(&d.join("none.mp4"), 96, 64, 30).unwrap();
+    let w = Mp4Writer::create(&d.join("none.mp4"), 96, 64, 30, &Temporaries::new()).unwrap();
     assert!(w.finish().is_err());
 }
 

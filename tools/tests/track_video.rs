@@ -5,6 +5,7 @@
 
 use crate::common;
 use crate::common::{holoface, json_lines as lines, tmp};
+use holoface_sources::output::Temporaries;
 
 use holoface_models::image::GrayImage;
 use holoface_sources::video::Mp4Writer;
@@ -107,7 +108,7 @@ fn rendered_sequence_tracks_from_mp4_with_sidecar_and_annotations() {
 fn a_video_without_a_face_gets_a_no_face_line_per_frame() {
     let d = tmp("noface");
     let video = d.join("wall.mp4");
-    let mut w = Mp4Writer::create(&video, 160, 120, 30).unwrap();
+    let mut w = Mp4Writer::create(&video, 160, 120, 30, &Temporaries::new()).unwrap();
     for i in 0..8u8 {
         let px = (0..160 * 120)
             .map(|k| ((k % 160) as u8 / 4).wrapping_add(i * 3))
@@ -147,7 +148,7 @@ fn bad_videos_and_sidecars_fail_with_clear_errors() {
     assert!(!ok && text.contains("does not exist"), "{text}");
 
     let video = d.join("ok.mp4");
-    let mut w = Mp4Writer::create(&video, 64, 48, 30).unwrap();
+    let mut w = Mp4Writer::create(&video, 64, 48, 30, &Temporaries::new()).unwrap();
     w.push(&GrayImage::zeros(64, 48)).unwrap();
     w.finish().unwrap();
     let sidecar = d.join("bad.jsonl");

@@ -9,7 +9,8 @@
 //! one of augmented frames (the shipped scene's glasses and hat, drawn where a headset would show them), and
 //! says how still the anchored glasses stayed in the world while each aligner answered.
 
-use holoface_sources::output::{Output, write_atomic};
+use crate::cli::write_atomic;
+use holoface_sources::output::Output;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -203,7 +204,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (server, relay, mut tracker) = start_link(&args)?;
 
     let log_path = args.out.join("frames.jsonl");
-    let mut log = Output::create(&log_path)?;
+    let mut log = Output::create(&log_path, crate::cli::temporaries())?;
     let interval = Duration::from_secs_f64(1.0 / args.fps);
     let cut_end = args.cut_at + args.cut_frames;
     let strip_at = strip_frames(args.frames, args.cut_at, cut_end);

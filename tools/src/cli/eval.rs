@@ -449,9 +449,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let json = serde_json::to_string_pretty(&reports)?;
-    holoface_sources::output::write_atomic(&args.out, &json)?;
+    crate::cli::write_atomic(&args.out, &json)?;
     let png = ced_plot_png(&curves, 0.08);
-    holoface_sources::output::write_atomic(&args.plot, &png)?;
+    crate::cli::write_atomic(&args.plot, &png)?;
     crate::say!("wrote {} and {}", args.out.display(), args.plot.display());
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! The `holoface` command line. Each subcommand lives in its own module and exposes `Args` + `run`.
 
 use clap::{Parser, Subcommand};
+use holoface_sources::output::Temporaries;
 use holoface_sources::stop::Stop;
 
 pub mod demo;
@@ -140,11 +141,7 @@ pub fn handle_signals(stop: &Stop) {
             );
             return;
         }
-        let removed = if graceful {
-            0
-        } else {
-            holoface_sources::output::remove_temporaries()
-        };
+        let removed = if graceful { 0 } else { temporaries().remove_all() };
         eprintln!(
             "{}: stopped at once{}",
             sig.name(),
@@ -163,6 +160,31 @@ pub fn handle_signals(stop: &Stop) {
     }
 }
 
+/// The temporary files of this process's whole-or-nothing outputs: the CLI's own registry (the binary's state,
+/// like its signal handler), handed to every `Output` a command writes and emptied by [`handle_signals`] when a
+/// signal ends the command at once. The libraries keep no such list.
+pub fn temporaries() -> &'static Temporaries {
+    static TEMPORARIES: std::sync::OnceLock<Temporaries> = std::sync::OnceLock::new();
+    TEMPORARIES.get_or_init(Temporaries::new)
+}
+
+/// [`holoface_sources::output::write_atomic`] with the CLI's [`temporaries`]: how every command writes a file
+/// whole or not at all.
+pub fn write_atomic(
+    path: &std::path::Path,
+    bytes: impl AsRef<[u8]>,
+) -> Result<(), holoface_sources::SourceError> {
+    holoface_sources::output::write_atomic(path, bytes, temporaries())
+}
+
+/// Whether standard output carries a command's data (`--out -`): then [`say`] prints to standard error.
+static STDOUT_CARRIES_DATA: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Says that standard output now carries the command's data (a journal on `-`, [`holoface_sources::output::Output::is_stdout`]).
+pub fn stdout_carries_data() {
+    STDOUT_CARRIES_DATA.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
 /// Whether a closed standard output ends the command (the default) or is ignored (`holoface setup`, whose
 /// work is the files it installs, not what it prints).
 static STOP_ON_CLOSED_STDOUT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
@@ -172,7 +194,7 @@ static STOP_ON_CLOSED_STDOUT: std::sync::atomic::AtomicBool = std::sync::atomic:
 /// unfinished outputs removed) instead of panicking, unless it asked to carry on.
 pub fn say(args: std::fmt::Arguments<'_>) {
     use std::io::Write as _;
-    if holoface_sources::output::stdout_carries_data() {
+    if STDOUT_CARRIES_DATA.load(std::sync::atomic::Ordering::Relaxed) {
         eprintln!("{args}");
         return;
     }
@@ -185,7 +207,7 @@ pub fn say(args: std::fmt::Arguments<'_>) {
         && e.kind() == std::io::ErrorKind::BrokenPipe
         && STOP_ON_CLOSED_STDOUT.load(std::sync::atomic::Ordering::Relaxed)
     {
-        holoface_sources::output::remove_temporaries();
+        temporaries().remove_all();
         std::process::exit(0);
     }
 }

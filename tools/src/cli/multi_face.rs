@@ -385,7 +385,7 @@ fn track(
                 &SCENE_CAMERA,
             );
             let path = dir.join(format!("scene_{}.png", which.len()));
-            holoface_sources::output::write_atomic(&path, canvas.to_png())?;
+            crate::cli::write_atomic(&path, canvas.to_png())?;
         }
         run.detector_runs += usize::from(step.detected);
         run.ids.extend(step.faces.faces.iter().map(|f| f.id));
@@ -507,7 +507,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
+    crate::cli::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
     crate::say!("wrote {}", args.out.display());
     Ok(())
 }

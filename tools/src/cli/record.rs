@@ -163,9 +163,13 @@ fn record(
     let live = args.input.is_stdin() || stdout;
     let out = if live {
         stop.stop_gracefully();
-        Output::live(&args.out)?
+        let out = Output::live(&args.out)?;
+        if out.is_stdout() {
+            crate::cli::stdout_carries_data();
+        }
+        out
     } else {
-        Output::create(&args.out)?
+        Output::create(&args.out, crate::cli::temporaries())?
     };
     let mut writer = RecordingWriter::new(out, header)?;
     // The next frame, or none once a stop was asked for (a source cut by the same signal is its end).

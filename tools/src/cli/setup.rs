@@ -18,11 +18,11 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::cli::write_atomic;
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
 use holoface_inference::integrity::{self, sha256_hex};
 use holoface_runtime::assets::home;
-use holoface_sources::output::write_atomic;
 
 /// Arguments of `holoface setup`.
 #[derive(Debug, ClapArgs)]

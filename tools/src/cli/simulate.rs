@@ -162,7 +162,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
-    holoface_sources::output::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
+    crate::cli::write_atomic(&args.out, serde_json::to_string_pretty(&report)?)?;
     Ok(())
 }
 

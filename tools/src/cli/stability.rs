@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::cli::write_atomic;
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
 use holoface_runtime::AdaptParams;
@@ -14,7 +15,6 @@ use holoface_runtime::{
     AlignerChoice, AnsweredBy, BlendshapeParams, Blendshapes, FaceTracker, InitSource, RemoteOptions,
     SessionOptions, TrackerOptions,
 };
-use holoface_sources::output::write_atomic;
 use holoface_sources::source::open_source;
 use serde_json::json;
 

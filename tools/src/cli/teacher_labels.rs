@@ -289,7 +289,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }),
     };
     let bytes = crate::labels::to_bytes(&header, &records)?;
-    holoface_sources::output::write_atomic(&out, &bytes)?;
+    crate::cli::write_atomic(&out, &bytes)?;
     let manifest = Manifest {
         collection,
         images_folder: images,
@@ -307,7 +307,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seconds: t0.elapsed().as_secs_f64(),
     };
     let json = out.with_extension("json");
-    holoface_sources::output::write_atomic(&json, serde_json::to_string_pretty(&manifest)? + "\n")?;
+    crate::cli::write_atomic(&json, serde_json::to_string_pretty(&manifest)? + "\n")?;
     crate::say!(
         "{}: {} faces with dlib's answer, {} rejected by DAN, {} dropped (dlib vs its mirror), {} dropped (dlib vs \
          remote), {} kept -> {} ({:.0} s)",
@@ -410,7 +410,7 @@ fn gt_report(
     if let Some(dir) = args.report.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
-    holoface_sources::output::write_atomic(&args.report, serde_json::to_string_pretty(&report)? + "\n")?;
+    crate::cli::write_atomic(&args.report, serde_json::to_string_pretty(&report)? + "\n")?;
     crate::say!("wrote {}", args.report.display());
     Ok(())
 }

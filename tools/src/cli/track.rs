@@ -1,6 +1,7 @@
 //! `holoface track`: runs the tracker session over a frame source and writes one JSON line per frame.
 
-use holoface_sources::output::{Output, write_atomic};
+use crate::cli::write_atomic;
+use holoface_sources::output::Output;
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -196,9 +197,13 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     let live = args.input.is_stdin() || stdout;
     let mut out = if live {
         stop.stop_gracefully();
-        Output::live(&args.out)?
+        let out = Output::live(&args.out)?;
+        if out.is_stdout() {
+            crate::cli::stdout_carries_data();
+        }
+        out
     } else {
-        Output::create(&args.out)?
+        Output::create(&args.out, crate::cli::temporaries())?
     };
     let mut annotated = args
         .annotate
@@ -536,7 +541,11 @@ impl Frames {
                         // H.264 4:2:0 needs even sizes: an odd last row or column is left out.
                         let (vw, vh) = (canvas.width() & !1, canvas.height() & !1);
                         writer.insert(Box::new(holoface_sources::video::Mp4Writer::create(
-                            path, vw, vh, *fps,
+                            path,
+                            vw,
+                            vh,
+                            *fps,
+                            crate::cli::temporaries(),
                         )?))
                     }
                 };

@@ -268,13 +268,15 @@ pub(crate) struct SequenceExport {
 impl SequenceExport {
     pub(crate) fn create(dir: &std::path::Path, fps: f64) -> anyhow::Result<Self> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let file = |name: &str| holoface_sources::output::Output::create(&dir.join(name));
+        let file =
+            |name: &str| holoface_sources::output::Output::create(&dir.join(name), crate::cli::temporaries());
         Ok(Self {
             video: holoface_sources::video::Mp4Writer::create(
                 &dir.join("sequence.mp4"),
                 FRAME_W,
                 FRAME_H,
                 fps.round() as u32,
+                crate::cli::temporaries(),
             )?,
             poses: file("poses.jsonl")?,
             truth: file("truth.jsonl")?,
@@ -465,7 +467,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    holoface_sources::output::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
+    crate::cli::write_atomic(&args.out, &serde_json::to_vec_pretty(&report)?)?;
     crate::say!("wrote {}", args.out.display());
     Ok(())
 }

@@ -67,7 +67,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         faces.len(),
         shapes.len()
     );
-    holoface_sources::output::write_atomic(&args.out, terms.to_text(&comment))?;
+    crate::cli::write_atomic(&args.out, terms.to_text(&comment))?;
     crate::say!(
         "{} faces, {} shapes with a fit ({unfitted} without): wrote {}",
         faces.len(),

@@ -353,7 +353,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     if !args.evaluate {
-        holoface_sources::output::write_atomic(&args.out, &bytes)?;
+        crate::cli::write_atomic(&args.out, &bytes)?;
     }
     let rep = Report {
         model: args.out.display().to_string(),
@@ -382,7 +382,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let json_path = args
         .out
         .with_extension(if args.evaluate { "eval.json" } else { "json" });
-    holoface_sources::output::write_atomic(
+    crate::cli::write_atomic(
         &json_path,
         (serde_json::to_string_pretty(&rep)? + "\n").as_bytes(),
     )?;

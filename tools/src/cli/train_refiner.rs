@@ -363,9 +363,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         validation_detector_init: val,
         file_bytes: bytes.len(),
     };
-    holoface_sources::output::write_atomic(&args.out, &bytes)?;
+    crate::cli::write_atomic(&args.out, &bytes)?;
     let json = args.out.with_extension("json");
-    holoface_sources::output::write_atomic(&json, serde_json::to_string_pretty(&report)? + "\n")?;
+    crate::cli::write_atomic(&json, serde_json::to_string_pretty(&report)? + "\n")?;
     crate::say!(
         "wrote {} ({} bytes) and {}",
         args.out.display(),
