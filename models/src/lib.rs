@@ -10,6 +10,8 @@
 pub mod accuracy;
 pub mod adapt;
 pub mod anchor;
+#[cfg(feature = "train")]
+pub mod augment;
 pub mod blendshapes;
 pub mod camera;
 pub mod candide;

@@ -114,7 +114,7 @@ fn trained_model_reduces_error_on_unseen_faces() {
     let mut rng = Rng::new(7);
     let (mut before, mut after) = (0.0, 0.0);
     for f in &faces[30..] {
-        let init = train::perturb(
+        let init = holoface_models::augment::perturb(
             &m.init_from_box(&gt_box(&f.landmarks)),
             train::SMALL_PERTURBATION,
             &mut rng,

@@ -23,7 +23,7 @@ use holoface_inference::{BatchTensor, InferenceEngine, LandmarkOut, OnnxEngine, 
 use holoface_models::GrayView;
 use holoface_models::accuracy::{nme49, nme68, summarise};
 use holoface_models::crop::{CROP_SIZE, warp_bilinear};
-use holoface_models::geometry::{Point2, Rect, Similarity2, centroid};
+use holoface_models::geometry::{Point2, Rect};
 use holoface_models::refine::train::{RefineConfig, RefineSample, train};
 use holoface_models::refine::{RefineCascade, RefineScratch, Sampling};
 use holoface_models::rng::Rng;

@@ -51,11 +51,7 @@ pub fn perturbed_init(
         0 => (FitKind::Small, perturb(&base, SMALL_PERTURBATION, rng)),
         1 => (FitKind::Full, perturb(&base, DAN_PERTURBATION, rng)),
         2 => {
-            let gross = Perturbation {
-                translation: 0.4,
-                rotation_deg: 40.0,
-                scale: 0.5,
-            };
+            let gross = Perturbation::new(0.4, 40.0, 0.5);
             (FitKind::Gross, perturb(&base, gross, rng))
         }
         _ => {

@@ -62,7 +62,8 @@ use super::{
     DELTA_DIM, FAILURE_DIM, FailureModel, Krfws, KrfwsScratch, N_POINTS, Node, Stage, Tree, dot144,
     nme49_inner, stage_features,
 };
-use crate::geometry::{Point2, Rect, Similarity2, centroid};
+use crate::augment::{Perturbation, perturb};
+use crate::geometry::{Point2, Rect, Similarity2};
 use crate::hog::{HOG_DIM, PATCH_PIXELS};
 use crate::image::GrayImage;
 use crate::rng::Rng;
@@ -221,53 +222,14 @@ pub fn mirror_face(face: &TrainFace) -> TrainFace {
     }
 }
 
-/// Similarity perturbation σ: translation (fraction of the shape's width/height), rotation (degrees),
-/// scale (relative).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Perturbation {
-    /// Translation σ as a fraction of the shape's extent.
-    pub translation: f64,
-    /// Rotation σ in degrees.
-    pub rotation_deg: f64,
-    /// Scale σ.
-    pub scale: f64,
-}
-
 /// DAN's stage-1 perturbation (algorithms.md 1.7).
-pub const DAN_PERTURBATION: Perturbation = Perturbation {
-    translation: 0.2,
-    rotation_deg: 20.0,
-    scale: 0.25,
-};
+pub const DAN_PERTURBATION: Perturbation = Perturbation::new(0.2, 20.0, 0.25);
 
 /// Small perturbation: detector-box or previous-frame jitter.
-pub const SMALL_PERTURBATION: Perturbation = Perturbation {
-    translation: 0.05,
-    rotation_deg: 5.0,
-    scale: 0.05,
-};
+pub const SMALL_PERTURBATION: Perturbation = Perturbation::new(0.05, 5.0, 0.05);
 
 /// Medium perturbation, between the small and the DAN one.
-pub const MEDIUM_PERTURBATION: Perturbation = Perturbation {
-    translation: 0.1,
-    rotation_deg: 10.0,
-    scale: 0.1,
-};
-
-/// Applies a random similarity about the centroid (scale clamped to 0.4..2.5).
-pub fn perturb(shape: &[Point2; N_POINTS], p: Perturbation, rng: &mut Rng) -> [Point2; N_POINTS] {
-    let r = Rect::bounding(shape).unwrap_or_default();
-    let c = centroid(shape);
-    let tx = rng.normal() * p.translation * f64::from(r.width());
-    let ty = rng.normal() * p.translation * f64::from(r.height());
-    let ang = (rng.normal() * p.rotation_deg).to_radians();
-    let s = (1.0 + rng.normal() * p.scale).clamp(0.4, 2.5);
-    let sim = Similarity2::from_parts(s, ang, 0.0, 0.0);
-    std::array::from_fn(|i| {
-        let q = sim.apply(Point2::new(shape[i].x - c.x, shape[i].y - c.y));
-        Point2::new(q.x + c.x + tx as f32, q.y + c.y + ty as f32)
-    })
-}
+pub const MEDIUM_PERTURBATION: Perturbation = Perturbation::new(0.1, 10.0, 0.1);
 
 /// The ground-truth box: the extent of the 68 points.
 pub fn gt_box(gt: &[Point2; 68]) -> Rect {

@@ -1,6 +1,7 @@
 //! The refiner's training crops: starts perturbed as tracking and detection leave them, image augmentation, the
 //! wire's JPEG round trip, DAN's answers on them (batched), and the cache of those answers.
 
+use holoface_models::augment::{self, Perturbation};
 use holoface_protocol::framing::{Damage, Format, FramedReader, FramedWriter, StreamError};
 
 use super::*;
@@ -31,25 +32,10 @@ pub(super) struct Answered {
     pub(super) target: [Point2; 68],
 }
 
-/// Perturbs `shape` by a random similarity about its centroid: translation σ `t` of its extent,
-/// rotation σ `r_deg`, scale σ `s`.
+/// The refiner's starts: `shape` moved by a random similarity about its centroid (translation σ `t` of its
+/// extent, rotation σ `r_deg`, scale σ `s` clamped to 0.5..=1.6, a narrower range than KRFWS's trainer draws).
 pub(super) fn perturb(shape: &[Point2; 68], rng: &mut Rng, t: f64, r_deg: f64, s: f64) -> [Point2; 68] {
-    let c = centroid(shape);
-    let b = Rect::bounding(shape).unwrap_or_default();
-    let angle = (rng.normal() * r_deg).to_radians();
-    let scale = (1.0 + rng.normal() * s).clamp(0.5, 1.6);
-    let (dx, dy) = (
-        rng.normal() * t * f64::from(b.width()),
-        rng.normal() * t * f64::from(b.height()),
-    );
-    let (cx, cy) = (f64::from(c.x), f64::from(c.y));
-    let rot = Similarity2::from_parts(scale, angle, 0.0, 0.0);
-    let m = Similarity2 {
-        tx: cx + dx - (rot.a * cx - rot.b * cy),
-        ty: cy + dy - (rot.b * cx + rot.a * cy),
-        ..rot
-    };
-    std::array::from_fn(|i| m.apply(shape[i]))
+    augment::perturb(shape, Perturbation::new(t, r_deg, s).clamp_scale(0.5, 1.6), rng)
 }
 
 /// A tracker's start: the truth with per-point alignment noise (σ 2.5 % of the eye-corner distance,
@@ -64,55 +50,6 @@ pub(super) fn tracker_start(gt: &[Point2; 68], rng: &mut Rng) -> [Point2; 68] {
         )
     });
     perturb(&noisy, rng, 0.03, 3.0, 0.03)
-}
-
-/// In-place box blur of a square crop (radius 1 or 2), `passes` times.
-pub(super) fn blur(px: &mut [u8], size: usize, radius: usize, passes: usize) {
-    let mut tmp = vec![0u8; px.len()];
-    for _ in 0..passes {
-        for horizontal in [true, false] {
-            for y in 0..size {
-                for x in 0..size {
-                    let (mut sum, mut n) = (0u32, 0u32);
-                    for k in x.saturating_sub(radius)..=(x + radius).min(size - 1) {
-                        let (xx, yy) = if horizontal { (k, y) } else { (y, k) };
-                        sum += u32::from(px[yy * size + xx]);
-                        n += 1;
-                    }
-                    let (ox, oy) = if horizontal { (x, y) } else { (y, x) };
-                    tmp[oy * size + ox] = ((sum + n / 2) / n) as u8;
-                }
-            }
-            px.copy_from_slice(&tmp);
-        }
-    }
-}
-
-/// The appearance changes a crop may get: blur, an occluding block, brightness/contrast.
-pub(super) fn augment(px: &mut [u8], size: usize, rng: &mut Rng) {
-    if rng.uniform() < 0.3 {
-        let gain = 0.7 + 0.6 * rng.uniform();
-        let bias = (rng.uniform() - 0.5) * 50.0;
-        for p in px.iter_mut() {
-            *p = (f64::from(*p) * gain + bias).clamp(0.0, 255.0) as u8;
-        }
-    }
-    if rng.uniform() < 0.25 {
-        blur(px, size, 1 + rng.below(2), 1 + rng.below(2));
-    }
-    if rng.uniform() < 0.2 {
-        let w = size * (15 + rng.below(25)) / 100;
-        let h = size * (15 + rng.below(25)) / 100;
-        let x0 = rng.below(size - w);
-        let y0 = rng.below(size - h);
-        let level = rng.below(256) as u8;
-        let noisy = rng.uniform() < 0.5;
-        for y in y0..y0 + h {
-            for x in x0..x0 + w {
-                px[y * size + x] = if noisy { rng.below(256) as u8 } else { level };
-            }
-        }
-    }
 }
 
 /// The JPEG q75 round trip of the wire.
@@ -140,7 +77,7 @@ pub(super) fn make_crops(
     warp_bilinear(image, &sim, CROP_SIZE, CROP_SIZE, &mut px)?;
     if let Some(rng) = rng {
         // Its own stream, seeded from the start's (the recipe the shipped model was trained with).
-        augment(&mut px, CROP_SIZE, &mut Rng::new(rng.next_u64()));
+        augment::augment(&mut px, CROP_SIZE, &mut Rng::new(rng.next_u64()));
     }
     Ok(CropJob {
         crop: wire_round_trip(&px, CROP_SIZE)?,
