@@ -26,7 +26,6 @@
 
 pub mod batcher;
 pub mod config;
-pub mod logging;
 pub mod metrics;
 pub mod metrics_http;
 pub mod server;

@@ -10,7 +10,7 @@ async fn main() -> anyhow::Result<()> {
         Err(ConfigError::Cli(e)) => e.exit(),
         Err(e) => return Err(e).context("configuration"),
     };
-    holoface_alignment_server::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
+    holoface_process::logging::init(tracing_subscriber::EnvFilter::new(log.filter_directive()));
     let server = AlignmentServer::bind(settings)
         .await
         .context("starting the alignment server")?;

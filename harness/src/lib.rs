@@ -3,11 +3,10 @@
 //! the command line's crate (`holoface-tools`, a leaf binary with the trainers, the set-up's HTTP stack and
 //! the video encoder): the annotated face folders and the validation split ([`data`]), self-contained PNG
 //! plots ([`plot`]), the UDP relay that cuts or degrades a link ([`relay`]), DAN run in-process
-//! ([`dan_aligner`]) and the binaries' Ctrl-C / SIGTERM thread ([`signals`]). Files the tools write appear whole or not at all through `holoface_sources::output`.
+//! ([`dan_aligner`]). Files the tools write appear whole or not at all through `holoface_sources::output`.
 #![deny(missing_docs)]
 
 pub mod dan_aligner;
 pub mod data;
 pub mod plot;
 pub mod relay;
-pub mod signals;

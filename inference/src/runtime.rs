@@ -3,7 +3,7 @@
 //! ONNX Runtime allows one environment per process, ever; [`load_runtime`] creates it on first use and hands
 //! the same one to every later caller (the server's engines and the client's face detector alike). The
 //! library is found at an explicit path, else `$ORT_DYLIB_PATH`, else in the holoface data folder
-//! ([`default_ort_dylib`], [`crate::home`]).
+//! ([`default_ort_dylib`], `holoface_files::home`).
 
 use std::path::{Path, PathBuf};
 

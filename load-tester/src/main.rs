@@ -17,9 +17,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use holoface_process::stop::Stop;
 use holoface_quic::Fingerprint;
 use holoface_runtime::assets::home;
-use holoface_sources::stop::Stop;
 
 use crate::report::{Stats, Window};
 
@@ -112,7 +112,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
+    holoface_process::logging::init(holoface_process::logging::env_filter_or("warn"));
     let stop = Stop::new();
     stop_on_signals(&stop);
     let result = run(args, &stop);
@@ -134,7 +134,7 @@ fn main() -> ExitCode {
 /// (table, `--out`, `--plot`) for the time it ran; a second ends the process at once.
 fn stop_on_signals(stop: &Stop) {
     let stop = stop.clone();
-    let installed = holoface_harness::signals::on_signals(move |sig| {
+    let installed = holoface_process::signals::on_signals(move |sig| {
         if stop.request(sig) {
             eprintln!(
                 "{}: ending the test and writing its report for the time it ran (send it again to stop at once)",

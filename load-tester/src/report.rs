@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use hdrhistogram::Histogram;
 use holoface_harness::plot::{Series, series_plot_png};
-use holoface_sources::stop::{Signal, Stop};
+use holoface_process::stop::{Signal, Stop};
 use serde_json::json;
 
 use crate::Args;

@@ -29,7 +29,7 @@ pub enum SourceError {
         /// What is wrong with it.
         reason: String,
     },
-    /// A source of one's own failed (a [`FrameSource`] implemented outside this crate).
+    /// A source of one's own failed (a [`crate::FrameSource`] implemented outside this crate).
     #[error(transparent)]
     Other(Box<dyn std::error::Error + Send + Sync>),
     /// Where an error happened (a file, a frame, a step) around what went wrong.

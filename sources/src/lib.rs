@@ -18,7 +18,6 @@ pub mod images;
 pub mod output;
 pub mod poses;
 pub mod source;
-pub mod stop;
 #[cfg(feature = "h264")]
 pub mod video;
 #[cfg(not(feature = "h264"))]

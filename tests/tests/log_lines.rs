@@ -2,7 +2,7 @@
 //! timestamp with a fake "shutdown complete" and an ANSI escape gets exactly one log line, with all of it
 //! escaped; and a log that is not a terminal carries no colour codes. A flood of clients with a wrong token
 //! (issue 68: 1,203 lines for as many clients) is a few lines, and the metrics count every one. The log is
-//! captured in-process through the binaries' own subscriber set-up (`holoface_alignment_server::logging`),
+//! captured in-process through the binaries' own subscriber set-up (`holoface_process::logging`),
 //! which is global: each test runs in a process of its own (nextest, `make test`'s runner).
 #![allow(clippy::unwrap_used)]
 
@@ -31,8 +31,8 @@ impl Write for Capture {
 fn capture_log() -> Arc<Mutex<Vec<u8>>> {
     let log = Arc::new(Mutex::new(Vec::new()));
     let sink = Arc::clone(&log);
-    holoface_alignment_server::logging::init_with(
-        holoface_alignment_server::logging::env_filter_or("info"),
+    holoface_process::logging::init_with(
+        holoface_process::logging::env_filter_or("info"),
         move || Capture(Arc::clone(&sink)),
         false,
     );

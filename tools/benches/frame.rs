@@ -25,6 +25,7 @@ use std::path::PathBuf;
 use criterion::{Criterion, Throughput, criterion_group};
 use std::sync::{Arc, Mutex};
 
+use holoface_harness::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_models::crop::{Crop112, crop_bilinear};
 use holoface_models::geometry::Point2;
 use holoface_models::image::GrayImage;
@@ -40,7 +41,6 @@ use holoface_runtime::{
     SessionOptions, TrackerOptions,
 };
 use holoface_sources::images::read_gray;
-use holoface_tools::data::{VALIDATION_SPLIT, default_data_root, read_pts};
 use holoface_tools::render::PlanarScene;
 use holoface_tools::render::SCENE_CAMERA;
 
@@ -392,7 +392,7 @@ fn bench_augment(c: &mut Criterion) {
     }
     assert_eq!(augmenter.anchors().len(), 1, "no face to draw");
     let (img, cam, _) = &frames[29];
-    let mut canvas = holoface_tools::plot::Canvas::new(640, 480);
+    let mut canvas = holoface_harness::plot::Canvas::new(640, 480);
     canvas.blit_gray(0, 0, img.as_bytes(), 640, 480, 1);
     let mut g = c.benchmark_group("augment");
     g.throughput(Throughput::Elements(1));

@@ -6,7 +6,7 @@ use holoface_models::candide::FaceModel;
 use holoface_models::image::GrayImage;
 use holoface_models::math3::Vec3;
 
-use crate::plot::Canvas;
+use holoface_harness::plot::Canvas;
 use holoface_runtime::align::AnsweredBy;
 use holoface_runtime::session::{FaceResult, NoFaceReason};
 

@@ -11,7 +11,7 @@ use holoface_runtime::{
     TrackerError, TrackerOptions, home,
 };
 
-use crate::dan_aligner::DanAligner;
+use holoface_harness::dan_aligner::DanAligner;
 use holoface_runtime::align::KrfwsAligner;
 use holoface_runtime::detect::DetectError;
 

@@ -20,7 +20,7 @@ use holoface_models::geometry::Point2;
 use holoface_protocol::framing::{self, Format, FormatError};
 use serde::{Deserialize, Serialize};
 
-use crate::data::Sample;
+use holoface_harness::data::Sample;
 
 /// Largest label file read (a 45,000-face collection is about 25 MB).
 pub const MAX_FILE_BYTES: u64 = 512 << 20;

@@ -21,6 +21,3 @@ pub mod loopback;
 pub mod render;
 pub mod stats;
 pub mod track_measures;
-
-// Shared with the load tester and the end-to-end tests (holoface-harness); kept at their old paths here.
-pub use holoface_harness::{dan_aligner, data, plot, relay};

@@ -1,5 +1,5 @@
 //! `--link-cuts`: a link schedule in media time for `holoface track` and `holoface stability`. The remote
-//! aligner talks to its server through a loopback relay ([`crate::relay::UdpRelay`], the demo's) that drops
+//! aligner talks to its server through a loopback relay ([`holoface_harness::relay::UdpRelay`], the demo's) that drops
 //! every datagram while the frame being tracked lies inside a cut, so a clip run remote shows the local
 //! answers (and their adaptation) where a real link would have dropped. The link itself runs on the wall
 //! clock (connecting, its hold-off after a loss, its backoff, the deadlines), so the frames are fed at their
@@ -11,7 +11,7 @@ use std::net::SocketAddr;
 use std::str::FromStr;
 use std::time::{Duration, Instant};
 
-use crate::relay::UdpRelay;
+use holoface_harness::relay::UdpRelay;
 
 /// Cuts of the link, each `(start, length)` in seconds of media time from the first frame.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -661,7 +661,7 @@ async fn idle(cli: &Cli, connections: usize, hold_seconds: f64) -> anyhow::Resul
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or("warn"));
+    holoface_process::logging::init(holoface_process::logging::env_filter_or("warn"));
     let cli = Cli::parse();
     println!(
         "machine: {} cores; note any background load (load average {})",

@@ -27,9 +27,9 @@ use holoface_models::shape::dan_mean_shape;
 use serde_json::json;
 
 use crate::args::RuntimeArgs;
-use crate::plot::Canvas;
-use crate::relay::UdpRelay;
 use crate::render::PlanarScene;
+use holoface_harness::plot::Canvas;
+use holoface_harness::relay::UdpRelay;
 use holoface_runtime::align::{Aligner, AnsweredBy};
 use holoface_runtime::assets::home;
 use holoface_runtime::detect::{FaceDetector, shape_from_detection};

@@ -14,9 +14,9 @@ use holoface_models::shape::{dan_mean_shape, fit_to_box};
 use serde::Serialize;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, faces68_or, list_folder};
 use crate::expressions::{CoefficientAgreement, agreement, overall_abs_diff};
-use crate::plot::{Curve, ced_plot_png};
+use holoface_harness::data::{Split, faces68_or, list_folder};
+use holoface_harness::plot::{Curve, ced_plot_png};
 use holoface_runtime::align::{Aligner, Confidence};
 use holoface_runtime::detect::{BlazeFace, FaceDetector, shape_from_detection};
 

@@ -1,8 +1,8 @@
 //! The `holoface` command line. Each subcommand lives in its own module and exposes `Args` + `run`.
 
 use clap::{Parser, Subcommand};
+use holoface_process::stop::Stop;
 use holoface_sources::output::Temporaries;
-use holoface_sources::stop::Stop;
 
 pub mod demo;
 pub mod eval;
@@ -132,7 +132,7 @@ pub fn run(cli: Cli, stop: &Stop) -> anyhow::Result<()> {
 /// (whole-or-nothing outputs not yet committed); the exit code is the shell's for the signal (130 / 143).
 pub fn handle_signals(stop: &Stop) {
     let stop = stop.clone();
-    let installed = holoface_harness::signals::on_signals(move |sig| {
+    let installed = holoface_process::signals::on_signals(move |sig| {
         let graceful = stop.is_graceful();
         if graceful && stop.request(sig) {
             eprintln!(
@@ -221,7 +221,7 @@ macro_rules! say {
 
 /// Installs the tracing subscriber (binaries only; libraries never do).
 pub fn init_logging(filter: &str) {
-    holoface_alignment_server::logging::init(holoface_alignment_server::logging::env_filter_or(&format!(
+    holoface_process::logging::init(holoface_process::logging::env_filter_or(&format!(
         "{filter},quinn=info,rustls=info"
     )));
 }

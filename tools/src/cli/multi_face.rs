@@ -31,8 +31,8 @@ use serde_json::json;
 use super::tracking_losses::{FRAME_H, FRAME_W};
 use super::tracking_losses::{SequenceExport, cut_face_with_margin};
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, faces68_or, load_folder};
 use crate::render::{PlanarScene, SCENE_CAMERA};
+use holoface_harness::data::{Split, faces68_or, load_folder};
 use holoface_runtime::align::Aligner;
 use holoface_runtime::frame::Frame;
 use holoface_runtime::{FaceResult, SessionOptions};
@@ -514,7 +514,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// The first `n` near-frontal validation faces as life-size pictures, `spacing_cm` apart side by side and
 /// staggered in depth.
-fn scene_people(samples: &[crate::data::Sample], n: usize, spacing_cm: f64) -> anyhow::Result<Vec<Person>> {
+fn scene_people(
+    samples: &[holoface_harness::data::Sample],
+    n: usize,
+    spacing_cm: f64,
+) -> anyhow::Result<Vec<Person>> {
     let mut people = Vec::with_capacity(n);
     let usable = samples
         .iter()

@@ -11,7 +11,7 @@ use holoface_protocol::recording::{
     CameraIntrinsics, FramePayload, FrameRecord, RecordingHeader, RecordingWriter,
 };
 
-use holoface_sources::stop::Stop;
+use holoface_process::stop::Stop;
 use holoface_sources::{FrameSource, OwnedFrame};
 
 /// How full frames are stored.

@@ -490,24 +490,24 @@ fn write_plot(
     };
     let mut series = Vec::new();
     for r in runs {
-        series.push(crate::plot::Series {
+        series.push(holoface_harness::plot::Series {
             label: format!("{} raw", r.name),
             points: running_mean(jitter49(&r.raw)),
         });
         if steady {
-            series.push(crate::plot::Series {
+            series.push(holoface_harness::plot::Series {
                 label: format!("{} steadied", r.name),
                 points: running_mean(jitter49(&r.steady)),
             });
         }
     }
     if let Some(p) = peer {
-        series.push(crate::plot::Series {
+        series.push(holoface_harness::plot::Series {
             label: "dlib per frame".into(),
             points: running_mean(jitter49(p)),
         });
     }
-    let png = crate::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)");
+    let png = holoface_harness::plot::series_plot_png(&series, "frame", "jitter49 (% eye distance)");
     Ok(write_atomic(plot, png)?)
 }
 

@@ -331,7 +331,7 @@ fn gt_report(
 ) -> anyhow::Result<()> {
     let gts: Vec<[Point2; 68]> = labelled
         .iter()
-        .map(|l| crate::data::read_pts(&args.images.join(&l.name).with_extension("pts")))
+        .map(|l| holoface_harness::data::read_pts(&args.images.join(&l.name).with_extension("pts")))
         .collect::<anyhow::Result<_>>()?;
     let errors = |f: &dyn Fn(&Labelled) -> [Point2; 68], which: &dyn Fn(&Labelled) -> bool| {
         let (mut e68, mut e49) = (Vec::new(), Vec::new());

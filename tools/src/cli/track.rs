@@ -10,10 +10,10 @@ use clap::Args as ClapArgs;
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
+use holoface_process::stop::{Signal, Stop};
 use holoface_runtime::{
     AlignerChoice, AnsweredBy, FaceTracker, RemoteOptions, SessionOptions, TrackerOptions,
 };
-use holoface_sources::stop::{Signal, Stop};
 
 /// Arguments of `holoface track`.
 #[derive(Debug, ClapArgs)]
@@ -418,7 +418,7 @@ impl Augmented {
             sf.timestamp_us,
             faces.iter().map(crate::augment::FaceSnapshot::of).collect(),
         );
-        let mut canvas = crate::plot::Canvas::new(sf.image.width(), sf.image.height());
+        let mut canvas = holoface_harness::plot::Canvas::new(sf.image.width(), sf.image.height());
         canvas.blit_gray(0, 0, sf.image.as_bytes(), sf.image.width(), sf.image.height(), 1);
         a.draw(&mut canvas, &sf.intrinsics, &sf.world_from_camera);
         self.out.push(sf.index, &canvas)?;
@@ -526,7 +526,7 @@ impl Frames {
         }
     }
 
-    fn push(&mut self, index: usize, canvas: &crate::plot::Canvas) -> anyhow::Result<()> {
+    fn push(&mut self, index: usize, canvas: &holoface_harness::plot::Canvas) -> anyhow::Result<()> {
         match self {
             Self::Pngs(dir, _) => {
                 let path = dir.join(format!("frame_{index:06}.png"));

@@ -30,8 +30,8 @@ use holoface_models::math3::{Mat3, Pose, Vec3};
 use serde_json::json;
 
 use crate::args::{AlignerKind, RuntimeArgs};
-use crate::data::{Split, faces68_or, load_folder};
 use crate::render::PlanarScene;
+use holoface_harness::data::{Split, faces68_or, load_folder};
 use holoface_runtime::frame::Frame;
 use holoface_runtime::{FaceOutcome, FaceTracker, InitSource, SessionOptions};
 

@@ -11,7 +11,7 @@ use holoface_models::candide::{FitOptions, fit};
 use holoface_models::geometry::{Point2, Rect};
 use holoface_models::shape::mirror68;
 
-use crate::data::{Split, faces68_or, list_folder};
+use holoface_harness::data::{Split, faces68_or, list_folder};
 
 /// Arguments of `holoface train-blendshapes`.
 #[derive(Debug, clap::Args)]

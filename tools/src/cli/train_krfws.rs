@@ -16,7 +16,7 @@ use holoface_models::krfws::{Krfws, KrfwsScratch, N_POINTS, nme49_inner};
 use holoface_models::rng::Rng;
 use serde::Serialize;
 
-use crate::data::{Split, faces68_or, load_folder};
+use holoface_harness::data::{Split, faces68_or, load_folder};
 
 /// Arguments of `holoface train-krfws`. The defaults are the shipped model's recipe (`models/assets/krfws.json`
 /// records it; a test keeps the two equal).

@@ -34,7 +34,7 @@ use serde::Serialize;
 
 use crate::args::RuntimeArgs;
 use crate::cli::eval::initial_shape;
-use crate::data::{Sample, Split, faces68_or, load_folder};
+use holoface_harness::data::{Sample, Split, faces68_or, load_folder};
 
 mod crops;
 use crops::*;

@@ -1,7 +1,7 @@
 //! Ctrl-C and SIGTERM for the binaries (`holoface`, `holoface-load`): one thread waits for either and hands each
-//! to the binary's own rule, which records it in the `holoface_sources::stop::Stop` it shares with the run.
+//! to the binary's own rule, which records it in the [`crate::stop::Stop`] it shares with the run.
 
-use holoface_sources::stop::Signal;
+use crate::stop::Signal;
 
 /// Calls `on_signal(signal)` for every Ctrl-C or SIGTERM, on a thread of its own,
 /// for the life of the process. Without the thread (none could be started) a signal keeps its default action;
