@@ -1,6 +1,6 @@
 //! One frame's step, written once: [`TrackerSession::prepare_faces`] -> an [`Aligner`] per face ->
 //! [`TrackerSession::complete_faces`], timed per step ([`step_faces`]). A one-face caller reads the first
-//! candidate, alignment and face of the one [`FacesStep`].
+//! candidate, alignment and face of the one [`StepFrame`].
 //! [`crate::tracker::FaceTracker`], the FFI and every command-line tool that tracks frames go through these;
 //! they differ only in which aligner they pass and what they do with the result.
 //!
@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use crate::align::{AlignError, Aligner, Alignment};
 use crate::detect::DetectError;
 use crate::frame::Frame;
-use crate::session::{Candidate, FrameFaces, TrackerSession};
+use crate::session::{Candidate, SessionFrame, TrackerSession};
 
 /// Time spent per step of one frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -24,7 +24,7 @@ pub struct Timings {
     pub complete: Duration,
 }
 
-/// Why a frame could not be processed (a "no face" is not an error: it is a [`FrameFaces`] without faces).
+/// Why a frame could not be processed (a "no face" is not an error: it is a [`SessionFrame`] without faces).
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum StepError {
@@ -36,9 +36,10 @@ pub enum StepError {
     Align(#[from] AlignError),
 }
 
-/// One frame through the loop, every face.
+/// The frame step's result: one frame through the loop, every face (the session's [`SessionFrame`] and what
+/// the step saw on the way).
 #[derive(Clone, Debug, PartialEq)]
-pub struct FacesStep {
+pub struct StepFrame {
     /// What the session prepared: one candidate per tracked face and new detection (empty: "no face").
     pub candidates: Vec<Candidate>,
     /// What the aligner answered, per candidate.
@@ -46,12 +47,12 @@ pub struct FacesStep {
     /// Whether the detector ran on this frame.
     pub detected: bool,
     /// The frame's faces.
-    pub faces: FrameFaces,
+    pub faces: SessionFrame,
     /// Time per step (align: all faces together).
     pub timings: Timings,
 }
 
-impl FacesStep {
+impl StepFrame {
     /// The first candidate (the oldest track, or the first detection), if any.
     pub fn first_candidate(&self) -> Option<&Candidate> {
         self.candidates.first()
@@ -69,7 +70,7 @@ pub fn step_faces<A: Aligner + ?Sized>(
     session: &mut TrackerSession,
     aligner: &mut A,
     frame: &Frame<'_>,
-) -> Result<FacesStep, StepError> {
+) -> Result<StepFrame, StepError> {
     let t0 = Instant::now();
     let runs = session.detector_runs();
     let candidates = session.prepare_faces(frame)?;
@@ -82,7 +83,7 @@ pub fn step_faces<A: Aligner + ?Sized>(
         .collect();
     let t2 = Instant::now();
     let faces = session.complete_faces(frame, &alignments);
-    Ok(FacesStep {
+    Ok(StepFrame {
         candidates,
         alignments,
         detected,

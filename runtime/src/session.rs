@@ -9,8 +9,8 @@
 //!    QUIC) or gives up on it (`None`, e.g. the link missed its deadline and no local aligner).
 //! 3. [`TrackerSession::complete_faces`] verifies each alignment with the aligner's own signal, fits
 //!    CANDIDE-3, converts to a world pose, predicts it ahead with the Kalman filters, denoises, derives
-//!    attributes, and updates the tracks. Every frame gets a [`FrameFaces`]: its faces, or an explicit "no
-//!    face" with the reason ([`FrameFaces::first`] is the one-face view).
+//!    attributes, and updates the tracks. Every frame gets a [`SessionFrame`]: its faces, or an explicit "no
+//!    face" with the reason ([`SessionFrame::first`] is the one-face view).
 //!
 //! The session never reads a clock: time comes from the frames' timestamps. The three steps are driven in one
 //! place, [`crate::frame_step::step_faces`]; call that rather than writing the sequence out again.
@@ -209,16 +209,18 @@ pub struct CandidateOutcome {
     pub result: FaceOutcome,
 }
 
-/// Every face of one frame.
+/// The session's result for one frame: every face and what came of each candidate (one frame-result type per
+/// layer: the step's [`crate::frame_step::StepFrame`] holds this one, the link's is `LinkReport`, the app's
+/// [`crate::FrameResult`]).
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct FrameFaces {
+pub struct SessionFrame {
     /// The faces tracked in this frame, oldest track first.
     pub faces: Vec<FaceResult>,
     /// Per candidate, in the order [`TrackerSession::prepare_faces`] returned them.
     pub outcomes: Vec<CandidateOutcome>,
 }
 
-impl FrameFaces {
+impl SessionFrame {
     /// Why the frame has no face: `None` when it has one; else the first candidate's reason, or
     /// [`NoFaceReason::NotDetected`] when there was no candidate.
     pub fn no_face_reason(&self) -> Option<NoFaceReason> {
@@ -490,7 +492,7 @@ impl TrackerSession {
     /// Step 3: per candidate of the last [`Self::prepare_faces`] (in its order; `None`: no aligner
     /// answered that one), verify, fit, pose, predict, filter; a new detection whose alignment is accepted
     /// becomes a track with a new id. Tracks that converge on one face are merged (the older one stays).
-    pub fn complete_faces(&mut self, frame: &Frame<'_>, alignments: &[Option<Alignment>]) -> FrameFaces {
+    pub fn complete_faces(&mut self, frame: &Frame<'_>, alignments: &[Option<Alignment>]) -> SessionFrame {
         let pending = std::mem::take(&mut self.pending);
         let mut outcomes = Vec::with_capacity(pending.len());
         for (i, c) in pending.iter().enumerate() {
@@ -506,7 +508,7 @@ impl TrackerSession {
             })
             .collect();
         faces.sort_by_key(|f| f.id);
-        FrameFaces { faces, outcomes }
+        SessionFrame { faces, outcomes }
     }
 
     /// The landmarks to show for alignment `a` of candidate `c` (steadied by the track's filter, or a new
@@ -1059,7 +1061,7 @@ mod tests {
                 .collect();
             (cands, s.complete_faces(&f, &answers))
         };
-        let ids = |r: &FrameFaces| r.faces.iter().map(|f| f.id).collect::<Vec<_>>();
+        let ids = |r: &SessionFrame| r.faces.iter().map(|f| f.id).collect::<Vec<_>>();
 
         // Frame 0: two detections become tracks 0 and 1.
         let (c, r) = run(&mut s, 0, None);

@@ -364,7 +364,7 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
     }
 
     /// [`FaceTracker::process`] with every candidate and alignment of the frame (the tools report them).
-    pub fn process_step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
+    pub fn process_step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::StepFrame, TrackerError> {
         self.step(frame)
     }
 
@@ -391,7 +391,7 @@ impl<A: Aligner + ?Sized> FaceTracker<A> {
         Ok(())
     }
 
-    fn step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::FacesStep, TrackerError> {
+    fn step(&mut self, frame: &Frame<'_>) -> Result<crate::frame_step::StepFrame, TrackerError> {
         if let Some(distance) = crate::frame::camera_too_far(&frame.world_from_camera) {
             return Err(TrackerError::CameraDistance { distance });
         }

@@ -41,9 +41,9 @@ impl Default for LinkOptions {
     }
 }
 
-/// What happened on the link for the last frame.
+/// The link's result for the last frame: what happened on it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-pub struct FrameReport {
+pub struct LinkReport {
     /// Which aligner produced the answer.
     pub answered_by: Option<AnsweredBy>,
     /// The policy's mode after this frame.
@@ -72,7 +72,7 @@ pub struct LinkedAligner<A, K = RemoteLink, C = SystemClock> {
     crop: Crop112,
     canonical: Option<(Arc<ServerWelcome>, [Point2; 68])>,
     probes: VecDeque<Probe>,
-    report: FrameReport,
+    report: LinkReport,
     adapt: Option<LocalAdaptation>,
 }
 
@@ -107,7 +107,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
             crop: Crop112::default(),
             canonical: None,
             probes: VecDeque::new(),
-            report: FrameReport::default(),
+            report: LinkReport::default(),
             adapt: opts.adapt.map(LocalAdaptation::new),
         }
     }
@@ -122,8 +122,8 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         &self.policy
     }
 
-    /// What happened on the link for the last frame.
-    pub fn last_report(&self) -> FrameReport {
+    /// The link's result for the last frame: what happened on it.
+    pub fn last_report(&self) -> LinkReport {
         self.report
     }
 
@@ -255,7 +255,7 @@ impl<A: Aligner, K: Link, C: Clock> LinkedAligner<A, K, C> {
         faces: &[Candidate],
     ) -> Result<Vec<Alignment>, AlignError> {
         let now = self.clock.now();
-        self.report = FrameReport::default();
+        self.report = LinkReport::default();
         self.settle_probes(now);
         let status = self.link.status();
         self.report.link = Some(status.state());

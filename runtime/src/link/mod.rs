@@ -26,7 +26,7 @@ use holoface_protocol::{CloseCode, FrameReply, FrameRequest, ServerWelcome};
 use tokio::sync::{mpsc as tmpsc, oneshot};
 
 pub use crate::crop_codec::CropCodec;
-pub use aligner::{FrameReport, LinkOptions, LinkedAligner};
+pub use aligner::{LinkOptions, LinkReport, LinkedAligner};
 pub use connection::{ConnectConfig, FailureKind, LinkError, LinkFailure};
 pub use policy::{FallbackPolicy, Mode, PolicyConfig, Route};
 pub use remote::{MAX_DEADLINE, RemoteOptions, RemoteOptionsError, RemoteStartError};

@@ -308,7 +308,7 @@ pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
 /// One frame's JSON line.
 fn frame_line(
     sf: &holoface_runtime::OwnedFrame,
-    step: &holoface_runtime::frame_step::FacesStep,
+    step: &holoface_runtime::frame_step::StepFrame,
     link_state: Option<holoface_runtime::LinkState>,
     link_cut: Option<bool>,
 ) -> serde_json::Value {
