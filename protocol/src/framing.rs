@@ -397,31 +397,36 @@ impl<'a> PayloadReader<'a> {
         Ok(v)
     }
 
+    /// `v` when it is in `min..=max`, else [`Damage::OutOfRange`] naming `field`.
+    fn bounded<T: Copy + PartialOrd + Into<u64>>(
+        &self,
+        field: &'static str,
+        v: T,
+        min: T,
+        max: T,
+    ) -> Result<T, FormatError> {
+        if v < min || v > max {
+            return Err(self.out_of_range(field, v.into(), min.into(), max.into()));
+        }
+        Ok(v)
+    }
+
     /// A little-endian `u32` count in `min..=max`.
     pub fn count(&mut self, field: &'static str, min: u32, max: u32) -> Result<u32, FormatError> {
         let v = self.u32()?;
-        if !(min..=max).contains(&v) {
-            return Err(self.out_of_range(field, u64::from(v), u64::from(min), u64::from(max)));
-        }
-        Ok(v)
+        self.bounded(field, v, min, max)
     }
 
     /// A `u8` in `min..=max`.
     pub fn u8_in(&mut self, field: &'static str, min: u8, max: u8) -> Result<u8, FormatError> {
         let v = self.u8()?;
-        if !(min..=max).contains(&v) {
-            return Err(self.out_of_range(field, u64::from(v), u64::from(min), u64::from(max)));
-        }
-        Ok(v)
+        self.bounded(field, v, min, max)
     }
 
     /// A little-endian `u16` in `min..=max`.
     pub fn u16_in(&mut self, field: &'static str, min: u16, max: u16) -> Result<u16, FormatError> {
         let v = self.u16()?;
-        if !(min..=max).contains(&v) {
-            return Err(self.out_of_range(field, u64::from(v), u64::from(min), u64::from(max)));
-        }
-        Ok(v)
+        self.bounded(field, v, min, max)
     }
 
     /// `u16` length + UTF-8 text of at most `max` bytes.
