@@ -401,3 +401,45 @@ fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its
     assert!(text.contains("a recording cut short"), "{text}");
     assert!(whole_lines(&lines) >= 4, "{text}");
 }
+
+/// `holoface stability` on a camera: a first Ctrl-C ends it after the frame in hand and its report covers every
+/// frame it read (as `track`'s live run keeps them), with the shell's exit code for the signal.
+#[test]
+fn ctrl_c_ends_a_live_stability_run_with_a_report_of_its_frames() {
+    let d = tmp("live-stability");
+    let report = d.join("stability.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface"))
+        .args(["stability", "--source", "-", "--aligners", "krfws", "--out"])
+        .arg(&report)
+        .current_dir(workspace())
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let cam = Camera::start(&mut child);
+    // The pipe holds about 20 frames: past 40 sent, the run is reading them.
+    let t0 = Instant::now();
+    while cam.sent() < 40 {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended early");
+        assert!(t0.elapsed() < Duration::from_secs(60), "the run reads no frames");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    kill(&child, "-INT");
+    let res = child.wait_with_output().unwrap();
+    cam.go_quiet();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert_eq!(res.status.code(), Some(130), "{stderr}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let frames = r["frames"].as_u64().unwrap();
+    assert!(
+        frames >= 1 && frames as usize <= cam.sent(),
+        "{frames} frames of {}",
+        cam.sent()
+    );
+    assert!(
+        stderr.contains(&format!("stopped by SIGINT after {frames} frames")),
+        "{stderr}"
+    );
+}

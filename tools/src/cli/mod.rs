@@ -112,7 +112,7 @@ pub fn run(cli: Cli, stop: &Stop) -> anyhow::Result<()> {
         Command::Track(args) => track::run(args, stop),
         Command::Record(args) => record::run(args, stop),
         Command::Simulate(args) => simulate::run(args),
-        Command::Stability(args) => stability::run(args),
+        Command::Stability(args) => stability::run(args, stop),
         #[cfg(feature = "train")]
         Command::TeacherLabels(args) => teacher_labels::run(args),
         Command::TrackingLosses(args) => tracking_losses::run(args),

@@ -2,12 +2,13 @@
 //! steadied, against a per-frame peer (dlib through `models/peer_video_dlib.py`). Measures in
 //! [`crate::track_measures`].
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use crate::cli::write_atomic;
 use anyhow::Context;
 use clap::{Args as ClapArgs, ValueEnum};
+use holoface_process::stop::Stop;
 use holoface_runtime::AdaptParams;
 use holoface_runtime::adapt::AdaptOptions;
 use holoface_runtime::align::AdaptState;
@@ -36,7 +37,7 @@ fn parse_named_peer(s: &str) -> Result<(String, PathBuf), String> {
 }
 
 /// Reads a per-frame landmark file in the peer's format.
-fn read_peer(p: &std::path::Path) -> anyhow::Result<Vec<Landmarks>> {
+fn read_peer(p: &Path) -> anyhow::Result<Vec<Landmarks>> {
     let bytes = holoface_files::read_bounded(p, 256 << 20, "peer landmarks")?;
     parse_peer(&String::from_utf8_lossy(&bytes)).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
 }
@@ -53,7 +54,7 @@ struct OtherPeer {
     ms_per_frame: Option<serde_json::Value>,
 }
 
-fn other_peer(name: &str, file: &std::path::Path, peer: Option<&[Landmarks]>) -> anyhow::Result<OtherPeer> {
+fn other_peer(name: &str, file: &Path, peer: Option<&[Landmarks]>) -> anyhow::Result<OtherPeer> {
     let lm = read_peer(file)?;
     let mut side = file.as_os_str().to_owned();
     side.push(".json");
@@ -225,11 +226,12 @@ fn pct(s: Option<Summary>, f: impl Fn(&Summary) -> f64) -> String {
 
 /// Tracks the clip's frames (at most `max_frames`) with every run's tracker, recording each run's raw and
 /// steadied landmarks, who answered and the re-detections; `paced` replays at the clip's own rate; each
-/// run's relay cuts its link on the schedule of `cuts`. Returns whether the link was cut, per frame.
+/// run's relay cuts its link on the schedule of `cuts`; a stop asked for ends the clip after the frame in hand.
+/// Returns whether the link was cut, per frame.
 fn track_clip(
     runs: &mut [Run],
     source: &mut dyn holoface_sources::FrameSource,
-    max_frames: usize,
+    (max_frames, stop): (usize, &Stop),
     paced: bool,
     cuts: Option<&crate::link_cuts::LinkCuts>,
 ) -> anyhow::Result<Vec<bool>> {
@@ -237,9 +239,13 @@ fn track_clip(
     let mut frames = 0usize;
     let mut pacer = paced.then(crate::link_cuts::Pacer::default);
     let mut first_us = None;
-    while frames < max_frames {
-        let Some(sf) = source.next_frame()? else {
-            break;
+    while frames < max_frames && stop.requested().is_none() {
+        let sf = match source.next_frame() {
+            Ok(Some(sf)) => sf,
+            Ok(None) => break,
+            // A source cut by the same signal has ended.
+            Err(_) if stop.requested().is_some() => break,
+            Err(e) => return Err(e.into()),
         };
         if let Some(p) = pacer.as_mut() {
             p.wait(sf.timestamp_us);
@@ -470,12 +476,7 @@ fn say_table(reports: &[Report], peer: Option<&[Landmarks]>, peer_jitter: Option
 }
 
 /// The jitter of every run's landmarks over the clip (a 15-frame running mean) as a PNG plot.
-fn write_plot(
-    plot: &std::path::Path,
-    runs: &[Run],
-    peer: Option<&[Landmarks]>,
-    steady: bool,
-) -> anyhow::Result<()> {
+fn write_plot(plot: &Path, runs: &[Run], peer: Option<&[Landmarks]>, steady: bool) -> anyhow::Result<()> {
     let running_mean = |v: Vec<Option<f64>>| -> Vec<(f64, f64)> {
         (0..v.len())
             .filter_map(|t| {
@@ -584,8 +585,13 @@ fn say_others(reports: &[Report], others: &[OtherPeer]) {
 }
 
 /// Runs `holoface stability`.
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(args: Args, stop: &Stop) -> anyhow::Result<()> {
     anyhow::ensure!(!args.aligners.is_empty(), "--aligners names none");
+    if args.source == Path::new("-") {
+        // A live source (a camera on standard input) has no end: a first Ctrl-C ends it after the frame in hand
+        // and the frames so far are measured.
+        stop.stop_gracefully();
+    }
     let peer = args.peer.as_deref().map(read_peer).transpose()?;
     let session_opts = SessionOptions {
         steady: args.steady.settings(),
@@ -605,7 +611,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let in_cut = track_clip(
         &mut runs,
         &mut *source,
-        args.max_frames,
+        (args.max_frames, stop),
         remote_runs,
         args.link_cuts.as_ref(),
     )
@@ -677,6 +683,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             drop(relay);
             s.stop();
         }
+    }
+    if let Some(sig) = stop.requested() {
+        eprintln!(
+            "stopped by {} after {frames} frames; the report covers them",
+            sig.name()
+        );
+        std::process::exit(sig.exit_code());
     }
     Ok(())
 }
