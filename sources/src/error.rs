@@ -146,7 +146,8 @@ macro_rules! fail {
     };
 }
 
-/// `SourceError::Kind(format!(...))`.
+/// `SourceError::Kind(format!(...))` (the video readers' and writer's; a build without them has no use for it).
+#[allow(unused_macros)]
 macro_rules! err {
     ($kind:ident, $($arg:tt)+) => {
         $crate::SourceError::$kind(format!($($arg)+))

@@ -5,7 +5,6 @@
 use std::convert::Infallible;
 use std::path::Path;
 
-use crate::SourceError;
 use crate::error::fail;
 use crate::{FrameSource, SourceError};
 use holoface_models::camera::Intrinsics;
