@@ -22,10 +22,16 @@ fn track(out: &str, stdout: Stdio) -> Child {
 }
 
 fn track_with(out: &str, stdout: Stdio, extra: &[&str]) -> Child {
+    let mut args = vec!["track", "--source", "-", "--out", out];
+    args.extend(extra);
+    live(&args, &workspace(), stdout)
+}
+
+/// `holoface ARGS` in `dir`, its standard input piped (for a [`Camera`]) and its standard error captured.
+fn live(args: &[&str], dir: &Path, stdout: Stdio) -> Child {
     Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(["track", "--source", "-", "--out", out])
-        .args(extra)
-        .current_dir(workspace())
+        .args(args)
+        .current_dir(dir)
         .env("RUST_BACKTRACE", "0")
         .stdin(Stdio::piped())
         .stdout(stdout)
@@ -271,15 +277,7 @@ fn a_killed_live_run_leaves_whole_lines_under_the_files_name() {
 #[test]
 fn out_dash_streams_json_lines_on_standard_output_and_nothing_else() {
     let d = tmp("live-stdout");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(["track", "--source", "-", "--out", "-"])
-        .current_dir(&d)
-        .env("RUST_BACKTRACE", "0")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = live(&["track", "--source", "-", "--out", "-"], &d, Stdio::piped());
     let cam = Camera::start(&mut child);
     // Each frame arrives on standard output as it is tracked: read 10, then go away (`| head -n 10`).
     let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
@@ -408,16 +406,16 @@ fn a_live_recording_stopped_by_a_signal_is_whole_and_a_killed_one_is_read_to_its
 fn ctrl_c_ends_a_live_stability_run_with_a_report_of_its_frames() {
     let d = tmp("live-stability");
     let report = d.join("stability.json");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_holoface"))
-        .args(["stability", "--source", "-", "--aligners", "krfws", "--out"])
-        .arg(&report)
-        .current_dir(workspace())
-        .env("RUST_BACKTRACE", "0")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let args = [
+        "stability",
+        "--source",
+        "-",
+        "--aligners",
+        "krfws",
+        "--out",
+        report.to_str().unwrap(),
+    ];
+    let mut child = live(&args, &workspace(), Stdio::piped());
     let cam = Camera::start(&mut child);
     // The pipe holds about 20 frames: past 40 sent, the run is reading them.
     let t0 = Instant::now();
