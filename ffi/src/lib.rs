@@ -937,6 +937,8 @@ mod tests {
         }
     }
 
+    // Checked natively: the header comes from the source, whatever the architecture (ffi/Cargo.toml).
+    #[cfg(not(holoface_emulated))]
     #[test]
     fn header_is_current() {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
