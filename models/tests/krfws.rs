@@ -89,22 +89,54 @@ fn small_config() -> TrainConfig {
     }
 }
 
-/// One small model shared by the tests (trained once).
+/// One small model shared by the tests. nextest runs each test in a process of its own, so a model kept in the
+/// process alone would be trained once per test (about 3 CPU-s each); it is trained once per build of this test
+/// binary instead and kept in the target's scratch folder, under a name made from the binary's size and time, while
+/// the other processes wait on a file lock and then read it.
 fn model() -> &'static (Krfws, Vec<TrainFace>) {
     static M: OnceLock<(Krfws, Vec<TrainFace>)> = OnceLock::new();
     M.get_or_init(|| {
         let mut rng = Rng::new(42);
         let faces: Vec<TrainFace> = (0..40).map(|_| synthetic_face(&mut rng)).collect();
-        let (mut m, report) = train::train(&faces[..30], &small_config(), &NoProgress).unwrap();
-        // Training error falls stage by stage.
-        assert!(
-            report.stage_nme.windows(2).all(|w| w[1] < w[0]),
-            "{:?}",
-            report.stage_nme
-        );
-        m.set_threshold(0.1);
-        (m, faces)
+        (shared_model(&faces[..30]), faces)
     })
+}
+
+/// The model of [`model`] trained on `faces`, or read back from where a test of this same binary wrote it.
+fn shared_model(faces: &[TrainFace]) -> Krfws {
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"));
+    let exe = std::fs::metadata(std::env::current_exe().unwrap()).unwrap();
+    let stamp = exe
+        .modified()
+        .unwrap()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap();
+    let path = dir.join(format!("krfws-fixture-{}-{}.bin", exe.len(), stamp.as_nanos()));
+    let lock = std::fs::File::create(dir.join("krfws-fixture.lock")).unwrap();
+    lock.lock().unwrap();
+    if let Ok(bytes) = std::fs::read(&path) {
+        return Krfws::from_bytes(&bytes).unwrap();
+    }
+    let (mut m, report) = train::train(faces, &small_config(), &NoProgress).unwrap();
+    // Training error falls stage by stage.
+    assert!(
+        report.stage_nme.windows(2).all(|w| w[1] < w[0]),
+        "{:?}",
+        report.stage_nme
+    );
+    m.set_threshold(0.1);
+    // Older builds' models go; this one is written whole before its name appears.
+    for old in std::fs::read_dir(dir).unwrap().flatten() {
+        if old.file_name().to_string_lossy().starts_with("krfws-fixture-") {
+            let _ = std::fs::remove_file(old.path());
+        }
+    }
+    let bytes = m.to_bytes().unwrap();
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, &bytes).unwrap();
+    std::fs::rename(&tmp, &path).unwrap();
+    // Every process tests the model as read back, whichever trained it.
+    Krfws::from_bytes(&bytes).unwrap()
 }
 
 #[test]
